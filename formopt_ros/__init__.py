@@ -1,0 +1,1 @@
+"""formopt_ros: optimized follower motion for localization in leader-follower formations."""

@@ -1,0 +1,42 @@
+"""Build script of the formopt_ros ament_python package."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'formopt_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/scripts', glob('scripts/*.sh')),
+    ],
+    python_requires='>=3.10',
+    install_requires=['setuptools', 'numpy', 'scipy'],
+    extras_require={
+        'tools': ['matplotlib', 'tqdm', 'mcap', 'rosbags'],
+        'test': ['pytest'],
+    },
+    zip_safe=True,
+    maintainer='formopt_ros developers',
+    maintainer_email='dev@formopt.invalid',
+    description='Optimized motion strategies for localization in leader-follower formations.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'leader_sim = formopt_ros.nodes.leader_sim:main',
+            'follower_sim = formopt_ros.nodes.follower_sim:main',
+            'estimator_planner = formopt_ros.nodes.estimator_planner:main',
+            'recorder = formopt_ros.nodes.recorder:main',
+            'replay = formopt_ros.nodes.replay:main',
+            'formopt-montecarlo = formopt_ros.montecarlo:main',
+            'formopt-bench = formopt_ros.bench:main',
+            'formopt-report = formopt_ros.report:main',
+        ],
+    },
+)
