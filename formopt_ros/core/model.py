@@ -1,0 +1,129 @@
+"""Relative kinematics, range/bearing measurement models and the EKF of the paper (eqs. 8-19).
+
+Frames and units
+----------------
+The state ``x = [x, y, phi]`` is the follower's pose in the leader's body frame {L}: position in
+metres, heading in radians (follower x-axis relative to leader x-axis), wrapped to [-pi, pi).
+Velocities are body-frame forward speed (m/s) and yaw rate (rad/s).
+
+The paper assumes omega_L = 0. We keep the leader's yaw rate in the model so that a turning
+leader can be simulated; with ``omega_l = 0`` every formula reduces to the printed eqs. (9)-(12).
+Derivation of the general case: p = C_L^T (p_F - p_L) gives
+``p_dot = -omega_L J p + C(phi) e1 v_F - e1 v_L`` with ``J = [[0, -1], [1, 0]]``, i.e.
+``x_dot = omega_L y + cos(phi) v_F - v_L``, ``y_dot = -omega_L x + sin(phi) v_F``,
+``phi_dot = omega_F - omega_L``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+RANGE = 'range'
+BEARING = 'bearing'
+MEASUREMENT_KINDS = (RANGE, BEARING)
+
+
+def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:
+    """Wrap an angle (rad) to [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def propagate_state(x: np.ndarray, v_f: float, omega_f: float, dt: float,
+                    v_l: float, omega_l: float = 0.0) -> np.ndarray:
+    """Euler step of the relative kinematics, paper eqs. (9)/(10).
+
+    Args:
+        x: pose [x, y, phi] of the follower in {L} (m, m, rad), shape (3,).
+        v_f, omega_f: follower forward speed (m/s) and yaw rate (rad/s) during the step.
+        dt: step length (s).
+        v_l, omega_l: leader forward speed (m/s) and yaw rate (rad/s).
+
+    Returns:
+        The pose after ``dt``, shape (3,), heading wrapped.
+    """
+    px, py, phi = float(x[0]), float(x[1]), float(x[2])
+    return np.array([
+        px + (omega_l * py + math.cos(phi) * v_f - v_l) * dt,
+        py + (-omega_l * px + math.sin(phi) * v_f) * dt,
+        wrap_angle(phi + (omega_f - omega_l) * dt),
+    ])
+
+
+def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: float,
+              v_l: float, omega_l: float, sigma_v: float,
+              sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """EKF propagation with measured follower velocities, paper eqs. (10)-(12).
+
+    Args:
+        x: estimated pose [x, y, phi] in {L}, shape (3,).
+        P: its covariance, shape (3, 3), units m^2 / m rad / rad^2.
+        v_f, omega_f: odometry (measured) follower velocities, m/s and rad/s.
+        dt: step length, s.
+        v_l, omega_l: leader velocities (known), m/s and rad/s.
+        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+
+    Returns:
+        (x, P) after the step; P is symmetrised.
+    """
+    phi = float(x[2])
+    c, s = math.cos(phi), math.sin(phi)
+    Phi = np.array([[1.0, omega_l * dt, -s * v_f * dt],
+                    [-omega_l * dt, 1.0, c * v_f * dt],
+                    [0.0, 0.0, 1.0]])
+    G = np.array([[c * dt, 0.0], [s * dt, 0.0], [0.0, dt]])
+    Q = np.diag([sigma_v * sigma_v, sigma_omega * sigma_omega])
+    P_next = Phi @ P @ Phi.T + G @ Q @ G.T
+    return propagate_state(x, v_f, omega_f, dt, v_l, omega_l), 0.5 * (P_next + P_next.T)
+
+
+def predict_measurement(kind: str, x: np.ndarray) -> float:
+    """Noise-free range (m, eq. 15) or bearing (rad, eq. 17, wrapped) at pose x in {L}."""
+    if kind == RANGE:
+        return math.hypot(x[0], x[1])
+    return float(wrap_angle(math.atan2(x[1], x[0]) - x[2] + math.pi))
+
+
+def measurement_jacobian(kind: str, x: np.ndarray) -> np.ndarray:
+    """Jacobian of the measurement w.r.t. [x, y, phi], eqs. (16) and (18), shape (3,)."""
+    px, py = float(x[0]), float(x[1])
+    d2 = px * px + py * py
+    if kind == RANGE:
+        d = math.sqrt(d2)
+        return np.array([px / d, py / d, 0.0])
+    return np.array([-py / d2, px / d2, -1.0])
+
+
+def ekf_update(x: np.ndarray, P: np.ndarray, z: float, kind: str,
+               variance: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """EKF measurement update, eq. (19), in Joseph form (stays symmetric positive definite).
+
+    Args:
+        x: prior pose [x, y, phi] in {L}, shape (3,).
+        P: prior covariance, shape (3, 3).
+        z: measured range (m) or bearing (rad).
+        kind: 'range' or 'bearing'.
+        variance: measurement noise variance, m^2 or rad^2.
+
+    Returns:
+        (x_post, P_post, innovation, innovation_variance); bearing innovations are wrapped.
+    """
+    h = measurement_jacobian(kind, x)
+    innovation = z - predict_measurement(kind, x)
+    if kind == BEARING:
+        innovation = float(wrap_angle(innovation))
+    Ph = P @ h
+    S = float(h @ Ph) + variance
+    K = Ph / S
+    x_post = x + K * innovation
+    x_post[2] = wrap_angle(x_post[2])
+    A = np.eye(3) - np.outer(K, h)
+    P_post = A @ P @ A.T + variance * np.outer(K, K)
+    return x_post, 0.5 * (P_post + P_post.T), innovation, S
+
+
+def normalized_estimation_error(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
+    """NEES of [x, y, phi] (heading error wrapped): e' P^-1 e, dimensionless."""
+    e = np.asarray(x_true, dtype=float) - np.asarray(x_est, dtype=float)
+    e[2] = wrap_angle(e[2])
+    return float(e @ np.linalg.solve(P, e))

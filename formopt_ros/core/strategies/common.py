@@ -1,0 +1,121 @@
+"""Pieces shared by several strategies: the plan record, range-arc logic, boundary polishing."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from formopt_ros.core.cost import Problem, point_from_q
+
+#: Relative spread of the gain below which every direction ties (range case): return p_o.
+FLAT_TOLERANCE = 1e-12
+
+
+@dataclass
+class Plan:
+    """What a strategy returns: the chosen point and how it was found.
+
+    Attributes:
+        p: chosen position in the leader frame, shape (2,), m.
+        candidates: number of critical/grid points whose cost was evaluated.
+        on_boundary: True when p lies on the circle |p - p_o| = r.
+        fallback: name of the method used when the primary route lost accuracy, else None.
+        details: method-specific diagnostics (polynomial degrees, residuals, ...).
+    """
+
+    p: np.ndarray
+    candidates: int = 1
+    on_boundary: bool = False
+    fallback: str | None = None
+    details: dict = field(default_factory=dict)
+
+
+def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
+    """True when the best and worst gain differ by less than FLAT_TOLERANCE of the cost."""
+    return gain_max - gain_min <= FLAT_TOLERANCE * max(problem.base_cost - gain_max, 1e-300)
+
+
+def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
+                              candidates: int) -> Plan:
+    """Range case (paper Fig. 3): the best bearing on the feasible arc and its nearest point.
+
+    The range gain depends on the bearing theta only, is pi-periodic and unimodal per period.
+    If the unconstrained maximiser ``theta_star`` (mod pi) lies inside the arc of bearings
+    ``theta_o +- delta`` under which the disc is seen, it is optimal; otherwise one of the arc's
+    end points is. On the chosen ray the point nearest p_o is ``(u . p_o) u``.
+
+    Args:
+        problem: a range problem.
+        theta_star: unconstrained maximiser of the gain, rad (any representative mod pi).
+        flat: every direction ties; return p_o.
+        candidates: critical points the caller already examined.
+    """
+    if flat:
+        return Plan(problem.p_o.copy(), candidates, False, details={'flat': True})
+    theta_o, delta = problem.bearing_arc()
+    offset = (theta_star - theta_o + 0.5 * math.pi) % math.pi - 0.5 * math.pi
+    if abs(offset) <= delta:
+        thetas = [theta_o + offset]
+    else:
+        thetas = [theta_o - delta, theta_o + delta]
+    units = np.array([[math.cos(t), math.sin(t)] for t in thetas])
+    points = (units @ problem.p_o)[:, None] * units
+    best = int(np.argmax(problem.gain(points))) if len(thetas) > 1 else 0
+    return Plan(points[best], candidates + len(thetas), len(thetas) > 1,
+                details={'flat': False, 'theta': thetas[best]})
+
+
+def _fourier(X: np.ndarray, a: np.ndarray, rho: float) -> np.ndarray:
+    """Complex Fourier coefficients (k = -2..2) of t -> h(t)' X h(t), h = a + rho [cos, sin, 0]."""
+    b = np.array([rho, 0.0, 0.0])
+    c = np.array([0.0, rho, 0.0])
+    aXa, aXb, aXc = a @ X @ a, a @ X @ b, a @ X @ c
+    bXb, bXc, cXc = b @ X @ b, b @ X @ c, c @ X @ c
+    c0 = aXa + 0.5 * (bXb + cXc)
+    c1 = aXb - 1j * aXc              # (f1 - i f2) / 2 with f1 = 2 aXb, f2 = 2 aXc
+    c2 = 0.5 * (0.5 * (bXb - cXc) - 1j * bXc)
+    return np.array([np.conj(c2), np.conj(c1), c0, c1, c2])
+
+
+def boundary_stationarity(problem: Problem) -> np.ndarray:
+    """Fourier coefficients F_k, k = -3..3, of num'(t) den(t) - num(t) den'(t) on the q-circle.
+
+    On the image circle q(t) = c_q + rho_q [cos t, sin t] of the disc boundary (bearing case),
+    num and den are trigonometric polynomials of degree 2, so their Wronskian has degree 4; its
+    k = +-4 harmonics are 2 i (n_2 d_-2 - ...) and cancel identically (checked in the tests),
+    leaving degree 3: at most 6 stationary points on the circle.
+    """
+    centre, rho = problem.q_disc()
+    a = np.array([centre[0], centre[1], -1.0])
+    num = _fourier(problem.M, a, rho)
+    den = _fourier(problem.N, a, rho)
+    k = np.arange(-2, 3)
+    wronskian = np.convolve(1j * k * num, den) - np.convolve(num, 1j * k * den)
+    return wronskian[1:-1]
+
+
+def polish_boundary_angles(F: np.ndarray, t: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """Newton steps on the real trigonometric polynomial sum_k F_k e^{ikt} = 0 (k = -3..3)."""
+    k = np.arange(-3, 4)
+    t = np.asarray(t, dtype=float).copy()
+    for _ in range(iterations):
+        e = np.exp(1j * np.outer(t, k))
+        value = (e @ F).real
+        slope = (e @ (1j * k * F)).real
+        step = np.where(np.abs(slope) > 0, value / np.where(slope == 0, 1.0, slope), 0.0)
+        t -= np.clip(step, -0.1, 0.1)
+    return t
+
+
+def boundary_points(problem: Problem, t: np.ndarray) -> np.ndarray:
+    """Points p (n, 2) on the disc boundary at q-circle angles t (rad)."""
+    centre, rho = problem.q_disc()
+    q = centre + rho * np.stack([np.cos(t), np.sin(t)], axis=-1)
+    return point_from_q(q)
+
+
+def best_of(problem: Problem, points: np.ndarray) -> tuple[int, np.ndarray]:
+    """Index of the highest-gain point among points (n, 2), and all gains (n,)."""
+    gains = problem.gain(points)
+    return int(np.argmax(gains)), gains
