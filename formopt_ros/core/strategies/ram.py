@@ -53,7 +53,6 @@ candidate, non-finite coefficients, or a probe point beats the best candidate) R
 """
 from __future__ import annotations
 
-import itertools
 import math
 from functools import lru_cache, reduce
 
@@ -69,8 +68,13 @@ from formopt_ros.core.strategies.rq import plan_rq
 RESIDUAL_TOLERANCE = 1e-4
 #: Relative cost gap by which a probe point may beat RAM's best before RAM falls back.
 PROBE_TOLERANCE = 1e-12
-#: Relative remainder of the (c^2 + s^2)^2 deflation above which the route counts as inaccurate.
-REMAINDER_TOLERANCE = 1e-3
+#: Relative size of the interpolant's coefficients above the exact degree (zero in exact
+#: arithmetic) above which the polynomial route counts as inaccurate and RAM falls back.
+ALIASING_TOLERANCE = 1e-3
+#: Degrees in sigma = sin^2 t of the eliminated polynomials, established with exact rational
+#: arithmetic (the paper prints 11 and 8; see the module docstring).
+INACTIVE_DEGREE = 7
+ACTIVE_DEGREE = 6
 #: Boundary probe points (angles on the q-circle) used to detect a lost root.
 PROBE_ANGLES = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
 
@@ -104,12 +108,6 @@ def _plan_range(problem: Problem) -> Plan:
 # --- homogeneous bivariate polynomials in (c, s): coefficient k multiplies c^(n-k) s^k --------
 def _mul(*polys: np.ndarray) -> np.ndarray:
     return reduce(np.convolve, polys)
-
-
-def _evaluate(poly: np.ndarray, c: float, s: float) -> float:
-    n = len(poly) - 1
-    k = np.arange(n + 1)
-    return float(np.sum(poly * c ** (n - k) * s ** k))
 
 
 def _beta(b: np.ndarray) -> np.ndarray:          # b' alpha,      alpha = [-s, c]
@@ -163,162 +161,126 @@ def active_polynomials(problem: Problem) -> tuple[list[np.ndarray], list[np.ndar
     return q, g
 
 
-@lru_cache(maxsize=4)
-def _sylvester_terms(m: int, n: int) -> tuple[tuple[int, tuple[tuple[int, int], ...]], ...]:
-    """Non-vanishing Leibniz terms of the Sylvester matrix of degree-m and degree-n polynomials.
-
-    Rows 0..n-1 hold the degree-m coefficients shifted, rows n..n+m-1 the degree-n ones. Each
-    term is (sign, ((row, coefficient index), ...)).
-    """
-    size = m + n
-    terms = []
-    for perm in itertools.permutations(range(size)):
-        entries = []
-        for row, col in enumerate(perm):
-            shift, degree = (row, m) if row < n else (row - n, n)
-            index = col - shift
-            if not 0 <= index <= degree:
-                break
-            entries.append((row, index))
-        else:
-            inversions = sum(1 for i in range(size) for j in range(i + 1, size)
-                             if perm[i] > perm[j])
-            terms.append((-1 if inversions % 2 else 1, tuple(entries)))
-    return tuple(terms)
+def _evaluate_many(poly: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Values of a homogeneous polynomial in (c, s) at arrays c, s of equal shape (K,)."""
+    n = len(poly) - 1
+    k = np.arange(n + 1)
+    return (c[:, None] ** (n - k) * s[:, None] ** k) @ poly
 
 
-def sylvester_resultant(f: list[np.ndarray], g: list[np.ndarray]) -> np.ndarray:
-    """Res(f, g; d) for polynomials in d whose coefficients (highest first) are homogeneous
-    polynomials in (c, s); returns the homogeneous coefficients of the resultant."""
+def _monomial_table(c: np.ndarray, s: np.ndarray, max_degree: int = 5) -> list[np.ndarray]:
+    """Entry n: the monomials c^(n-k) s^k, k = 0..n, at the points, shape (len(c), n + 1)."""
+    return [c[:, None] ** (n - np.arange(n + 1)) * s[:, None] ** np.arange(n + 1)
+            for n in range(max_degree + 1)]
+
+
+def sylvester_matrices(f: list[np.ndarray], g: list[np.ndarray],
+                       table: list[np.ndarray]) -> np.ndarray:
+    """Sylvester matrices in d of f and g (coefficient lists, highest power first) at the
+    bearings of a monomial table; shape (K, m + n, m + n). Rows 0..n-1 hold f shifted."""
     m, n = len(f) - 1, len(g) - 1
-    total = None
-    for sign, entries in _sylvester_terms(m, n):
-        term = _mul(*[(f if row < n else g)[index] for row, index in entries])
-        total = sign * term if total is None else total + sign * term
-    return total
+    fv = [table[len(poly) - 1] @ poly for poly in f]
+    gv = [table[len(poly) - 1] @ poly for poly in g]
+    S = np.zeros((len(fv[0]), m + n, m + n))
+    for row in range(n):
+        S[:, row, row:row + m + 1] = np.stack(fv, axis=1)
+    for row in range(m):
+        S[:, n + row, row:row + n + 1] = np.stack(gv, axis=1)
+    return S
 
 
 @lru_cache(maxsize=4)
-def _sigma_basis(n: int) -> np.ndarray:
-    """Row k: ascending coefficients of (1 - sigma)^((n-k)//2) sigma^(k//2), k = 0..n."""
-    rows = np.zeros((n + 1, n // 2 + 1))
-    for k in range(n + 1):
-        poly = np.convolve(np.polynomial.polynomial.polypow([1.0, -1.0], (n - k) // 2),
-                           np.eye(k // 2 + 1)[k // 2])
-        rows[k, :len(poly)] = poly
-    return rows
+def _chebyshev_interpolation(count: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """Monomial table at the bearings (+-c0, s) of ``count`` Chebyshev points of the first kind
+    in sigma = sin^2 t on [0, 1] (the +c0 ones first), and the matrix that maps values at those
+    points to the coefficients of the interpolating Chebyshev series (degree count - 1)."""
+    x = np.cos(np.pi * (np.arange(count) + 0.5) / count)
+    sigma = 0.5 * (1.0 + x)
+    sin, cos = np.sqrt(sigma), np.sqrt(1.0 - sigma)
+    table = _monomial_table(np.concatenate([cos, -cos]), np.concatenate([sin, sin]))
+    return table, np.linalg.inv(np.polynomial.chebyshev.chebvander(x, count - 1))
 
 
-def eliminate_cosine(resultant: np.ndarray) -> np.ndarray:
-    """Res(R, c^2 + s^2 - 1; c) as a polynomial in sigma = sin^2 t, ascending coefficients.
+def eliminated_polynomial(f: list[np.ndarray], g: list[np.ndarray],
+                          degree: int) -> tuple[np.ndarray, float]:
+    """Res(Res(f, g; d), c^2 + s^2 - 1; c) as a Chebyshev series in sigma = sin^2 t on [0, 1].
 
-    Split R(c, s) = sum_k r_k c^(n-k) s^k by the parity of the power of c: with c^2 = 1 - sigma
-    and s^2 = sigma, R = s^e A(sigma) + c s^o B(sigma) where (e, o) = (0, 1) for even n and
-    (1, 0) for odd n. Then Res = R(c0, s) R(-c0, s) = s^2e A^2 - (1 - sigma) s^2o B^2, a
-    polynomial in sigma of degree n // 2 * 2 + (n odd) = n: 11 for the inactive case as the
-    paper states (eqs. 37-38), 10 for the active one (eqs. 45-46).
+    On the real unit circle Res(R, c^2 + s^2 - 1; c)(sigma) = R(c0, s) R(-c0, s) with
+    c0 = sqrt(1 - sigma), s = sqrt(sigma) (eqs. 37 and 45), and the factor (c^2 + s^2)^2 that
+    both resultants carry equals 1. So we evaluate the Sylvester determinants at Chebyshev
+    nodes in sigma and interpolate: the basis is well conditioned on [0, 1], where the roots
+    we need lie. We sample ``degree + 4`` nodes; the relative size of the coefficients above
+    ``degree`` (zero in exact arithmetic) is returned as an accuracy measure.
     """
-    n = len(resultant) - 1
-    basis = _sigma_basis(n)
-    even_c = (n - np.arange(n + 1)) % 2 == 0
-    A = resultant[even_c] @ basis[even_c]
-    B = resultant[~even_c] @ basis[~even_c]
-    A2, B2 = np.convolve(A, A), np.convolve(B, B)
-    if n % 2 == 0:
-        return np.polynomial.polynomial.polysub(A2, np.convolve([0.0, 1.0, -1.0], B2))
-    return np.polynomial.polynomial.polysub(np.convolve([0.0, 1.0], A2),
-                                            np.convolve([1.0, -1.0], B2))
-
-
-def deflate_unit_circle(resultant: np.ndarray, times: int = 2) -> tuple[np.ndarray, float]:
-    """Divide a homogeneous polynomial in (c, s) by (c^2 + s^2)^times.
-
-    Both resultants carry the factor (c^2 + s^2)^2 (shown with exact rational arithmetic); it
-    equals 1 on the unit circle and only raises the degree, so it is removed before the
-    elimination. Returns the quotient and the relative size of the remainder (an accuracy
-    check: it vanishes in exact arithmetic).
-    """
-    quotient = resultant[::-1]                     # ascending in s  ==  R(1, s) highest first
-    scale = np.max(np.abs(resultant))
-    remainder = 0.0
-    for _ in range(times):
-        quotient, rest = np.polydiv(quotient, [1.0, 0.0, 1.0])
-        remainder = max(remainder, float(np.max(np.abs(rest))) / scale)
-    return quotient[::-1], remainder
-
-
-def sigma_roots(coefficients: np.ndarray) -> tuple[np.ndarray, int]:
-    """Real roots in [0, 1] of a polynomial in sigma (ascending coefficients), via the
-    eigenvalues of its companion matrix; leading coefficients below 1e-13 of the largest are
-    treated as zero. Returns the roots and the degree used."""
-    scale = np.max(np.abs(coefficients))
+    table, interpolation = _chebyshev_interpolation(degree + 4)
+    det = np.linalg.det(sylvester_matrices(f, g, table))
+    half = len(det) // 2
+    series = interpolation @ (det[:half] * det[half:])
+    scale = np.max(np.abs(series))
     if not np.isfinite(scale) or scale == 0.0:
         raise FloatingPointError('degenerate elimination polynomial')
-    c = coefficients / scale
-    degree = int(np.max(np.nonzero(np.abs(c) > 1e-13)[0]))
-    if degree == 0:
-        return np.zeros(0), 0
-    companion = np.zeros((degree, degree))
-    companion[1:, :-1] = np.eye(degree - 1)
-    companion[:, -1] = -c[:degree] / c[degree]
-    roots = np.linalg.eigvals(companion)
-    real = roots[np.abs(roots.imag) <= 1e-6 * (1 + np.abs(roots.real))].real
-    return np.clip(real[(real >= -1e-8) & (real <= 1 + 1e-8)], 0.0, 1.0), degree
+    return series[:degree + 1], float(np.max(np.abs(series[degree + 1:])) / scale)
 
 
-def _check_remainder(remainder: float) -> None:
-    if not remainder < REMAINDER_TOLERANCE:
-        raise FloatingPointError(f'resultant deflation remainder {remainder:.2g}')
+def sigma_roots(series: np.ndarray) -> np.ndarray:
+    """Real roots in [0, 1] of a Chebyshev series in 2 sigma - 1, from the eigenvalues of its
+    colleague matrix (the companion matrix of the Chebyshev basis)."""
+    roots = np.polynomial.chebyshev.chebroots(series)
+    real = roots[np.abs(roots.imag) <= 1e-6].real
+    sigma = 0.5 * (real + 1.0)
+    return np.clip(sigma[(sigma >= -1e-8) & (sigma <= 1 + 1e-8)], 0.0, 1.0)
 
 
-def _angles(sigmas: np.ndarray) -> list[tuple[float, float]]:
-    """All (cos t, sin t) with sin^2 t = sigma."""
-    out = set()
-    for sigma in sigmas:
-        s, c = math.sqrt(sigma), math.sqrt(1.0 - sigma)
-        out.update({(c, s), (-c, s), (c, -s), (-c, -s)})
-    return sorted(out)
+def _angles(sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All (cos t, sin t) with sin^2 t = sigma, as two arrays."""
+    s, c = np.sqrt(sigmas), np.sqrt(1.0 - sigmas)
+    return np.concatenate([c, -c, c, -c]), np.concatenate([s, s, -s, -s])
 
 
-def _relative_residual(coeffs: list[np.ndarray], d: float, c: float, s: float) -> float:
-    terms = [_evaluate(poly, c, s) * d ** (len(coeffs) - 1 - i) for i, poly in enumerate(coeffs)]
-    return abs(sum(terms)) / max(sum(abs(t) for t in terms), 1e-300)
+def _relative_residual(coeffs: list[np.ndarray], d: np.ndarray, c: np.ndarray,
+                       s: np.ndarray) -> np.ndarray:
+    terms = [_evaluate_many(poly, c, s) * d ** (len(coeffs) - 1 - i)
+             for i, poly in enumerate(coeffs)]
+    return np.abs(sum(terms)) / np.maximum(sum(np.abs(t) for t in terms), 1e-300)
 
 
-def _interior_candidates(problem: Problem) -> tuple[list[np.ndarray], int]:
+def _check_accuracy(aliasing: float) -> None:
+    if not aliasing < ALIASING_TOLERANCE:
+        raise FloatingPointError(f'elimination polynomial lost accuracy ({aliasing:.2g})')
+
+
+def _interior_candidates(problem: Problem) -> np.ndarray:
     zeta, gamma = kkt_polynomials(problem)
-    reduced, remainder = deflate_unit_circle(sylvester_resultant(zeta, gamma))
-    _check_remainder(remainder)
-    roots, degree = sigma_roots(eliminate_cosine(reduced))
-    points = []
-    for c, s in _angles(roots):
-        z = [_evaluate(poly, c, s) for poly in zeta]
-        for d in np.roots(z) if abs(z[0]) > 0 else np.roots(z[1:]):
-            if abs(d.imag) > 1e-8 * abs(d) or d.real <= 0:
-                continue
-            p = d.real * np.array([c, s])
-            if problem.feasible(p, 0.0) and _relative_residual(gamma, d.real, c, s) \
-                    < RESIDUAL_TOLERANCE:
-                points.append(p)
-    return points, degree
+    series, aliasing = eliminated_polynomial(zeta, gamma, INACTIVE_DEGREE)
+    _check_accuracy(aliasing)
+    c, s = _angles(sigma_roots(series))
+    z2, z1, z0 = (_evaluate_many(poly, c, s) for poly in zeta)
+    disc = np.sqrt((z1 * z1 - 4 * z2 * z0).astype(complex))
+    with np.errstate(divide='ignore', invalid='ignore'):
+        d = np.concatenate([(-z1 + disc) / (2 * z2), (-z1 - disc) / (2 * z2)])
+    c, s = np.concatenate([c, c]), np.concatenate([s, s])
+    ok = np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0)
+    d, c, s = d.real[ok], c[ok], s[ok]
+    points = d[:, None] * np.stack([c, s], axis=1)
+    inside = np.hypot(*(points - problem.p_o).T) < problem.r
+    good = inside & (_relative_residual(gamma, d, c, s) < RESIDUAL_TOLERANCE)
+    return points[good]
 
 
-def _active_candidates(problem: Problem) -> tuple[list[np.ndarray], int]:
+def _active_candidates(problem: Problem) -> np.ndarray:
     q, g = active_polynomials(problem)
-    reduced, remainder = deflate_unit_circle(sylvester_resultant(q, g))
-    _check_remainder(remainder)
-    roots, degree = sigma_roots(eliminate_cosine(reduced))
-    points = []
-    k = problem.d_o ** 2 - problem.r ** 2
-    for c, s in _angles(roots):
-        ell = problem.p_o[0] * c + problem.p_o[1] * s
-        disc = ell * ell - k
-        if disc < -1e-12 * problem.d_o ** 2 or ell <= 0:
-            continue
-        for d in {ell - math.sqrt(max(disc, 0.0)), ell + math.sqrt(max(disc, 0.0))}:
-            if _relative_residual(q, d, c, s) < RESIDUAL_TOLERANCE:
-                points.append(d * np.array([c, s]))
-    return points, degree
+    series, aliasing = eliminated_polynomial(q, g, ACTIVE_DEGREE)
+    _check_accuracy(aliasing)
+    c, s = _angles(sigma_roots(series))
+    ell = problem.p_o[0] * c + problem.p_o[1] * s
+    root = np.sqrt(np.maximum(ell * ell - (problem.d_o ** 2 - problem.r ** 2), 0.0))
+    hits = ell * ell - (problem.d_o ** 2 - problem.r ** 2) > -1e-12 * problem.d_o ** 2
+    hits &= ell > 0
+    d = np.concatenate([ell - root, ell + root])[np.concatenate([hits, hits])]
+    c, s = np.concatenate([c, c])[np.concatenate([hits, hits])], \
+        np.concatenate([s, s])[np.concatenate([hits, hits])]
+    good = _relative_residual(q, d, c, s) < RESIDUAL_TOLERANCE
+    return d[good, None] * np.stack([c[good], s[good]], axis=1)
 
 
 def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np.ndarray:
@@ -340,23 +302,19 @@ def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np
 
 
 def _plan_bearing(problem: Problem) -> Plan:
-    interior, degree_u = _interior_candidates(problem)
-    active, degree_c = _active_candidates(problem)
+    interior = _interior_candidates(problem)
+    active = _active_candidates(problem)
     polished = [_polish_interior(problem, p) for p in interior]
     polished = [p for p in polished if problem.feasible(p, 0.0)]
     centre, rho = problem.q_disc()
-    t = []
-    for p in active:
-        q = np.array([-p[1], p[0]]) / (p @ p)
-        t.append(math.atan2(q[1] - centre[1], q[0] - centre[0]))
-    F = boundary_stationarity(problem)
-    boundary = list(boundary_points(problem, polish_boundary_angles(F, np.array(t)))) if t else []
-    candidates = interior + polished + active + boundary
-    details = {'degree_inactive': degree_u, 'degree_active': degree_c,
-               'interior_roots': len(interior), 'active_roots': len(active)}
-    if not candidates:
+    q = np.stack([-active[:, 1], active[:, 0]], axis=1) / np.sum(active * active, 1)[:, None]
+    t = np.arctan2(q[:, 1] - centre[1], q[:, 0] - centre[0])
+    boundary = boundary_points(problem, polish_boundary_angles(boundary_stationarity(problem), t))
+    points = np.vstack([interior.reshape(-1, 2), np.reshape(polished, (-1, 2)), active,
+                        boundary])
+    details = {'interior_roots': len(interior), 'active_roots': len(active)}
+    if len(points) == 0:
         raise FloatingPointError('no admissible critical point')
-    points = np.array(candidates)
     best, gains = best_of(problem, points)
     probes = np.vstack([problem.p_o, boundary_points(problem, PROBE_ANGLES)])
     probe_gain = float(np.max(problem.gain(probes)))
