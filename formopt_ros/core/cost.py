@@ -16,7 +16,7 @@ with ``h`` the measurement Jacobian at the candidate position ``p`` (eq. 16 or 1
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 
 import numpy as np
 
@@ -53,8 +53,8 @@ def _check_positive(name: str, value: float, unit: str) -> float:
 def check_covariance(P: np.ndarray, name: str = 'P') -> np.ndarray:
     """Return P as a float (3, 3) array or raise ValueError if it is not symmetric PD."""
     P = _check_finite(name, P, (3, 3))
-    scale = float(np.max(np.abs(P)))
-    asym = float(np.max(np.abs(P - P.T)))
+    scale = float(np.abs(P).max())
+    asym = float(np.abs(P - P.T).max())
     if asym > 1e-9 * max(scale, 1e-300):
         raise ValueError(f'{name} must be symmetric, got max |P - P^T| = {asym:.3g} '
                          f'(max |P| = {scale:.3g})')
@@ -78,6 +78,8 @@ class Problem:
         r: allowed deviation from the slot, m; 0 < r < |p_o| (the disc must not reach the leader).
         sigma: measurement noise standard deviation, m (range) or rad (bearing).
         measurement: 'range' or 'bearing'.
+        validate: check every input (default). The simulator passes False for covariances its
+            own EKF produced, which are symmetric positive definite by construction.
     """
 
     P: np.ndarray
@@ -85,27 +87,31 @@ class Problem:
     r: float
     sigma: float
     measurement: str
+    validate: InitVar[bool] = True
     w: np.ndarray = field(init=False, repr=False)
     M: np.ndarray = field(init=False, repr=False)
     base_cost: float = field(init=False, repr=False)
     numerator_coefficients: np.ndarray = field(init=False, repr=False)
     denominator_coefficients: np.ndarray = field(init=False, repr=False)
 
-    def __post_init__(self) -> None:
-        if self.measurement not in MEASUREMENT_KINDS:
-            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
-                             f'got {self.measurement!r}')
-        P = check_covariance(self.P)
-        p_o = _check_finite('p_o', self.p_o, (2,))
-        r = _check_positive('r', self.r, 'm')
-        unit = 'm' if self.measurement == RANGE else 'rad'
-        sigma = _check_positive('sigma', self.sigma, unit)
-        d_o = math.hypot(p_o[0], p_o[1])
-        if r >= d_o:
-            raise ValueError(f'r must be smaller than |p_o| = {d_o:.6g} m so that the disc does '
-                             f'not reach the leader, got r = {r:.6g} m')
+    def __post_init__(self, validate: bool) -> None:
+        if validate:
+            if self.measurement not in MEASUREMENT_KINDS:
+                raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
+                                 f'got {self.measurement!r}')
+            P = check_covariance(self.P)
+            p_o = _check_finite('p_o', self.p_o, (2,))
+            r = _check_positive('r', self.r, 'm')
+            unit = 'm' if self.measurement == RANGE else 'rad'
+            sigma = _check_positive('sigma', self.sigma, unit)
+            d_o = math.hypot(p_o[0], p_o[1])
+            if r >= d_o:
+                raise ValueError(f'r must be smaller than |p_o| = {d_o:.6g} m so that the disc '
+                                 f'does not reach the leader, got r = {r:.6g} m')
+        else:
+            P, p_o, r, sigma = self.P, self.p_o, float(self.r), float(self.sigma)
         w = weight_vector(p_o)
-        M = P @ np.diag(w * w) @ P
+        M = (P * (w * w)) @ P                      # P W^2 P
         R = sigma * sigma
         if self.measurement == RANGE:
             num = np.array([M[0, 0], 2 * M[0, 1], M[1, 1], 0.0])

@@ -64,17 +64,23 @@ def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: floa
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
 
     Returns:
-        (x, P) after the step; P is symmetrised.
+        (x, P) after the step; P_next = Phi P Phi' + G Q G' written out (symmetric by
+        construction; a test checks it against the matrix form).
     """
     phi = float(x[2])
     c, s = math.cos(phi), math.sin(phi)
-    Phi = np.array([[1.0, omega_l * dt, -s * v_f * dt],
-                    [-omega_l * dt, 1.0, c * v_f * dt],
-                    [0.0, 0.0, 1.0]])
-    G = np.array([[c * dt, 0.0], [s * dt, 0.0], [0.0, dt]])
-    Q = np.diag([sigma_v * sigma_v, sigma_omega * sigma_omega])
-    P_next = Phi @ P @ Phi.T + G @ Q @ G.T
-    return propagate_state(x, v_f, omega_f, dt, v_l, omega_l), 0.5 * (P_next + P_next.T)
+    a, b, e = omega_l * dt, -s * v_f * dt, c * v_f * dt   # Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]]
+    (p00, p01, p02), (_, p11, p12), (_, _, p22) = P.tolist()
+    # rows of Phi P
+    r00, r01, r02 = p00 + a * p01 + b * p02, p01 + a * p11 + b * p12, p02 + a * p12 + b * p22
+    r10, r11, r12 = -a * p00 + p01 + e * p02, -a * p01 + p11 + e * p12, -a * p02 + p12 + e * p22
+    qv, qw = (sigma_v * dt) ** 2, (sigma_omega * dt) ** 2   # G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3'
+    n00 = r00 + a * r01 + b * r02 + qv * c * c
+    n01 = -a * r00 + r01 + e * r02 + qv * c * s
+    n11 = -a * r10 + r11 + e * r12 + qv * s * s
+    n02, n12, n22 = r02, r12, p22 + qw
+    P_next = np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]])
+    return propagate_state(x, v_f, omega_f, dt, v_l, omega_l), P_next
 
 
 def predict_measurement(kind: str, x: np.ndarray) -> float:

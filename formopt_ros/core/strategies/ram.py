@@ -145,9 +145,13 @@ def kkt_polynomials(problem: Problem) -> tuple[list[np.ndarray], list[np.ndarray
     return zeta, gamma
 
 
-def active_polynomials(problem: Problem) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Coefficients in d of Q (degree 4, eq. 41) and of the homogenised constraint g (eq. 40)."""
-    zeta, gamma = kkt_polynomials(problem)
+def active_polynomials(problem: Problem, kkt: tuple[list[np.ndarray], list[np.ndarray]] | None
+                       = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Coefficients in d of Q (degree 4, eq. 41) and of the homogenised constraint g (eq. 40).
+
+    ``kkt`` is the output of :func:`kkt_polynomials`, computed here when not given.
+    """
+    zeta, gamma = kkt or kkt_polynomials(problem)
     xo, yo = problem.p_o
     ell = np.array([xo, yo])                      # x_o c + y_o s
     kappa = np.array([-2 * yo, 2 * xo])           # 2 (x_o s - y_o c): zeta holds F_d / 2
@@ -159,13 +163,6 @@ def active_polynomials(problem: Problem) -> tuple[list[np.ndarray], list[np.ndar
     k = problem.d_o ** 2 - problem.r ** 2
     g = [np.array([1.0]), -2.0 * ell, np.array([k, 0.0, k])]
     return q, g
-
-
-def _evaluate_many(poly: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Values of a homogeneous polynomial in (c, s) at arrays c, s of equal shape (K,)."""
-    n = len(poly) - 1
-    k = np.arange(n + 1)
-    return (c[:, None] ** (n - k) * s[:, None] ** k) @ poly
 
 
 def _monomial_table(c: np.ndarray, s: np.ndarray, max_degree: int = 5) -> list[np.ndarray]:
@@ -237,9 +234,10 @@ def _angles(sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([c, -c, c, -c]), np.concatenate([s, s, -s, -s])
 
 
-def _relative_residual(coeffs: list[np.ndarray], d: np.ndarray, c: np.ndarray,
-                       s: np.ndarray) -> np.ndarray:
-    terms = [_evaluate_many(poly, c, s) * d ** (len(coeffs) - 1 - i)
+def _relative_residual(coeffs: list[np.ndarray], d: np.ndarray,
+                       table: list[np.ndarray]) -> np.ndarray:
+    """|sum_i coeffs_i(c, s) d^(n-i)| / sum_i |...| at points given by a monomial table."""
+    terms = [(table[len(poly) - 1] @ poly) * d ** (len(coeffs) - 1 - i)
              for i, poly in enumerate(coeffs)]
     return np.abs(sum(terms)) / np.maximum(sum(np.abs(t) for t in terms), 1e-300)
 
@@ -249,38 +247,39 @@ def _check_accuracy(aliasing: float) -> None:
         raise FloatingPointError(f'elimination polynomial lost accuracy ({aliasing:.2g})')
 
 
-def _interior_candidates(problem: Problem) -> np.ndarray:
-    zeta, gamma = kkt_polynomials(problem)
+def _interior_candidates(problem: Problem, zeta: list[np.ndarray],
+                         gamma: list[np.ndarray]) -> np.ndarray:
+    """Feasible interior critical points (n, 2): roots of S_u, d from F_d = 0, F_t checked."""
     series, aliasing = eliminated_polynomial(zeta, gamma, INACTIVE_DEGREE)
     _check_accuracy(aliasing)
     c, s = _angles(sigma_roots(series))
-    z2, z1, z0 = (_evaluate_many(poly, c, s) for poly in zeta)
+    table = _monomial_table(c, s, 4)
+    z2, z1, z0 = (table[len(poly) - 1] @ poly for poly in zeta)
     disc = np.sqrt((z1 * z1 - 4 * z2 * z0).astype(complex))
     with np.errstate(divide='ignore', invalid='ignore'):
         d = np.concatenate([(-z1 + disc) / (2 * z2), (-z1 - disc) / (2 * z2)])
-    c, s = np.concatenate([c, c]), np.concatenate([s, s])
     ok = np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0)
-    d, c, s = d.real[ok], c[ok], s[ok]
-    points = d[:, None] * np.stack([c, s], axis=1)
+    d, both = d.real[ok], np.concatenate([np.arange(len(c))] * 2)[ok]
+    points = d[:, None] * np.stack([c[both], s[both]], axis=1)
     inside = np.hypot(*(points - problem.p_o).T) < problem.r
-    good = inside & (_relative_residual(gamma, d, c, s) < RESIDUAL_TOLERANCE)
-    return points[good]
+    residual = _relative_residual(gamma, d, [t[both] for t in table])
+    return points[inside & (residual < RESIDUAL_TOLERANCE)]
 
 
-def _active_candidates(problem: Problem) -> np.ndarray:
-    q, g = active_polynomials(problem)
+def _active_candidates(problem: Problem, q: list[np.ndarray], g: list[np.ndarray]) -> np.ndarray:
+    """Critical points on the boundary (n, 2): roots of S_c, d from g = 0, Q checked."""
     series, aliasing = eliminated_polynomial(q, g, ACTIVE_DEGREE)
     _check_accuracy(aliasing)
     c, s = _angles(sigma_roots(series))
     ell = problem.p_o[0] * c + problem.p_o[1] * s
-    root = np.sqrt(np.maximum(ell * ell - (problem.d_o ** 2 - problem.r ** 2), 0.0))
-    hits = ell * ell - (problem.d_o ** 2 - problem.r ** 2) > -1e-12 * problem.d_o ** 2
-    hits &= ell > 0
-    d = np.concatenate([ell - root, ell + root])[np.concatenate([hits, hits])]
-    c, s = np.concatenate([c, c])[np.concatenate([hits, hits])], \
-        np.concatenate([s, s])[np.concatenate([hits, hits])]
-    good = _relative_residual(q, d, c, s) < RESIDUAL_TOLERANCE
-    return d[good, None] * np.stack([c[good], s[good]], axis=1)
+    disc = ell * ell - (problem.d_o ** 2 - problem.r ** 2)
+    hits = np.flatnonzero((disc > -1e-12 * problem.d_o ** 2) & (ell > 0))
+    root = np.sqrt(np.maximum(disc[hits], 0.0))
+    d = np.concatenate([ell[hits] - root, ell[hits] + root])
+    both = np.concatenate([hits, hits])
+    table = _monomial_table(c[both], s[both], 5)
+    good = _relative_residual(q, d, table) < RESIDUAL_TOLERANCE
+    return d[good, None] * np.stack([c[both][good], s[both][good]], axis=1)
 
 
 def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np.ndarray:
@@ -302,8 +301,9 @@ def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np
 
 
 def _plan_bearing(problem: Problem) -> Plan:
-    interior = _interior_candidates(problem)
-    active = _active_candidates(problem)
+    kkt = kkt_polynomials(problem)
+    interior = _interior_candidates(problem, *kkt)
+    active = _active_candidates(problem, *active_polynomials(problem, kkt))
     polished = [_polish_interior(problem, p) for p in interior]
     polished = [p for p in polished if problem.feasible(p, 0.0)]
     centre, rho = problem.q_disc()
