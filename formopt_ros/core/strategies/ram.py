@@ -66,6 +66,8 @@ from formopt_ros.core.strategies.rq import plan_rq
 
 #: Relative KKT residual above which a back-substituted root is rejected as spurious.
 RESIDUAL_TOLERANCE = 1e-4
+#: Relative residual up to which a root near the disc is still polished and re-judged.
+POLISH_RESIDUAL = 0.5
 #: Relative cost gap by which a probe point may beat RAM's best before RAM falls back.
 PROBE_TOLERANCE = 1e-12
 #: Relative size of the interpolant's coefficients above the exact degree (zero in exact
@@ -248,8 +250,9 @@ def _check_accuracy(aliasing: float) -> None:
 
 
 def _interior_candidates(problem: Problem, zeta: list[np.ndarray],
-                         gamma: list[np.ndarray]) -> np.ndarray:
-    """Feasible interior critical points (n, 2): roots of S_u, d from F_d = 0, F_t checked."""
+                         gamma: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Interior critical points from the roots of S_u (d from F_d = 0, F_t checked): those
+    that pass (n, 2), and doubtful ones near the disc that need polishing (m, 2)."""
     series, aliasing = eliminated_polynomial(zeta, gamma, INACTIVE_DEGREE)
     _check_accuracy(aliasing)
     c, s = _angles(sigma_roots(series))
@@ -261,9 +264,13 @@ def _interior_candidates(problem: Problem, zeta: list[np.ndarray],
     ok = np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0)
     d, both = d.real[ok], np.concatenate([np.arange(len(c))] * 2)[ok]
     points = d[:, None] * np.stack([c[both], s[both]], axis=1)
-    inside = np.hypot(*(points - problem.p_o).T) < problem.r
+    distance = np.hypot(*(points - problem.p_o).T)
     residual = _relative_residual(gamma, d, [t[both] for t in table])
-    return points[inside & (residual < RESIDUAL_TOLERANCE)]
+    accepted = (distance < problem.r) & (residual < RESIDUAL_TOLERANCE)
+    # Near-multiple roots of S_u are computed with ~sqrt(eps) error and can fail the residual
+    # test: such points near the disc are polished by Newton before being judged.
+    doubtful = ~accepted & (distance < 1.5 * problem.r) & (residual < POLISH_RESIDUAL)
+    return points[accepted], points[doubtful]
 
 
 def _active_candidates(problem: Problem, q: list[np.ndarray], g: list[np.ndarray]) -> np.ndarray:
@@ -302,9 +309,9 @@ def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np
 
 def _plan_bearing(problem: Problem) -> Plan:
     kkt = kkt_polynomials(problem)
-    interior = _interior_candidates(problem, *kkt)
+    interior, doubtful = _interior_candidates(problem, *kkt)
     active = _active_candidates(problem, *active_polynomials(problem, kkt))
-    polished = [_polish_interior(problem, p) for p in interior]
+    polished = [_polish_interior(problem, p) for p in np.vstack([interior, doubtful])]
     polished = [p for p in polished if problem.feasible(p, 0.0)]
     centre, rho = problem.q_disc()
     q = np.stack([-active[:, 1], active[:, 0]], axis=1) / np.sum(active * active, 1)[:, None]
