@@ -1,0 +1,165 @@
+"""Unit tests of formopt_ros.core.cost: validation, the cost tr(W P_post W) and the q-disc map."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from formopt_ros.core import Problem, solve
+from formopt_ros.core.cost import point_from_q
+from formopt_ros.core.model import BEARING, RANGE, ekf_update, predict_measurement
+
+SEED = 4711
+GOOD_P = np.array([[0.04, 0.01, 0.002], [0.01, 0.03, -0.001], [0.002, -0.001, 0.01]])
+GOOD_P_O = np.array([-1.0, 2.0])
+
+
+def random_problem(rng: np.random.Generator, kind: str) -> Problem:
+    """A moderately conditioned random problem (condition number of P below ~1e3)."""
+    A = rng.standard_normal((3, 3))
+    P = (A @ A.T + 0.05 * np.eye(3)) * 10 ** rng.uniform(-4, 0)
+    d_o = rng.uniform(0.5, 10.0)
+    angle = rng.uniform(-math.pi, math.pi)
+    p_o = d_o * np.array([math.cos(angle), math.sin(angle)])
+    sigma = rng.uniform(0.01, 0.5) if kind == RANGE else rng.uniform(0.002, 0.1)
+    return Problem(P, p_o, d_o * rng.uniform(0.01, 0.5), sigma, kind)
+
+
+def points_in_disc(rng: np.random.Generator, problem: Problem, n: int) -> np.ndarray:
+    """n points uniformly distributed in the feasible disc, plus its boundary, shape (n, 2)."""
+    radius = problem.r * np.sqrt(rng.uniform(0, 1, n))
+    radius[: n // 4] = problem.r
+    angle = rng.uniform(-math.pi, math.pi, n)
+    return problem.p_o + radius[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+
+
+def bad_problem_cases() -> list[tuple[str, dict, str]]:
+    """(label, keyword overrides, regex the message must start with) for every bad input."""
+    not_symmetric = GOOD_P.copy()
+    not_symmetric[0, 1] += 1e-3
+    not_pd = np.diag([1.0, 1.0, -1e-3])
+    singular = np.diag([1.0, 1.0, 0.0])
+    cases = [('P not symmetric', {'P': not_symmetric}, r'P must be symmetric'),
+             ('P indefinite', {'P': not_pd}, r'P must be positive definite'),
+             ('P singular', {'P': singular}, r'P must be positive definite'),
+             ('P shape', {'P': np.eye(2)}, r'P must have shape'),
+             ('p_o shape', {'p_o': np.array([1.0, 2.0, 3.0])}, r'p_o must have shape'),
+             ('r zero', {'r': 0.0}, r'r must be'),
+             ('r negative', {'r': -0.1}, r'r must be'),
+             ('r reaches leader', {'r': math.hypot(*GOOD_P_O)}, r'r must be smaller than'),
+             ('r beyond leader', {'r': 5.0}, r'r must be smaller than'),
+             ('sigma zero', {'sigma': 0.0}, r'sigma must be'),
+             ('sigma negative', {'sigma': -0.01}, r'sigma must be'),
+             ('measurement', {'measurement': 'lidar'}, r'measurement must be one of')]
+    for bad in (math.nan, math.inf, -math.inf):
+        for i, j in ((0, 0), (1, 2), (2, 2)):
+            P = GOOD_P.copy()
+            P[i, j] = bad
+            P[j, i] = bad
+            cases.append((f'P[{i},{j}]={bad}', {'P': P}, r'P must be finite'))
+        for i in range(2):
+            p_o = GOOD_P_O.copy()
+            p_o[i] = bad
+            cases.append((f'p_o[{i}]={bad}', {'p_o': p_o}, r'p_o must be finite'))
+        cases.append((f'r={bad}', {'r': bad}, r'r must be'))
+        cases.append((f'sigma={bad}', {'sigma': bad}, r'sigma must be'))
+    return cases
+
+
+@pytest.mark.parametrize('label, overrides, message', bad_problem_cases(),
+                         ids=[case[0] for case in bad_problem_cases()])
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_problem_rejects_bad_input(label: str, overrides: dict, message: str, kind: str) -> None:
+    """Each bad input raises ValueError whose message starts with the parameter's name."""
+    arguments = {'P': GOOD_P, 'p_o': GOOD_P_O, 'r': 0.3, 'sigma': 0.05, 'measurement': kind}
+    arguments.update(overrides)
+    with pytest.raises(ValueError, match='^' + message):
+        Problem(**arguments)
+    solve_arguments = dict(arguments)
+    measurement = solve_arguments.pop('measurement')
+    with pytest.raises(ValueError, match='^' + message):
+        solve(**solve_arguments, measurement=measurement, method='rq')
+
+
+def test_good_problem_is_accepted() -> None:
+    """The reference inputs of the validation tests are themselves valid (tests can fail)."""
+    for kind in (RANGE, BEARING):
+        problem = Problem(GOOD_P, GOOD_P_O, 0.3, 0.05, kind)
+        assert problem.d_o == pytest.approx(math.sqrt(5.0), rel=1e-15)  # rounding only
+
+
+def test_solve_rejects_unknown_method_and_option() -> None:
+    """solve() names the unknown method or option in its ValueError."""
+    with pytest.raises(ValueError, match=r"^method must be one of .*'simplex'"):
+        solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='simplex')
+    with pytest.raises(ValueError, match=r"^method 'gbs' accepts options .*unknown \['spacing'\]"):
+        solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='gbs', spacing=0.1)
+    with pytest.raises(ValueError, match=r"^method 'rq' accepts options .*unknown \['cell'\]"):
+        solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='rq', cell=0.1)
+
+
+def brute_force_cost(problem: Problem, point: np.ndarray, phi: float) -> float:
+    """tr(W P_post W) with P_post from model.ekf_update at x = [point, phi]."""
+    x = np.array([point[0], point[1], phi])
+    z = predict_measurement(problem.measurement, x)
+    _, P_post, _, _ = ekf_update(x, problem.P, z, problem.measurement, problem.sigma ** 2)
+    d_o = math.hypot(*problem.p_o)
+    W = np.diag([1.0, 1.0, d_o])
+    return float(np.trace(W @ P_post @ W))
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_cost_equals_brute_force_ekf(kind: str) -> None:
+    """Problem.cost equals tr(W P_post W) of the EKF update, 60 problems x 50 points per kind."""
+    rng = np.random.default_rng(SEED)
+    for _ in range(60):
+        problem = random_problem(rng, kind)
+        points = points_in_disc(rng, problem, 50)
+        costs = problem.cost(points)
+        assert costs.shape == (50,)
+        for point, cost in zip(points, costs):
+            expected = brute_force_cost(problem, point, rng.uniform(-math.pi, math.pi))
+            # 1e-12 relative (the heading phi does not enter h, so any phi is fine).
+            assert cost == pytest.approx(expected, rel=1e-12, abs=0)
+        # The single-point form returns a float equal to the vectorised one (1e-14 relative:
+        # BLAS may sum a (1, k) and an (n, k) product in a different order).
+        single = problem.cost(points[0])
+        assert isinstance(single, float)
+        assert single == pytest.approx(float(costs[0]), rel=1e-14)
+        # 1e-12 relative: the cost at the slot is tr(W P W) minus the slot's gain.
+        assert problem.base_cost == pytest.approx(
+            float(np.dot([1.0, 1.0, problem.d_o ** 2], np.diag(problem.P))), rel=1e-12)
+
+
+def test_cost_depends_on_position() -> None:
+    """The brute-force comparison is not vacuous: costs differ across the disc."""
+    rng = np.random.default_rng(SEED + 1)
+    for kind in (RANGE, BEARING):
+        problem = random_problem(rng, kind)
+        costs = problem.cost(points_in_disc(rng, problem, 200))
+        assert np.ptp(costs) > 1e-9 * np.max(costs)
+        assert np.all(costs < problem.base_cost)     # a measurement always helps
+
+
+def test_q_disc_maps_boundary_circle_and_inverts() -> None:
+    """p -> q = (-y, x)/|p|^2 maps the disc boundary onto q_disc's circle; point_from_q inverts."""
+    rng = np.random.default_rng(SEED + 2)
+    for _ in range(100):
+        problem = random_problem(rng, BEARING)
+        centre, rho = problem.q_disc()
+        angle = rng.uniform(-math.pi, math.pi, 500)
+        boundary = problem.p_o + problem.r * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        q = np.stack([-boundary[:, 1], boundary[:, 0]], axis=1) / np.sum(
+            boundary ** 2, axis=1)[:, None]
+        # 1e-12 relative to rho: the image of the boundary circle is the circle (centre, rho).
+        np.testing.assert_allclose(np.hypot(*(q - centre).T), rho, rtol=1e-12)
+        # Interior points map strictly inside the image disc, exterior points outside.
+        inner = problem.p_o + 0.9 * (boundary - problem.p_o)
+        outer = problem.p_o + 1.1 * (boundary - problem.p_o)
+        for pts, inside in ((inner, True), (outer, False)):
+            qq = np.stack([-pts[:, 1], pts[:, 0]], axis=1) / np.sum(pts ** 2, axis=1)[:, None]
+            assert np.all((np.hypot(*(qq - centre).T) < rho) == inside)
+        # 1e-12 relative: point_from_q is the inverse map (also on the whole array at once).
+        np.testing.assert_allclose(point_from_q(q), boundary, rtol=1e-12)
+        np.testing.assert_allclose(point_from_q(q[0]), boundary[0], rtol=1e-12)
