@@ -68,6 +68,16 @@ run_logged() {
   fi
 }
 
+# One run at a time per checkout (engineers and CI may share one .venv): lock this script file.
+if command -v flock >/dev/null; then
+  exec 9<"${BASH_SOURCE[0]}"
+  flock 9
+fi
+if [[ -n "${ROS_DISTRO:-}" ]]; then
+  echo "setup.sh: warning: a ROS $ROS_DISTRO environment is sourced; this script is meant for" \
+       "machines without ROS (with ROS, build with colcon, see README)" >&2
+fi
+
 # --- 1. venv -------------------------------------------------------------------------------
 did=()
 if [[ ! -x "$py" ]]; then
@@ -88,7 +98,7 @@ mkdir -p "$log_dir"
 req_stamp="$venv/.formopt-requirements.sha256"
 req_hash="$(sha256sum "$reqs" | cut -d' ' -f1)"
 if [[ $force -eq 1 || ! -f "$req_stamp" || "$(cat "$req_stamp")" != "$req_hash" ]]; then
-  say "pip install -r requirements-ros.txt (about 45 s the first time)"
+  say "pip install -r requirements-ros.txt (45-100 s the first time)"
   pip_q install -q -r "$reqs"
   echo "$req_hash" >"$req_stamp"
   did+=("pip")
@@ -149,6 +159,6 @@ fi
 # --- check and summary ----------------------------------------------------------------------
 "$py" -c 'from formopt_interfaces.msg import Measurement, Waypoint, PlannerStatus; import rclpy, formopt_ros' \
   || die "the venv does not import formopt_interfaces/rclpy/formopt_ros; re-run with --force"
-done_txt="$(IFS=,; echo "${did[*]:-}")"
+done_txt="$(IFS=,; echo "${did[*]:-}")"; done_txt="${done_txt//,/, }"
 echo "setup.sh: OK in $((SECONDS - t0)) s: $venv ready (Python $pyver, ROS 2 Jazzy rclpy," \
      "formopt_interfaces, formopt_ros editable); did: ${done_txt:-nothing, all up to date}"
