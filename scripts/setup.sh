@@ -156,6 +156,17 @@ if [[ $force -eq 1 || ! -f "$edit_stamp" \
   did+=("formopt_ros")
 fi
 
+# --- 5. ROS layout in the venv prefix: what colcon gives a ROS user ----------------------------
+# `ros2 run formopt_ros NODE` (where ros2cli exists) looks for PREFIX/lib/formopt_ros/NODE and
+# the ament index marker; link the console scripts there (cheap, so always refreshed).
+mkdir -p "$venv/lib/formopt_ros" "$venv/share/ament_index/resource_index/packages" \
+         "$venv/share/formopt_ros"
+for exe in leader_sim follower_sim estimator_planner recorder replay; do
+  [[ -x "$venv/bin/$exe" ]] && ln -sf "../../bin/$exe" "$venv/lib/formopt_ros/$exe"
+done
+touch "$venv/share/ament_index/resource_index/packages/formopt_ros"
+cp -f "$repo/package.xml" "$venv/share/formopt_ros/package.xml"
+
 # --- check and summary ----------------------------------------------------------------------
 "$py" -c 'from formopt_interfaces.msg import Measurement, Waypoint, PlannerStatus; import rclpy, formopt_ros' \
   || die "the venv does not import formopt_interfaces/rclpy/formopt_ros; re-run with --force"

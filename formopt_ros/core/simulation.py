@@ -185,16 +185,24 @@ class EstimatorPlanner:
                              s.sigma_omega)
         return P
 
-    def plan(self, step: int, leader: LeaderMotion) -> PlanResult:
-        """Choose the next position for measurement step ``step`` (1-based) and its commands."""
+    def plan(self, step: int, leader_velocities: list[tuple[float, float]],
+             leader_straight: bool = True) -> PlanResult:
+        """Choose the next position for measurement step ``step`` (1-based) and its commands.
+
+        Args:
+            step: the measurement step the motion leads to.
+            leader_velocities: expected (v_L m/s, omega_L rad/s) of the leader during each
+                sub-step of the motion (the simulator knows the leader's plan; a robot holds
+                the last odometry).
+            leader_straight: whether the leader drives straight (MME's switch).
+        """
         s = self.scenario
-        first = (step - 1) * SUBSTEPS
-        vel = [leader.velocity(first + k) for k in range(SUBSTEPS)]
-        v_l, omega_l = (vel[0][0], vel[1][0]), (vel[0][1], vel[1][1])
+        v_l = tuple(v for v, _ in leader_velocities)
+        omega_l = tuple(w for _, w in leader_velocities)
         prior = self.predicted_covariance(s.slot, v_l, omega_l)
         options = dict(self.options)
         if self.strategy == 'mme':
-            options.update(step=step, leader_straight=leader.straight(first))
+            options.update(step=step, leader_straight=leader_straight)
         solution = solve_problem(Problem(prior, s.slot, s.r, s.sigma, s.measurement, False),
                                  self.strategy, self.planner_rng, **options)
         v, omega = motion_commands(self.x, solution.p, s.dt, v_l[0], omega_l[0])
@@ -242,7 +250,9 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
                       np.empty((steps, 3)), np.empty((steps, 3, 3)), np.empty((steps, 2)),
                       np.empty(steps))
     for k in range(steps):
-        plan = estimator.plan(k + 1, leader)
+        first = k * SUBSTEPS
+        plan = estimator.plan(k + 1, [leader.velocity(first + j) for j in range(SUBSTEPS)],
+                              leader.straight(first))
         for j in range(SUBSTEPS):
             v_l, omega_l = leader.velocity(k * SUBSTEPS + j)
             truth.execute(plan.v_commands[j], plan.omega_commands[j], v_l, omega_l)
