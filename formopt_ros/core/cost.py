@@ -149,9 +149,14 @@ class Problem:
         x, y = points[:, 0], points[:, 1]
         d2 = x * x + y * y
         if self.measurement == RANGE:
-            return np.stack([x * x / d2, x * y / d2, y * y / d2, np.ones_like(x)], axis=1)
+            out = np.empty((len(points), 4))
+            out[:, 0], out[:, 1], out[:, 2], out[:, 3] = x * x / d2, x * y / d2, y * y / d2, 1.0
+            return out
         q0, q1 = -y / d2, x / d2
-        return np.stack([q0 * q0, q0 * q1, q1 * q1, q0, q1, np.ones_like(x)], axis=1)
+        out = np.empty((len(points), 6))
+        out[:, 0], out[:, 1], out[:, 2] = q0 * q0, q0 * q1, q1 * q1
+        out[:, 3], out[:, 4], out[:, 5] = q0, q1, 1.0
+        return out
 
     def gain_from_monomials(self, monomials: np.ndarray) -> np.ndarray:
         """Information gain tr(W P W) - tr(W P_post W) from precomputed monomials, shape (n,)."""

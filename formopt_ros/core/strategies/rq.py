@@ -41,7 +41,9 @@ def boundary_candidates(problem: Problem) -> np.ndarray:
     F = boundary_stationarity(problem)
     if np.max(np.abs(F)) == 0.0:              # the gain is constant on the circle
         return problem.p_o[None, :] + np.array([[problem.r, 0.0]])
-    roots = np.roots(F[::-1])
+    companion = np.diag(np.ones(5), -1).astype(complex)      # z^3 F(z), degree 6, monic
+    companion[:, -1] = -F[:6] / F[6]
+    roots = np.linalg.eigvals(companion) if abs(F[6]) > 0 else np.roots(F[::-1])
     near = np.abs(np.abs(roots) - 1.0) < UNIT_CIRCLE_TOLERANCE
     t = np.angle(roots[near] if np.any(near) else roots)
     return boundary_points(problem, polish_boundary_angles(F, t))
