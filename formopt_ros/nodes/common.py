@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -11,7 +12,8 @@ import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.simulation import Scenario
@@ -19,6 +21,13 @@ from formopt_ros.core.simulation import Scenario
 #: Reliable, deep queue: lockstep runs must not drop a message.
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                       reliability=ReliabilityPolicy.RELIABLE)
+
+#: What the nodes offer: reliable, and TRANSIENT_LOCAL so that a subscriber that matches late
+#: (the recorder, when discovery takes seconds) still receives the history (up to 1000 per
+#: topic). Volatile subscriptions (the nodes' own) are compatible with it.
+PUBLISHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 #: Topic names relative to the node namespace.
 TOPICS = {
@@ -170,14 +179,19 @@ def run(node_factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin until it finishes or SIGINT/SIGTERM; return the exit code.
 
     A ParameterError ends the process with code 2 and one line naming the parameter.
+    SIGINT and SIGTERM end the spin loop (within 0.1 s) while the context is still valid, so
+    ``close()`` can still log and publish; then the context shuts down.
     """
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda received, _frame: stop.append(received))
     node = None
     try:
         node = node_factory()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not getattr(node, 'finished', False):
+        while rclpy.ok() and not stop and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
         return 0
     except ParameterError as error:

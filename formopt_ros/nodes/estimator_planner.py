@@ -17,7 +17,7 @@ from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.simulation import SUBSTEPS, EstimatorPlanner, PlanResult, trial_streams
 from formopt_ros.core.solver import METHODS
 from formopt_ros.nodes.common import (
-    FOLLOWER_ID, LEADER_ID, MODE, RELIABLE, SCENARIO_PARAMS, SEED, TOPICS, TRIAL, Param,
+    FOLLOWER_ID, LEADER_ID, MODE, PUBLISHED, RELIABLE, SCENARIO_PARAMS, SEED, TOPICS, TRIAL, Param,
     Throttle, declare, run, scenario_from)
 
 PARAMS = [FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + [
@@ -25,8 +25,8 @@ PARAMS = [FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + [
     Param('gbs_cell', 0.005, 'GBS grid spacing as a fraction of r', 1e-4, 1.0),
     Param('steps', 0, 'measurement steps to run, then exit 0 (0: run until stopped)', 0,
           10**9),
-    Param('peers', 2, 'lockstep: waypoint subscribers (leader_sim, follower_sim) to wait for '
-          'before the first waypoint', 0, 100),
+    Param('peers', 2, 'waypoint subscribers (leader_sim, follower_sim, a recorder) to wait '
+          'for before the first waypoint', 0, 100),
     Param('resend_timeout', 1.0, 'lockstep: resend the last waypoint after this long without '
           'progress (a peer restarted), s', 0.01, 3600.0),
     Param('summary_path', '', 'write a JSON summary here when the run ends (empty: none)'),
@@ -61,7 +61,8 @@ class EstimatorPlannerNode(Node):
         self.leader_odom: dict[float, tuple[float, float]] = {}
         self.latest_leader = (self.scenario.v_leader, self.scenario.omega_leader)
         self.measurements: dict[int, tuple[float, float, float]] = {}
-        self.truth: dict[int, np.ndarray] = {}
+        self.truth: dict[float, np.ndarray] = {}     # by stamp, s (= its measurement's)
+        self.step_stamp: float | None = None          # stamp of the last processed step, s
         self.last_stamp: dict[str, float] = {}
         self.counters = {'rejected_measurements': 0, 'rejected_odometry': 0,
                          'accepted_measurements': 0}
@@ -73,15 +74,16 @@ class EstimatorPlannerNode(Node):
         self.last_progress = time.monotonic()
         self.throttle = Throttle(self)
         self.estimate_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                  TOPICS['estimate'], RELIABLE)
-        self.waypoint_pub = self.create_publisher(Waypoint, TOPICS['waypoint'], RELIABLE)
-        self.status_pub = self.create_publisher(PlannerStatus, TOPICS['status'], RELIABLE)
+                                                  TOPICS['estimate'], PUBLISHED)
+        self.waypoint_pub = self.create_publisher(Waypoint, TOPICS['waypoint'], PUBLISHED)
+        self.status_pub = self.create_publisher(PlannerStatus, TOPICS['status'], PUBLISHED)
         self.create_subscription(Odometry, TOPICS['follower_odom'], self.on_follower_odom,
                                  RELIABLE)
         self.create_subscription(Odometry, TOPICS['leader_odom'], self.on_leader_odom, RELIABLE)
+        # truth before measurement: when both are ready, the executor serves the truth first
+        self.create_subscription(PoseStamped, TOPICS['truth'], self.on_truth, RELIABLE)
         self.create_subscription(Measurement, TOPICS['measurement'], self.on_measurement,
                                  RELIABLE)
-        self.create_subscription(PoseStamped, TOPICS['truth'], self.on_truth, RELIABLE)
         self.create_timer(0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, {p['measurement']}, "
                                f"strategy {p['strategy']})")
@@ -138,10 +140,13 @@ class EstimatorPlannerNode(Node):
         self._advance()
 
     def on_truth(self, msg: PoseStamped) -> None:
-        """Ground truth, used for evaluation only (NEES, summary)."""
+        """Ground truth, used for evaluation only (NEES, summary).
+
+        Matched to its measurement by the stamp (the follower stamps both alike), which works
+        with simulated (lockstep) and node-clock (realtime) stamps.
+        """
         self.received['truth'] += 1
-        step = round(conversions.seconds(msg.header.stamp) / (SUBSTEPS * self.scenario.dt))
-        self.truth[step] = conversions.pose_of(msg.pose)
+        self.truth[conversions.seconds(msg.header.stamp)] = conversions.pose_of(msg.pose)
 
     # --- processing ------------------------------------------------------------------------
     def _advance(self) -> None:
@@ -197,7 +202,10 @@ class EstimatorPlannerNode(Node):
         self.estimate_pub.publish(conversions.estimate(stamp, p['leader_id'], self.core.x,
                                                        self.core.P))
         self.published['estimate'] += 1
-        truth = self.truth.get(self.step)
+        self.step_stamp = stamp_s
+        for old in [t for t in self.truth if t < stamp_s]:
+            del self.truth[old]
+        truth = self.truth.get(stamp_s)
         if truth is not None:
             self.nees.append(normalized_estimation_error(truth, self.core.x, self.core.P))
         done = p['steps'] and self.step >= p['steps']
@@ -240,7 +248,7 @@ class EstimatorPlannerNode(Node):
     # --- end of run --------------------------------------------------------------------------
     def summary(self) -> dict:
         """Final state, evaluation and message counts of the run."""
-        truth = self.truth.get(self.step)
+        truth = self.truth.get(self.step_stamp)
         return {
             'steps': self.step,
             'strategy': self.params['strategy'],

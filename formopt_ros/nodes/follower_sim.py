@@ -12,8 +12,8 @@ from rclpy.node import Node
 from formopt_ros import conversions
 from formopt_ros.core.simulation import SUBSTEPS, FollowerTruth, trial_streams
 from formopt_ros.nodes.common import (
-    FOLLOWER_ID, LEADER_ID, MODE, RELIABLE, SCENARIO_PARAMS, SEED, TOPICS, TRIAL, Throttle,
-    declare, run, scenario_from)
+    FOLLOWER_ID, LEADER_ID, MODE, PUBLISHED, RELIABLE, SCENARIO_PARAMS, SEED, TOPICS, TRIAL,
+    Throttle, declare, run, scenario_from)
 
 PARAMS = [FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS
 
@@ -26,8 +26,8 @@ class FollowerSim(Node):
     lockstep: executes waypoint k once the leader's odometry for the step's sub-steps arrived
     (matched by their simulated-time stamps); a repeated waypoint republishes the cached output.
     realtime: a timer at 1/dt executes the current sub-step with the latest waypoint and leader
-    velocity; a waypoint that is late counts as a missed cycle (the follower keeps its last
-    translation command).
+    velocity; a step starts only when its waypoint is in: a tick without it counts as a missed
+    cycle, in which the follower holds (v = 0, turning with the leader) and the step waits.
     """
 
     def __init__(self) -> None:
@@ -46,14 +46,13 @@ class FollowerSim(Node):
         self.counters = {'published': 0, 'rejected_waypoints': 0, 'rejected_odometry': 0,
                          'missed_cycles': 0}
         self.throttle = Throttle(self)
-        self.odom_pub = self.create_publisher(Odometry, TOPICS['follower_odom'], RELIABLE)
-        self.meas_pub = self.create_publisher(Measurement, TOPICS['measurement'], RELIABLE)
-        self.truth_pub = self.create_publisher(PoseStamped, TOPICS['truth'], RELIABLE)
+        self.odom_pub = self.create_publisher(Odometry, TOPICS['follower_odom'], PUBLISHED)
+        self.meas_pub = self.create_publisher(Measurement, TOPICS['measurement'], PUBLISHED)
+        self.truth_pub = self.create_publisher(PoseStamped, TOPICS['truth'], PUBLISHED)
         self.create_subscription(Waypoint, TOPICS['waypoint'], self.on_waypoint, RELIABLE)
         self.create_subscription(Odometry, TOPICS['leader_odom'], self.on_leader_odom,
                                  RELIABLE)
         self.substep_in_step = 0
-        self.last_command = (0.0, 0.0)
         if p['mode'] == 'realtime':
             self.create_timer(self.scenario.dt, self.on_tick)
         self.get_logger().info(f"follower_sim ready ({p['mode']}, {p['measurement']})")
@@ -130,22 +129,25 @@ class FollowerSim(Node):
         self.pending = None
 
     def on_tick(self) -> None:
-        """Realtime: execute one sub-step of the current step."""
+        """Realtime: execute one sub-step of the current step.
+
+        The sub-steps of a waypoint are only meaningful together (rotate, then translate), so a
+        step starts when its waypoint is in; a tick without it holds position instead of
+        repeating an old command (repeating a translation made the formation diverge).
+        """
         if self.pending is None and self.executed == 0:
             return                                   # wait for the first waypoint
         j = self.substep_in_step
-        if j == 0:
-            self.cache = []
         msg = self.pending if (self.pending is not None
                                and self.pending.step == self.executed + 1) else None
-        if msg is not None:
-            command = (msg.linear_velocity[j], msg.angular_velocity[j])
-            self.last_command = (msg.linear_velocity[-1], msg.angular_velocity[-1])
-        else:
-            self.counters['missed_cycles'] += 1
-            command = self.last_command
         now = self.get_clock().now().to_msg()
-        self._substep(command[0], command[1], self.latest_leader, now)
+        if msg is None:                              # late waypoint (only possible at j == 0)
+            self.counters['missed_cycles'] += 1
+            self._substep(0.0, self.latest_leader[1], self.latest_leader, now)
+            return
+        if j == 0:
+            self.cache = []
+        self._substep(msg.linear_velocity[j], msg.angular_velocity[j], self.latest_leader, now)
         self.substep_in_step = (j + 1) % SUBSTEPS
         if self.substep_in_step == 0:
             self._finish_step(self.executed + 1, now)

@@ -11,8 +11,8 @@ from rclpy.node import Node
 from formopt_ros import conversions
 from formopt_ros.core.simulation import SUBSTEPS, LeaderMotion
 from formopt_ros.nodes.common import (
-    DT, FOLLOWER_ID, LEADER_ID, MODE, OMEGA_LEADER, RELIABLE, TOPICS, V_LEADER, Throttle,
-    declare, run)
+    DT, FOLLOWER_ID, LEADER_ID, MODE, OMEGA_LEADER, PUBLISHED, RELIABLE, TOPICS, V_LEADER,
+    Throttle, declare, run)
 
 PARAMS = [FOLLOWER_ID, LEADER_ID, MODE, DT, V_LEADER, OMEGA_LEADER]
 
@@ -36,10 +36,11 @@ class LeaderSim(Node):
         self.cache: list[Odometry] = []
         self.published = 0
         self.throttle = Throttle(self)
-        self.odom_pub = self.create_publisher(Odometry, TOPICS['leader_odom'], RELIABLE)
-        if p['mode'] == 'lockstep':
-            self.create_subscription(Waypoint, TOPICS['waypoint'], self.on_waypoint, RELIABLE)
-        else:
+        self.odom_pub = self.create_publisher(Odometry, TOPICS['leader_odom'], PUBLISHED)
+        # Subscribed in both modes: the estimator counts the leader among the waypoint
+        # subscribers (peers) it waits for before the first waypoint.
+        self.create_subscription(Waypoint, TOPICS['waypoint'], self.on_waypoint, RELIABLE)
+        if p['mode'] == 'realtime':
             self.create_timer(p['dt'], self.on_tick)
         self.get_logger().info(f"leader_sim ready ({p['mode']}, v_L={p['v_leader']} m/s)")
 
@@ -57,6 +58,8 @@ class LeaderSim(Node):
 
     def on_waypoint(self, msg: Waypoint) -> None:
         """Lockstep: serve the sub-steps of the waypoint's step once; repeat on duplicates."""
+        if self.params['mode'] != 'lockstep':
+            return                                   # realtime: the timer drives the leader
         if msg.follower_id != self.params['follower_id']:
             self.throttle.warn('foreign', f'ignoring waypoint for {msg.follower_id!r}')
             return

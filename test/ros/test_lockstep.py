@@ -1,0 +1,41 @@
+"""Lockstep in one process equals the pure simulation run_trial (estimates, covariances)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from formopt_ros.core.simulation import Scenario, run_trial
+
+STEPS = 60
+SEED = 3
+#: Equality tolerance: same arithmetic; yaw makes a round trip through a quaternion.
+TOL = 1e-9
+
+
+@pytest.mark.parametrize('kind', ['range', 'bearing'])
+@pytest.mark.parametrize('strategy', ['ram', 'crm'])
+def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
+    run = formation({'measurement': kind, 'strategy': strategy, 'seed': SEED, 'steps': STEPS,
+                     'resend_timeout': 60.0})
+    assert run.run(timeout=30.0), f'estimator at step {run.estimator.step} of {STEPS}'
+    ref = run_trial(Scenario.paper(kind), strategy, SEED, 0, STEPS)
+    est = run.estimator
+    assert est.step == STEPS
+    np.testing.assert_allclose(est.core.x, ref.estimate[-1], rtol=0, atol=TOL)
+    np.testing.assert_allclose(est.core.P, ref.covariance[-1], rtol=0, atol=TOL)
+    assert est.summary()['final_truth'] == pytest.approx(ref.truth[-1].tolist(), abs=TOL)
+    # every step, as published on the estimate topic
+    assert len(run.probe.estimates) == STEPS
+    for k, (x, P) in enumerate(run.probe.estimates):
+        np.testing.assert_allclose(x, ref.estimate[k], rtol=0, atol=TOL, err_msg=f'step {k + 1}')
+        np.testing.assert_allclose(P, ref.covariance[k], rtol=0, atol=TOL,
+                                   err_msg=f'step {k + 1}')
+    assert [s.step for s in run.probe.statuses] == list(range(1, STEPS + 1))
+    assert [s.weighted_trace for s in run.probe.statuses] == pytest.approx(
+        ref.weighted_trace.tolist(), abs=TOL)
+    last = run.probe.statuses[-1]
+    assert (last.accepted_measurements, last.rejected_measurements,
+            last.rejected_odometry) == (STEPS, 0, 0)
+    counts = est.summary()['message_counts']
+    assert counts['received'] == {'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS,
+                                  'measurement': STEPS, 'truth': STEPS}

@@ -1,0 +1,42 @@
+"""Peer restart in lockstep: follower_sim is killed mid-run and restarted; the run finishes."""
+from __future__ import annotations
+
+import re
+import signal
+
+import numpy as np
+
+STEPS = 40
+KILL_AFTER = 10            # steps processed before the follower is killed
+RESEND = 0.3               # s, the estimator's resend_timeout
+
+
+def test_follower_restart_mid_run(formation, node_process) -> None:
+    params = {'measurement': 'range', 'strategy': 'ram', 'seed': 1, 'steps': STEPS,
+              'resend_timeout': RESEND}
+    # leader_sim, estimator_planner and the probe in this process, follower_sim outside
+    run = formation(params, follower=False)
+    follower = node_process('follower_sim', params)
+    est = run.estimator
+    assert run.spin_until(lambda: est.step >= KILL_AFTER, 60.0), \
+        f'estimator at step {est.step} before the kill; follower: {follower.stderr}'
+    follower.signal(signal.SIGKILL)
+    assert follower.wait(timeout=10.0) == -signal.SIGKILL
+    # Without a follower the run stalls: no progress over several resend periods.
+    stalled_at = est.step
+    run.spin_until(lambda: est.step > stalled_at + 1, 5 * RESEND)
+    assert est.step <= stalled_at + 1 < STEPS
+    restarted = node_process('follower_sim', params)
+    assert run.run(timeout=60.0), \
+        f'estimator at step {est.step} after the restart; follower: {restarted.stderr}'
+    assert est.step == STEPS
+    assert [s.step for s in run.probe.statuses] == list(range(1, STEPS + 1))
+    assert run.probe.statuses[-1].accepted_measurements == STEPS
+    x, P = run.probe.estimates[-1]
+    assert np.all(np.isfinite(x)) and np.all(np.linalg.eigvalsh(P) > 0)
+    restarted.signal(signal.SIGINT)
+    assert restarted.wait(timeout=20.0) == 0
+    assert 'Traceback' not in restarted.stderr
+    # the restarted follower executed the resent waypoint and every later one
+    executed = re.search(r'follower_sim: executed (\d+) steps', restarted.stderr)
+    assert executed and int(executed.group(1)) == STEPS, restarted.stderr
