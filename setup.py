@@ -37,6 +37,7 @@ setup(
             'formopt-montecarlo = formopt_ros.montecarlo:main',
             'formopt-bench = formopt_ros.bench:main',
             'formopt-report = formopt_ros.report:main',
+            'formopt-bag = formopt_ros.bag:main',
         ],
     },
 )

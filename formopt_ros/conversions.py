@@ -183,3 +183,8 @@ def waypoint_problem(msg: Waypoint, follower_id: str) -> str | None:
     if not all(math.isfinite(c) for c in commands):
         return 'commands are not finite'
     return None
+
+
+def nanoseconds(time: Time) -> int:
+    """Integer nanoseconds of a builtin_interfaces/Time (exact, for matching stamps)."""
+    return time.sec * 1_000_000_000 + time.nanosec
