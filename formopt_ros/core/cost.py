@@ -20,7 +20,7 @@ from dataclasses import InitVar, dataclass, field
 
 import numpy as np
 
-from formopt_ros.core.model import BEARING, MEASUREMENT_KINDS, RANGE
+from formopt_ros.core.model import MEASUREMENT_KINDS, RANGE
 
 
 def weight_vector(p_o: np.ndarray) -> np.ndarray:

@@ -29,6 +29,17 @@ PUBLISHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+
+
+def qos_for(reliable: bool, latched: bool) -> QoSProfile:
+    """A deep KEEP_LAST profile, reliable or best effort, transient-local or volatile."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=PUBLISHED.depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable
+                      else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                      else DurabilityPolicy.VOLATILE)
+
+
 #: Topic names relative to the node namespace.
 TOPICS = {
     'leader_odom': 'leader/odom',

@@ -7,10 +7,11 @@ import time
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from formopt_ros import bag
-from formopt_ros.nodes.common import PUBLISHED, Param, ParameterError, Throttle, declare, run
+from formopt_ros.nodes.common import (
+    PUBLISHED, Param, ParameterError, Throttle, declare, qos_for, run)
 
 PARAMS = [
     Param('output_path', '', 'the .mcap file to write (required; an existing file is refused)'),
@@ -45,11 +46,7 @@ def adapted_qos(profiles: list[QoSProfile]) -> QoSProfile:
     reliable = all(p.reliability == ReliabilityPolicy.RELIABLE for p in profiles)
     latched = bool(profiles) and all(
         p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=PUBLISHED.depth,
-                      reliability=ReliabilityPolicy.RELIABLE if reliable
-                      else ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
-                      else DurabilityPolicy.VOLATILE)
+    return qos_for(reliable, latched)
 
 
 class Recorder(Node):

@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 
 from formopt_ros import bag as bags
 from formopt_ros import conversions
 from formopt_ros.core.model import MEASUREMENT_KINDS, wrap_angle
 from formopt_ros.core.simulation import SUBSTEPS, EstimatorPlanner, Scenario, trial_streams
 from formopt_ros.core.solver import METHODS
-from formopt_ros.nodes.common import RELIABLE, Param, ParameterError, declare, run
+from formopt_ros.nodes.common import Param, ParameterError, declare, qos_for, run
 
 PARAMS = [
     Param('bag_path', '', 'the .mcap file to replay (required)'),
@@ -54,11 +54,7 @@ def replay_qos(channel: bags.ChannelInfo) -> QoSProfile:
     offers = channel.qos
     reliable = all(q.reliability != 'best_effort' for q in offers)
     latched = bool(offers) and all(q.durability == 'transient_local' for q in offers)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RELIABLE.depth,
-                      reliability=ReliabilityPolicy.RELIABLE if reliable
-                      else ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
-                      else DurabilityPolicy.VOLATILE)
+    return qos_for(reliable, latched)
 
 
 class Replay(Node):

@@ -1,6 +1,7 @@
 """ROS test setup: per-module domain id, localhost discovery, skip without rclpy, helpers."""
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -71,6 +72,22 @@ def ros_domain(request) -> Iterator[int]:
         patch.setenv('ROS_DOMAIN_ID', str(domain))
         patch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
         yield domain
+
+
+@contextlib.contextmanager
+def domain_environment(domain_id: str, repo: Path) -> Iterator[dict[str, str]]:
+    """Set ROS_DOMAIN_ID and localhost discovery for in-process nodes and children, then
+    restore; yields the environment for subprocesses (with the repo on PYTHONPATH)."""
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
+    os.environ.update(ROS_DOMAIN_ID=domain_id, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    try:
+        yield dict(os.environ, PYTHONPATH=str(repo))
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 def ros_args(params: dict[str, object]) -> list[str]:

@@ -17,6 +17,7 @@ from rclpy.duration import Duration  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 
+from conftest import domain_environment  # noqa: E402
 from formopt_ros import bag as bags  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -29,14 +30,8 @@ NAMESPACE = f'/bagtest_{os.getpid()}'   # keeps concurrent runs of these tests a
 @pytest.fixture
 def ros_env():
     """This file's domain id and localhost discovery, for in-process nodes and children."""
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
-    os.environ.update(ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    yield dict(os.environ, PYTHONPATH=str(REPO))
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    with domain_environment(DOMAIN_ID, REPO) as env:
+        yield env
 
 
 @pytest.fixture
