@@ -21,6 +21,7 @@ from builtin_interfaces.msg import Time
 from formopt_interfaces.msg import Measurement, PlannerStatus, Waypoint
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
+from std_msgs.msg import Header
 
 from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.simulation import PlanResult
@@ -79,10 +80,8 @@ def measurement(time: Time, follower_id: str, step: int, kind: str, value: float
                        kind=KIND_CODES[kind], value=float(value), variance=float(variance))
 
 
-def _header(time: Time, frame_id: str):
-    msg = Odometry().header
-    msg.stamp, msg.frame_id = time, frame_id
-    return msg
+def _header(time: Time, frame_id: str) -> Header:
+    return Header(stamp=time, frame_id=frame_id)
 
 
 def pose_stamped(time: Time, frame_id: str, x: np.ndarray) -> PoseStamped:

@@ -78,6 +78,7 @@ class Problem:
         r: allowed deviation from the slot, m; 0 < r < |p_o| (the disc must not reach the leader).
         sigma: measurement noise standard deviation, m (range) or rad (bearing).
         measurement: 'range' or 'bearing'.
+        (derived) w: diagonal of W; M: P W^2 P; N: P + R e3 e3'; base_cost: tr(W P W).
         validate: check every input (default). The simulator passes False for covariances its
             own EKF produced, which are symmetric positive definite by construction.
     """
@@ -93,6 +94,7 @@ class Problem:
     base_cost: float = field(init=False, repr=False)
     numerator_coefficients: np.ndarray = field(init=False, repr=False)
     denominator_coefficients: np.ndarray = field(init=False, repr=False)
+    N: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self, validate: bool) -> None:
         if validate:
@@ -113,16 +115,16 @@ class Problem:
         w = weight_vector(p_o)
         M = (P * (w * w)) @ P                      # P W^2 P
         R = sigma * sigma
+        N = P.copy()                               # P + R e3 e3', the bearing denominator
+        N[2, 2] += R
         if self.measurement == RANGE:
             num = np.array([M[0, 0], 2 * M[0, 1], M[1, 1], 0.0])
             den = np.array([P[0, 0], 2 * P[0, 1], P[1, 1], R])
         else:
-            N = P.copy()
-            N[2, 2] += R
             num = np.array([M[0, 0], 2 * M[0, 1], M[1, 1], -2 * M[0, 2], -2 * M[1, 2], M[2, 2]])
             den = np.array([N[0, 0], 2 * N[0, 1], N[1, 1], -2 * N[0, 2], -2 * N[1, 2], N[2, 2]])
         for name, value in (('P', P), ('p_o', p_o), ('r', r), ('sigma', sigma), ('w', w),
-                            ('M', M), ('base_cost', float(np.dot(w * w, np.diag(P)))),
+                            ('M', M), ('N', N), ('base_cost', weighted_trace(P, p_o)),
                             ('numerator_coefficients', num),
                             ('denominator_coefficients', den)):
             object.__setattr__(self, name, value)
@@ -136,13 +138,6 @@ class Problem:
     def R(self) -> float:
         """Measurement noise variance, m^2 or rad^2."""
         return self.sigma * self.sigma
-
-    @property
-    def N(self) -> np.ndarray:
-        """P + R e3 e3', the bearing gain's denominator matrix, shape (3, 3)."""
-        N = self.P.copy()
-        N[2, 2] += self.R
-        return N
 
     def monomials(self, points: np.ndarray) -> np.ndarray:
         """Monomials of the gain's quadratic forms at points (n, 2) in {L} (m); shape (n, k)."""

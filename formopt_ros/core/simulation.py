@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, weight_vector
+from formopt_ros.core.cost import Problem, weighted_trace
 from formopt_ros.core.model import (
     BEARING, RANGE, ekf_update, normalized_estimation_error, predict_measurement, propagate,
     propagate_state, wrap_angle)
@@ -222,8 +222,7 @@ class EstimatorPlanner:
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""
-        w = weight_vector(self.scenario.slot)
-        return float(np.dot(w * w, np.diag(self.P)))
+        return weighted_trace(self.P, self.scenario.slot)
 
 
 @dataclass
