@@ -164,7 +164,7 @@ start follower_sim "${common[@]}" "${extra[@]}"
 # the peers' waypoint subscriptions, and the recorder should by then know every publisher.
 deadline=$(( SECONDS + 30 ))
 for name in leader_sim follower_sim; do
-  while ! grep -q "\] \[$name\]: .*ready" "$out/$name.log"; do
+  while ! grep -q "\[[A-Za-z0-9_.]*$name\]: .*ready" "$out/$name.log"; do
     if ! alive "${pids[$name]}" || (( SECONDS > deadline )); then
       echo "run_formation.sh: error: $name did not start; last lines of $out/$name.log:" >&2
       tail -n 5 "$out/$name.log" >&2
@@ -222,7 +222,7 @@ est = json.loads((out / 'estimator_summary.json').read_text())
 stamps = {}
 log = (out / 'estimator_planner.log').read_text(errors='replace')
 for key, pattern in (('ready', 'estimator_planner ready'), ('finished', 'run finished')):
-    match = re.search(r'\[(\d+\.\d+)\] \[estimator_planner\]: ' + pattern, log)
+    match = re.search(r'\[(\d+\.\d+)\] \[[\w.]*estimator_planner\]: ' + pattern, log)
     if match:
         stamps[key] = float(match.group(1))
 run_time = stamps['finished'] - stamps['ready'] if len(stamps) == 2 else None

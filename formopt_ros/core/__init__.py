@@ -1,5 +1,8 @@
-"""Pure core of formopt_ros (numpy and scipy only): model, cost, strategies, simulation."""
+"""Pure core of formopt_ros (numpy and scipy only): model, cost, strategies, protocol, simulation."""
 from formopt_ros.core.cost import Problem, weighted_trace
-from formopt_ros.core.solver import METHODS, Solution, solve
+from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.solver import METHODS, solve
+from formopt_ros.core.strategies import STRATEGIES, PlanContext, Solution, make_strategy
 
-__all__ = ['METHODS', 'Problem', 'Solution', 'solve', 'weighted_trace']
+__all__ = ['LeaderPath', 'METHODS', 'PlanContext', 'Problem', 'STRATEGIES', 'Scenario',
+           'Solution', 'make_strategy', 'solve', 'weighted_trace']

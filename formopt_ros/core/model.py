@@ -50,6 +50,22 @@ def propagate_state(x: np.ndarray, v_f: float, omega_f: float, dt: float,
     ])
 
 
+def integrate_unicycle(pose: tuple[float, float, float], v: float, omega: float,
+                       dt: float) -> tuple[float, float, float]:
+    """Dead reckoning of a planar robot in a fixed frame (odometry pose), one Euler step.
+
+    Args:
+        pose: (x m, y m, yaw rad) in the fixed frame.
+        v, omega: forward speed (m/s) and yaw rate (rad/s) during the step.
+        dt: step length, s.
+
+    Returns:
+        The pose after ``dt`` (yaw not wrapped: odometry yaw is continuous).
+    """
+    x, y, yaw = pose
+    return x + v * math.cos(yaw) * dt, y + v * math.sin(yaw) * dt, yaw + omega * dt
+
+
 def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: float,
               v_l: float, omega_l: float, sigma_v: float,
               sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
@@ -128,8 +144,14 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: float, kind: str,
     return x_post, 0.5 * (P_post + P_post.T), innovation, S
 
 
+def state_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b for poses [x, y, phi], shape (3,), with the heading difference wrapped."""
+    e = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    e[2] = wrap_angle(e[2])
+    return e
+
+
 def normalized_estimation_error(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
     """NEES of [x, y, phi] (heading error wrapped): e' P^-1 e, dimensionless."""
-    e = np.asarray(x_true, dtype=float) - np.asarray(x_est, dtype=float)
-    e[2] = wrap_angle(e[2])
+    e = state_difference(x_true, x_est)
     return float(e @ np.linalg.solve(P, e))

@@ -5,11 +5,13 @@ import math
 
 import numpy as np
 from formopt_interfaces.msg import Measurement
+from harness.ros import topic
 from nav_msgs.msg import Odometry
 
-from formopt_ros import conversions
-from formopt_ros.core.simulation import SUBSTEPS, Scenario, run_trial
-from formopt_ros.nodes.common import RELIABLE, TOPICS
+from formopt_ros.core.protocol import SUBSTEPS, seconds_to_ns
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.simulation import run_trial
+from formopt_ros.ros import conversions, qos
 
 STEPS = 30
 INJECT_AFTER = 10          # inject once the estimator processed this many steps
@@ -20,11 +22,11 @@ TOL = 1e-9                 # the estimate must equal the clean run's (same arith
 
 def bad_measurements(step: int) -> list[Measurement]:
     """Each is rejected for one reason; step is the next one the estimator waits for."""
-    future = conversions.stamp((step + 5) * SUBSTEPS * DT)
+    future = conversions.stamp(seconds_to_ns((step + 5) * SUBSTEPS * DT))
 
     def meas(value=1.0, variance=0.01, follower='follower', kind=Measurement.RANGE,
              stamp=future, k=step) -> Measurement:
-        return Measurement(header=conversions._header(stamp, follower), follower_id=follower,
+        return Measurement(header=conversions.header(stamp, follower), follower_id=follower,
                            step=k, kind=kind, value=value, variance=variance)
     return [
         meas(value=math.nan),
@@ -35,28 +37,29 @@ def bad_measurements(step: int) -> list[Measurement]:
         meas(follower='intruder'),
         meas(kind=Measurement.BEARING),
         # valid values, step never processed, but stamped before the last accepted one
-        meas(stamp=conversions.stamp(0.5 * DT), k=10 ** 6),
+        meas(stamp=conversions.stamp(seconds_to_ns(0.5 * DT)), k=10 ** 6),
     ]
 
 
 def bad_odometry(step: int) -> list[tuple[str, Odometry]]:
     """(topic, message) pairs, each rejected for one reason."""
-    future = conversions.stamp((step + 5) * SUBSTEPS * DT)
+    future = conversions.stamp(seconds_to_ns((step + 5) * SUBSTEPS * DT))
     odom = conversions.odometry
+    follower_odom, leader_odom = topic('follower', 'odom'), topic('leader', 'odom')
     return [
-        (TOPICS['follower_odom'], odom(future, 'follower/odom', 'follower', (0, 0, 0),
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
                                        math.nan, 0.0)),
-        (TOPICS['follower_odom'], odom(future, 'follower/odom', 'follower', (0, 0, 0),
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
                                        0.5, math.inf)),
-        (TOPICS['follower_odom'], odom(future, 'follower/odom', 'follower', (0, 0, 0),
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
                                        0.5, 0.0, (-1.0, 0.01))),
-        (TOPICS['follower_odom'], odom(future, 'follower/odom', 'intruder', (0, 0, 0),
+        (follower_odom, odom(future, 'follower/odom', 'intruder', (0, 0, 0),
                                        0.5, 0.0)),
         # valid values, stamped before the last accepted follower odometry
-        (TOPICS['follower_odom'], odom(conversions.stamp(DT), 'follower/odom', 'follower',
+        (follower_odom, odom(conversions.stamp(seconds_to_ns(DT)), 'follower/odom', 'follower',
                                        (0, 0, 0), 0.5, 0.0)),
-        (TOPICS['leader_odom'], odom(future, 'odom', 'leader', (0, 0, 0), 1.0, math.nan)),
-        (TOPICS['leader_odom'], odom(future, 'odom', 'intruder', (0, 0, 0), 1.0, 0.0)),
+        (leader_odom, odom(future, 'odom', 'leader', (0, 0, 0), 1.0, math.nan)),
+        (leader_odom, odom(future, 'odom', 'intruder', (0, 0, 0), 1.0, 0.0)),
     ]
 
 
@@ -64,21 +67,22 @@ def test_bad_inputs_are_rejected_and_counted(formation) -> None:
     run = formation({'measurement': 'range', 'strategy': 'crm', 'seed': SEED, 'steps': STEPS,
                      'resend_timeout': 60.0})
     injector = run.probe       # publishes from the same process, in the same executor
-    meas_pub = injector.create_publisher(Measurement, TOPICS['measurement'], RELIABLE)
-    odom_pubs = {topic: injector.create_publisher(Odometry, topic, RELIABLE)
-                 for topic in (TOPICS['follower_odom'], TOPICS['leader_odom'])}
+    meas_pub = injector.create_publisher(Measurement, topic('follower', 'measurement'),
+                                         qos.STREAM)
+    odom_pubs = {name: injector.create_publisher(Odometry, name, qos.STREAM)
+                 for name in (topic('follower', 'odom'), topic('leader', 'odom'))}
     measurements, odometry = bad_measurements(INJECT_AFTER + 1), bad_odometry(INJECT_AFTER + 1)
     injected = []
 
     def inject() -> None:
-        if not injected and run.estimator.step >= INJECT_AFTER:
+        if not injected and run.estimator.session.step >= INJECT_AFTER:
             for msg in measurements:
                 meas_pub.publish(msg)
-            for topic, msg in odometry:
-                odom_pubs[topic].publish(msg)
-            injected.append(run.estimator.step)
+            for name, msg in odometry:
+                odom_pubs[name].publish(msg)
+            injected.append(run.estimator.session.step)
 
-    assert run.run(timeout=30.0, step=inject), f'estimator at step {run.estimator.step}'
+    assert run.run(timeout=30.0, step=inject), f'estimator at step {run.estimator.session.step}'
     assert injected and injected[0] < STEPS, 'the bad inputs were published too late'
     status = run.probe.statuses[-1]
     assert status.step == STEPS

@@ -1,69 +1,44 @@
 """Recording a lockstep run to MCAP, reading it back (rosbags, mcap), replay, report, bad bags."""
 from __future__ import annotations
 
-import copy
 import json
-import os
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
+from harness.ros import PREFIX, params_file, remap_args, spin_until, tap, topic
+from mcap.reader import make_reader
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import deserialize_message
 
-rclpy = pytest.importorskip('rclpy')
+from formopt_ros import bag as bags
+from formopt_ros.analysis.offline import offline
+from formopt_ros.analysis.recording import load_recording
+from formopt_ros.bag.schema import message_definition
+from formopt_ros.ros.conversions import message_class
+from formopt_ros.wire.messages import estimate_values, header_ns
+from formopt_ros.wire.topics import formation_topics
 
-from mcap.reader import make_reader  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.serialization import deserialize_message  # noqa: E402
-
-from conftest import domain_environment  # noqa: E402
-from formopt_ros import bag as bags  # noqa: E402
-from formopt_ros import conversions  # noqa: E402
-from formopt_ros.nodes.common import TOPICS  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[2]
-DOMAIN_ID = '24'                    # this file's DDS domain (bag tests use 20-29)
 SEED, STEPS, KIND, STRATEGY = 3, 40, 'bearing', 'ram'
 DEADLINE = 60.0                     # s, for every spin-until-condition loop
 INPUTS = ['leader/odom', 'follower/odom', 'follower/measurement', 'follower/truth']
-NAMESPACE = f'/bagtest_{os.getpid()}'   # keeps concurrent runs of these tests apart
-
-
-@pytest.fixture(scope='module')
-def ros_env():
-    """This module's domain id and localhost discovery, for in-process nodes and children."""
-    with domain_environment(DOMAIN_ID, REPO) as env:
-        yield env
 
 
 def ros_args(path: Path, sections: dict[str, dict]) -> list[str]:
-    """rclpy.init arguments: this file's namespace and a parameters file (node -> values)."""
-    path.write_text(json.dumps({f'/**/{node}' if node != '*' else '/**':
-                                {'ros__parameters': values}
-                                for node, values in sections.items()}))
-    return ['--ros-args', '-r', f'__ns:={NAMESPACE}', '--params-file', str(path)]
+    """rclpy.init arguments: this session's namespaces and a parameters file."""
+    return ['--ros-args', *remap_args({'leader_sim': 'leader', 'follower_sim': 'follower',
+                                       'estimator_planner': 'follower'}),
+            '-r', f'recorder:__ns:={PREFIX}', '-r', f'replay:__ns:={PREFIX}',
+            '--params-file', str(params_file(path, sections))]
 
 
-def spin_until(executor: SingleThreadedExecutor, condition, deadline: float = DEADLINE) -> None:
-    """Spin until condition() holds; fail after deadline seconds."""
-    end = time.monotonic() + deadline
-    while not condition():
-        assert time.monotonic() < end, 'condition not reached before the deadline'
-        executor.spin_once(timeout_sec=0.01)
-
-
-def tap(publisher, sink: list) -> None:
-    """Keep a copy of every message the publisher sends."""
-    original = publisher.publish
-
-    def publish(msg) -> None:
-        sink.append(copy.deepcopy(msg))
-        original(msg)
-
-    publisher.publish = publish
+def spin(executor: SingleThreadedExecutor, condition) -> None:
+    """Spin until condition() holds; fail after DEADLINE seconds."""
+    assert spin_until(executor, condition, DEADLINE), 'condition not reached before the deadline'
 
 
 @dataclass
@@ -77,12 +52,12 @@ class Recording:
 
 
 @pytest.fixture(scope='module')
-def recording(ros_env, tmp_path_factory) -> Recording:
+def recording(tmp_path_factory) -> Recording:
     """40 lockstep steps (bearing, RAM, seed 3) recorded in-process, on one executor."""
-    from formopt_ros.nodes.estimator_planner import EstimatorPlannerNode
-    from formopt_ros.nodes.follower_sim import FollowerSim
-    from formopt_ros.nodes.leader_sim import LeaderSim
-    from formopt_ros.nodes.recorder import Recorder
+    from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
+    from formopt_ros.ros.nodes.follower_sim import FollowerSim
+    from formopt_ros.ros.nodes.leader_sim import LeaderSim
+    from formopt_ros.ros.nodes.recorder import Recorder
     folder = tmp_path_factory.mktemp('recording')
     path = folder / 'run.mcap'
     rclpy.init(args=ros_args(folder / 'params.json', {
@@ -96,16 +71,17 @@ def recording(ros_env, tmp_path_factory) -> Recording:
         for pub in (leader.odom_pub, follower.odom_pub, follower.meas_pub, follower.truth_pub,
                     estimator.estimate_pub, estimator.waypoint_pub, estimator.status_pub):
             tap(pub, published.setdefault(pub.topic_name, []))
+        published[estimator.description_pub.topic_name] = [estimator.description_message]
         executor = SingleThreadedExecutor()
         for node in (leader, follower, estimator, recorder):
             executor.add_node(node)
-        spin_until(executor, lambda: all(s.get_publisher_count() >= 1
-                                         for s in recorder.subscriptions)
-                   and estimator.waypoint_pub.get_subscription_count() >= 3)
+        spin(executor, lambda: all(s.get_publisher_count() >= 1
+                                   for s in recorder.subscriptions)
+             and estimator.waypoint_pub.get_subscription_count() >= 3)
         estimator.params['peers'] = 3                 # leader, follower and the recorder
-        spin_until(executor, lambda: estimator.finished)
+        spin(executor, lambda: estimator.finished)
         total = sum(len(v) for v in published.values())
-        spin_until(executor, lambda: sum(recorder.counts.values()) >= total)
+        spin(executor, lambda: sum(recorder.counts.values()) >= total)
         recorder.close()
         result = Recording(path, published, estimator.summary(), dict(recorder.counts))
         for node in (leader, follower, estimator, recorder):
@@ -119,13 +95,14 @@ def recording(ros_env, tmp_path_factory) -> Recording:
 def test_zero_loss(recording: Recording) -> None:
     """Every published message is in the bag, per topic; counts agree with the nodes."""
     counts = bags.read_bag(recording.path).counts()
-    assert counts == {topic: len(msgs) for topic, msgs in recording.published.items()}
+    assert counts == {name: len(msgs) for name, msgs in recording.published.items()}
     assert counts == recording.recorder_counts
-    assert set(counts) == {f'{NAMESPACE}/{name}' for name in TOPICS.values()}
+    assert set(counts) == {PREFIX + name for name in formation_topics()}
     assert recording.summary['steps'] == STEPS
     published = recording.summary['message_counts']['published']
     received = recording.summary['message_counts']['received']
-    counts = {topic[len(NAMESPACE) + 1:]: n for topic, n in counts.items()}
+    counts = {name[len(PREFIX) + 1:]: n for name, n in counts.items()}
+    assert counts['follower/description'] == 1
     assert counts['follower/estimate'] == published['estimate'] == STEPS
     assert counts['follower/status'] == published['status'] == STEPS
     assert counts['follower/waypoint'] == published['waypoint']
@@ -142,18 +119,17 @@ def test_mcap_reader_with_rclpy_deserialization(recording: Recording) -> None:
         for channel in summary.channels.values():
             schema = summary.schemas[channel.schema_id]
             assert channel.message_encoding == 'cdr' and schema.encoding == 'ros2msg'
-            assert schema.data.decode() == bags.message_definition(schema.name)
+            assert schema.data.decode() == message_definition(schema.name)
             assert channel.metadata['topic_type_hash'].startswith('RIHS01_')
             assert 'reliability: reliable' in channel.metadata['offered_qos_profiles']
         decoded: dict[str, list] = {}
         last_log_time = 0
         for schema, channel, message in reader.iter_messages(log_time_order=False):
-            cls = bags.message_class(schema.name)
-            msg = deserialize_message(message.data, cls)
+            msg = deserialize_message(message.data, message_class(schema.name))
             decoded.setdefault(channel.topic, []).append(msg)
             assert message.log_time >= last_log_time
             last_log_time = message.log_time
-            assert message.publish_time == conversions.nanoseconds(msg.header.stamp)
+            assert message.publish_time == header_ns(msg)
     assert decoded.keys() == recording.published.keys()
     for topic, msgs in recording.published.items():
         assert decoded[topic] == msgs, topic
@@ -171,56 +147,56 @@ def same_values(published, decoded, where: str = '') -> None:
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where + name)
 
 
-@pytest.mark.parametrize('typestore', ['embedded', 'registered'])
-def test_rosbags_reader(recording: Recording, typestore: str) -> None:
-    """rosbags AnyReader decodes every message to the published values.
-
-    'embedded': types only from the bag's ros2msg schemas, whose RIHS01 hashes must equal the
-    ones rclpy reported; 'registered': a Jazzy typestore with our msg files registered.
-    """
-    from rosbags.highlevel import AnyReader
-    store = bags.rosbags_typestore() if typestore == 'registered' else None
-    with AnyReader([recording.path], default_typestore=store) as reader:
-        hashes = {c.topic: reader.typestore.hash_rihs01(c.msgtype) for c in reader.connections}
-        decoded: dict[str, list] = {}
-        for connection, _, raw in reader.messages():
-            decoded.setdefault(connection.topic, []).append(
-                reader.deserialize(raw, connection.msgtype))
-        for connection in reader.connections:
-            assert connection.ext.offered_qos_profiles[0].reliability.name == 'RELIABLE'
-    loaded = bags.read_bag(recording.path)
-    for topic, channel in loaded.channels.items():
-        assert hashes[topic] == channel.metadata['topic_type_hash'], topic
-    for topic, msgs in recording.published.items():
-        assert len(decoded[topic]) == len(msgs)
-        for i, (a, b) in enumerate(zip(msgs, decoded[topic])):
-            same_values(a, b, f'{topic}[{i}]')
+@pytest.mark.parametrize('reader', ['anyreader', 'formopt'])
+def test_rosbags_reader(recording: Recording, reader: str) -> None:
+    """rosbags decodes every message to the published values, with types only from the bag's
+    ros2msg schemas (whose RIHS01 hashes equal the ones rclpy reported): through rosbags'
+    AnyReader, and through formopt_ros.bag (no ROS)."""
+    decoded: dict[str, list] = {}
+    if reader == 'anyreader':
+        from rosbags.highlevel import AnyReader
+        with AnyReader([recording.path]) as any_reader:
+            hashes = {c.topic: any_reader.typestore.hash_rihs01(c.msgtype)
+                      for c in any_reader.connections}
+            for connection, _, raw in any_reader.messages():
+                decoded.setdefault(connection.topic, []).append(
+                    any_reader.deserialize(raw, connection.msgtype))
+        loaded = bags.read_bag(recording.path)
+        for name, channel in loaded.channels.items():
+            assert hashes[name] == channel.metadata['topic_type_hash'], name
+    else:
+        loaded = bags.read_bag(recording.path)
+        for name in loaded.channels:
+            decoded[name] = [msg for _, msg in loaded.decode(name)]
+    for name, msgs in recording.published.items():
+        assert len(decoded[name]) == len(msgs)
+        for i, (a, b) in enumerate(zip(msgs, decoded[name])):
+            same_values(a, b, f'{name}[{i}]')
 
 
 def recorded_estimates(path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     loaded = bags.read_bag(path)
-    return [conversions.estimate_values(m)
-            for _, m in loaded.decode(loaded.find('follower/estimate'))]
+    return [estimate_values(m) for _, m in loaded.decode(loaded.find('follower/estimate'))]
 
 
-def test_offline_replay_agrees(recording: Recording, ros_env, tmp_path: Path) -> None:
-    """The core re-run over the recorded inputs equals the recorded estimates (1e-9)."""
-    from formopt_ros.nodes.replay import offline
-    result = offline(bags.read_bag(recording.path), seed=SEED)
+def test_offline_replay_agrees(recording: Recording, tmp_path: Path) -> None:
+    """The core re-run over the recorded inputs equals the recorded estimates (1e-9); the run
+    description in the bag supplies the scenario, strategy and seed."""
+    result = offline(load_recording(bags.read_bag(recording.path)))
     assert (result.steps, result.recorded_steps, result.mode) == (STEPS, STEPS, 'lockstep')
-    assert (result.strategy, result.measurement) == (STRATEGY, KIND)
+    assert (result.strategy, result.measurement, result.legacy) == (STRATEGY, KIND, False)
     assert result.max_diff <= 1e-9 and result.max_stamp_diff_ns == 0
     assert result.max_waypoint_diff is not None and result.max_waypoint_diff <= 1e-9
     command = subprocess.run(
-        [sys.executable, '-m', 'formopt_ros.nodes.replay', str(recording.path), '--offline',
-         '--seed', str(SEED), '--json', str(tmp_path / 'offline.json')],
-        capture_output=True, text=True, timeout=120, env=ros_env)
+        [sys.executable, '-m', 'formopt_ros.cli.replay', str(recording.path), '--offline',
+         '--json', str(tmp_path / 'offline.json')],
+        capture_output=True, text=True, timeout=120)
     assert command.returncode == 0, command.stderr
     assert 'OK' in command.stdout
     assert json.loads((tmp_path / 'offline.json').read_text())['max_diff'] <= 1e-9
 
 
-def test_offline_replay_fails_on_a_tampered_estimate(recording: Recording, ros_env,
+def test_offline_replay_fails_on_a_tampered_estimate(recording: Recording,
                                                      tmp_path: Path) -> None:
     """An estimate off by 1e-6 m is reported and the command exits 1."""
     from rclpy.serialization import serialize_message
@@ -231,26 +207,24 @@ def test_offline_replay_fails_on_a_tampered_estimate(recording: Recording, ros_e
     for i, record in enumerate(loaded.messages):
         data = record.data
         if record.topic.endswith('/follower/estimate') and i > len(loaded.messages) // 2:
-            msg = deserialize_message(data, bags.message_class(loaded.channels[record.topic]
-                                                               .type))
+            msg = deserialize_message(data, message_class(loaded.channels[record.topic].type))
             msg.pose.pose.position.x += 1e-6
             data = serialize_message(msg)
         writer.write(record.topic, data, record.log_time, record.publish_time)
     writer.close()
     command = subprocess.run(
-        [sys.executable, '-m', 'formopt_ros.nodes.replay', str(tmp_path / 'tampered.mcap'),
-         '--offline', '--seed', str(SEED)], capture_output=True, text=True, timeout=120,
-        env=ros_env)
+        [sys.executable, '-m', 'formopt_ros.cli.replay', str(tmp_path / 'tampered.mcap'),
+         '--offline'], capture_output=True, text=True, timeout=120)
     assert command.returncode == 1, command.stdout + command.stderr
     assert 'FAILED' in command.stdout and 'state 1.000e-06' in command.stdout
 
 
 @pytest.mark.parametrize('timing', [{'rate': 5.0}, {'fast': True}])
-def test_replay_into_live_estimator(recording: Recording, ros_env, tmp_path: Path,
+def test_replay_into_live_estimator(recording: Recording, tmp_path: Path,
                                     timing: dict) -> None:
     """Republished inputs drive a fresh estimator_planner to the recorded estimates (1e-9)."""
-    from formopt_ros.nodes.estimator_planner import EstimatorPlannerNode
-    from formopt_ros.nodes.replay import Replay
+    from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
+    from formopt_ros.ros.nodes.replay import Replay
     rclpy.init(args=ros_args(tmp_path / 'params.json', {
         '*': {'measurement': KIND, 'seed': SEED, 'strategy': STRATEGY},
         'estimator_planner': {'steps': STEPS, 'peers': 0},
@@ -264,8 +238,8 @@ def test_replay_into_live_estimator(recording: Recording, ros_env, tmp_path: Pat
         executor = SingleThreadedExecutor()
         executor.add_node(estimator)
         executor.add_node(replay)
-        spin_until(executor, lambda: estimator.finished and replay.finished)
-        assert replay.counts == {f'{NAMESPACE}/{t}': n for t, n in zip(INPUTS, (
+        spin(executor, lambda: estimator.finished and replay.finished)
+        assert replay.counts == {f'{PREFIX}/{t}': n for t, n in zip(INPUTS, (
             2 * STEPS, 2 * STEPS, STEPS, STEPS))}
         for node in (estimator, replay):
             executor.remove_node(node)
@@ -275,16 +249,16 @@ def test_replay_into_live_estimator(recording: Recording, ros_env, tmp_path: Pat
     recorded = recorded_estimates(recording.path)
     assert len(estimates) == len(recorded) == STEPS
     for msg, (x, P) in zip(estimates, recorded):
-        x_live, P_live = conversions.estimate_values(msg)
+        x_live, P_live = estimate_values(msg)
         assert np.max(np.abs(x_live - x)) <= 1e-9 and np.max(np.abs(P_live - P)) <= 1e-9
 
 
-def test_report(recording: Recording, ros_env, tmp_path: Path) -> None:
+def test_report(recording: Recording, tmp_path: Path) -> None:
     """formopt-report writes the three figures and a summary consistent with the run."""
     out = tmp_path / 'report'
-    command = subprocess.run([sys.executable, '-m', 'formopt_ros.report', str(recording.path),
-                              '--out', str(out)], capture_output=True, text=True, timeout=120,
-                             env=ros_env)
+    command = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.report',
+                              str(recording.path), '--out', str(out)], capture_output=True,
+                             text=True, timeout=120)
     assert command.returncode == 0, command.stderr
     for name in ('trajectory.png', 'weighted_trace.png', 'nees.png'):
         assert (out / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
@@ -296,6 +270,7 @@ def test_report(recording: Recording, ros_env, tmp_path: Path) -> None:
     assert summary['final_weighted_trace'] == pytest.approx(
         recording.summary['final_weighted_trace'], abs=1e-12)
     assert summary['rejected_measurements'] == summary['rejected_odometry'] == 0
+    assert summary['description'] == 'recorded'
     assert '| steps | 40 |' in (out / 'summary.md').read_text()
 
 
@@ -312,71 +287,69 @@ def foreign_bag(path: Path) -> Path:
 
 
 def unknown_type_bag(path: Path) -> Path:
-    """A bag whose formation topics have a type that is not installed here."""
+    """A bag whose formation topic names carry a type that is not installed here."""
     from mcap.writer import Writer
     with open(path, 'wb') as stream:
         writer = Writer(stream)
         writer.start(profile='ros2', library='test')
         schema = writer.register_schema('nosuch_msgs/msg/Estimate', 'ros2msg', b'float64 x\n')
-        for topic in bags.TOPIC_TYPES:
-            topic = '/' + topic
-            channel = writer.register_channel(topic, 'cdr', schema, {})
+        for name in formation_topics():
+            channel = writer.register_channel(name, 'cdr', schema, {})
             writer.add_message(channel, 1, bytes([0, 1, 0, 0]) + bytes(8), 1)
         writer.finish()
     return path
 
 
 BAD_BAGS = {
-    'missing': (lambda p: p / 'absent.mcap', 'no such file'),
-    'not_mcap': (lambda p: (p / 'notes.mcap').write_text('not a bag') and p / 'notes.mcap',
-                 'not an MCAP file'),
-    'no_topics': (lambda p: foreign_bag(p / 'chatter.mcap'), 'no '),
-    'unknown_type': (lambda p: unknown_type_bag(p / 'unknown.mcap'), 'unknown message type'),
+    'missing': lambda p: p / 'absent.mcap',
+    'not_mcap': lambda p: (p / 'notes.mcap').write_text('not a bag') and p / 'notes.mcap',
+    'no_topics': lambda p: foreign_bag(p / 'chatter.mcap'),
+    'unknown_type': lambda p: unknown_type_bag(p / 'unknown.mcap'),
+}
+#: What the one error line says, per bag and command ('info' lists any valid bag).
+EXPECTED = {
+    'missing': {'report': 'no such file', 'offline': 'no such file', 'replay': 'no such file',
+                'info': 'no such file'},
+    'not_mcap': {'report': 'not an MCAP file', 'offline': 'not an MCAP file',
+                 'replay': 'not an MCAP file', 'info': 'not an MCAP file'},
+    'no_topics': {'report': 'no follower topics', 'offline': 'no follower topics',
+                  'replay': 'no topic'},
+    'unknown_type': {'report': 'no follower topics', 'offline': 'no follower topics',
+                     'replay': 'unknown message type'},
 }
 COMMANDS = {
-    'report': ['formopt_ros.report', '{bag}', '--out', '{out}'],
-    'offline': ['formopt_ros.nodes.replay', '{bag}', '--offline'],
-    'replay': ['formopt_ros.nodes.replay', '{bag}', '--topics', 'follower/estimate'],
-    'info': ['formopt_ros.bag', 'info', '{bag}'],
+    'report': ('formopt-report', ['formopt_ros.cli.report', '{bag}', '--out', '{out}']),
+    'offline': ('replay', ['formopt_ros.cli.replay', '{bag}', '--offline']),
+    'replay': ('replay', ['formopt_ros.cli.replay', '{bag}', '--topics', 'follower/estimate']),
+    'info': ('formopt-bag', ['formopt_ros.cli.bag', 'info', '{bag}']),
 }
 
 
-@pytest.mark.parametrize('case,command', [
-    (case, command) for case in sorted(BAD_BAGS) for command in sorted(COMMANDS)
-    if not (command == 'info' and case in ('no_topics', 'unknown_type'))])  # info lists any
-def test_bad_bag_is_a_clean_error(case: str, command: str, ros_env, tmp_path: Path) -> None:
-    """Exit code 2 and one 'error:' line saying what is wrong; never a traceback."""
-    make, text = BAD_BAGS[case]
-    path = make(tmp_path)
-    args = [a.format(bag=path, out=tmp_path / 'out') for a in COMMANDS[command]]
+@pytest.mark.parametrize('case,command', [(case, command) for case in sorted(EXPECTED)
+                                          for command in sorted(EXPECTED[case])])
+def test_bad_bag_is_a_clean_error(case: str, command: str, tmp_path: Path) -> None:
+    """Exit code 2 and one 'prog: error:' line saying what is wrong; never a traceback."""
+    path = BAD_BAGS[case](tmp_path)
+    prog, args = COMMANDS[command]
+    args = [a.format(bag=path, out=tmp_path / 'out') for a in args]
     result = subprocess.run([sys.executable, '-m', *args], capture_output=True, text=True,
-                            timeout=120, env=ros_env)
+                            timeout=120)
     assert result.returncode == 2, result.stdout + result.stderr
     assert 'Traceback' not in result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith('error: ') and text in lines[0], lines
+    text = EXPECTED[case][command]
+    assert len(lines) == 1 and lines[0].startswith(f'{prog}: error: ') and text in lines[0], \
+        lines
 
 
-def test_truncated_bag_names_the_repair(recording: Recording, ros_env, tmp_path: Path) -> None:
+def test_truncated_bag_names_the_repair(recording: Recording, tmp_path: Path) -> None:
     """A bag cut short (killed recorder) is refused with the repair command in the message."""
     data = recording.path.read_bytes()
     cut = tmp_path / 'cut.mcap'
     cut.write_bytes(data[:len(data) // 2])
-    for command in ('formopt_ros.report', 'formopt_ros.nodes.replay'):
-        result = subprocess.run([sys.executable, '-m', command, str(cut), '--out',
-                                 str(tmp_path / 'o')] if command.endswith('report') else
-                                [sys.executable, '-m', command, str(cut), '--offline'],
-                                capture_output=True, text=True, timeout=120, env=ros_env)
+    for args in (['formopt_ros.cli.report', str(cut), '--out', str(tmp_path / 'o')],
+                 ['formopt_ros.cli.replay', str(cut), '--offline']):
+        result = subprocess.run([sys.executable, '-m', *args], capture_output=True, text=True,
+                                timeout=120)
         assert result.returncode == 2 and 'Traceback' not in result.stderr
-        assert 'truncated' in result.stderr and 'formopt_ros.bag repair' in result.stderr
-
-
-@pytest.mark.parametrize('node', ['recorder', 'replay'])
-def test_config_lists_every_parameter_with_its_default(node: str) -> None:
-    """config/<node>.yaml documents exactly the declared parameters, at their defaults."""
-    import importlib
-
-    import yaml
-    module = importlib.import_module(f'formopt_ros.nodes.{node}')
-    values = yaml.safe_load((REPO / 'config' / f'{node}.yaml').read_text())[node]
-    assert values['ros__parameters'] == {p.name: p.default for p in module.PARAMS}
+        assert 'truncated' in result.stderr and 'formopt-bag repair' in result.stderr

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formopt_ros.core.simulation import Scenario, run_trial
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.simulation import run_trial
 
 STEPS = 60
 SEED = 3
@@ -17,13 +18,14 @@ TOL = 1e-9
 def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
     run = formation({'measurement': kind, 'strategy': strategy, 'seed': SEED, 'steps': STEPS,
                      'resend_timeout': 60.0})
-    assert run.run(timeout=30.0), f'estimator at step {run.estimator.step} of {STEPS}'
+    assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
     ref = run_trial(Scenario.paper(kind), strategy, SEED, 0, STEPS)
-    est = run.estimator
-    assert est.step == STEPS
-    np.testing.assert_allclose(est.core.x, ref.estimate[-1], rtol=0, atol=TOL)
-    np.testing.assert_allclose(est.core.P, ref.covariance[-1], rtol=0, atol=TOL)
-    assert est.summary()['final_truth'] == pytest.approx(ref.truth[-1].tolist(), abs=TOL)
+    summary = run.estimator.summary()
+    assert summary['steps'] == STEPS
+    np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
+    np.testing.assert_allclose(summary['final_covariance'], ref.covariance[-1], rtol=0,
+                               atol=TOL)
+    assert summary['final_truth'] == pytest.approx(ref.truth[-1].tolist(), abs=TOL)
     # every step, as published on the estimate topic
     assert len(run.probe.estimates) == STEPS
     for k, (x, P) in enumerate(run.probe.estimates):
@@ -36,6 +38,7 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
     last = run.probe.statuses[-1]
     assert (last.accepted_measurements, last.rejected_measurements,
             last.rejected_odometry) == (STEPS, 0, 0)
-    counts = est.summary()['message_counts']
-    assert counts['received'] == {'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS,
-                                  'measurement': STEPS, 'truth': STEPS}
+    assert summary['mean_nees'] == pytest.approx(float(np.mean(ref.nees)), rel=1e-9)
+    assert summary['message_counts']['received'] == {
+        'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS, 'measurement': STEPS,
+        'truth': STEPS}

@@ -6,7 +6,8 @@ import time
 import numpy as np
 
 from formopt_ros.core.cost import weight_vector
-from formopt_ros.core.simulation import SUBSTEPS, Scenario
+from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.scenario import Scenario
 
 STEPS = 20
 DT = 0.01      # s per sub-step: 20 steps take 0.4 s of timer time
@@ -15,12 +16,12 @@ DT = 0.01      # s per sub-step: 20 steps take 0.4 s of timer time
 def test_realtime_runs_and_estimates(formation) -> None:
     run = formation({'mode': 'realtime', 'dt': DT, 'steps': STEPS, 'measurement': 'bearing'})
     start = time.monotonic()
-    assert run.run(timeout=30.0), f'estimator at step {run.estimator.step} of {STEPS}'
+    assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
     elapsed = time.monotonic() - start
     # Timers drive it: at least STEPS * SUBSTEPS ticks of the follower (10 % timer slack).
     assert elapsed >= 0.9 * STEPS * SUBSTEPS * DT
     est, follower = run.estimator, run.follower
-    assert est.step == STEPS
+    assert est.session.step == STEPS
     statuses = run.probe.statuses
     assert [s.step for s in statuses] == list(range(1, STEPS + 1))
     assert [s.accepted_measurements for s in statuses] == list(range(1, STEPS + 1))

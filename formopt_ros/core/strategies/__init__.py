@@ -1,21 +1,25 @@
-"""Every motion strategy behind one interface: ``plan(problem, rng, **options) -> Plan``."""
+"""Every motion strategy behind one interface (see :mod:`.base`), registered by name."""
 from __future__ import annotations
 
-from typing import Callable
+from formopt_ros.core.strategies.base import (
+    EstimatorView, OptionSpec, PlanContext, Solution, StepRecord, Strategy, make_solution)
+from formopt_ros.core.strategies.baselines import (
+    ActiveSideSteps, ConstrainedRandomMotion, GridSearch, MaintainFormation)
+from formopt_ros.core.strategies.ram import RelaxedAlgebraicMethod
+from formopt_ros.core.strategies.rq import RayleighQuotient
 
-from formopt_ros.core.strategies.baselines import plan_crm, plan_gbs, plan_mme, plan_mtf
-from formopt_ros.core.strategies.common import Plan
-from formopt_ros.core.strategies.ram import plan_ram
-from formopt_ros.core.strategies.rq import plan_rq
+#: name -> strategy class, in the order of the paper's comparison.
+STRATEGIES: dict[str, type[Strategy]] = {
+    cls.name: cls for cls in (MaintainFormation, ConstrainedRandomMotion, ActiveSideSteps,
+                              GridSearch, RelaxedAlgebraicMethod, RayleighQuotient)}
 
-#: name -> (planner, accepted keyword options)
-STRATEGIES: dict[str, tuple[Callable[..., Plan], frozenset[str]]] = {
-    'mtf': (plan_mtf, frozenset()),
-    'crm': (plan_crm, frozenset()),
-    'mme': (plan_mme, frozenset({'step', 'leader_straight'})),
-    'gbs': (plan_gbs, frozenset({'cell'})),
-    'ram': (plan_ram, frozenset({'fallback'})),
-    'rq': (plan_rq, frozenset()),
-}
 
-__all__ = ['STRATEGIES', 'Plan']
+def make_strategy(name: str, **options: object) -> Strategy:
+    """A new strategy object; ValueError for an unknown name or option, or a bad value."""
+    if name not in STRATEGIES:
+        raise ValueError(f'method must be one of {tuple(STRATEGIES)}, got {name!r}')
+    return STRATEGIES[name](**options)
+
+
+__all__ = ['EstimatorView', 'OptionSpec', 'PlanContext', 'STRATEGIES', 'Solution',
+           'StepRecord', 'Strategy', 'make_solution', 'make_strategy']

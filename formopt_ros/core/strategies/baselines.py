@@ -7,45 +7,67 @@ from functools import lru_cache
 import numpy as np
 
 from formopt_ros.core.cost import Problem
-from formopt_ros.core.strategies.common import Plan
+from formopt_ros.core.strategies.base import OptionSpec, PlanContext, Solution, Strategy, \
+    make_solution
 
-#: Default GBS cell size as a fraction of r (the library default; the Monte Carlo uses 0.01).
+#: Default GBS cell size as a fraction of r (the library default; the study uses 0.01).
 DEFAULT_GBS_CELL = 0.005
+#: Smallest admissible GBS cell: about pi / cell^2 = 0.8 million points (~50 MB of monomials).
+MIN_GBS_CELL = 0.002
 
 
-def plan_mtf(problem: Problem, rng: np.random.Generator | None = None) -> Plan:
+class MaintainFormation(Strategy):
     """MTF, maintain the formation: always the slot p_o."""
-    return Plan(problem.p_o.copy())
+
+    name = 'mtf'
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The slot p_o."""
+        return make_solution(problem, problem.p_o.copy(), self.name)
 
 
-def plan_crm(problem: Problem, rng: np.random.Generator | None = None) -> Plan:
+class ConstrainedRandomMotion(Strategy):
     """CRM, constrained random motion: a point uniformly distributed in the disc."""
-    rng = np.random.default_rng() if rng is None else rng
-    radius = problem.r * math.sqrt(rng.random())
-    angle = 2.0 * math.pi * rng.random()
-    return Plan(problem.p_o + radius * np.array([math.cos(angle), math.sin(angle)]))
+
+    name = 'crm'
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """A uniform point of the disc drawn from ``context.rng`` (a fresh stream when None)."""
+        rng = np.random.default_rng() if context.rng is None else context.rng
+        radius = problem.r * math.sqrt(rng.random())
+        angle = 2.0 * math.pi * rng.random()
+        return make_solution(problem, problem.p_o + radius * np.array([math.cos(angle),
+                                                                       math.sin(angle)]),
+                             self.name)
 
 
-def plan_mme(problem: Problem, rng: np.random.Generator | None = None, step: int = 0,
-             leader_straight: bool = True) -> Plan:
+class ActiveSideSteps(Strategy):
     """MME: our documented reading of the active strategy of Mariottini et al. (paper ref. [10]).
 
     The public description says only that a standard controller drives the follower to its
     slot unless the system is unobservable (leader on a straight line), when an active
     controller drives it to a point slightly off the slot. We read that as: while the leader
-    drives straight, step sideways by the full allowance r, perpendicular to the leader-follower
-    line of sight, alternating sides on even/odd steps; otherwise go to p_o.
-
-    Args:
-        step: measurement step index; its parity chooses the side.
-        leader_straight: whether the leader currently drives straight (unobservable case).
+    drives straight, step sideways by ``amplitude`` r, perpendicular to the leader-follower line
+    of sight, switching sides every ``period`` steps; otherwise go to p_o. The defaults (full
+    amplitude, switching every step) are the reading used in README's study.
     """
-    if not leader_straight:
-        return Plan(problem.p_o.copy())
-    theta_o = math.atan2(problem.p_o[1], problem.p_o[0])
-    side = 1.0 if int(step) % 2 == 0 else -1.0
-    normal = np.array([-math.sin(theta_o), math.cos(theta_o)])
-    return Plan(problem.p_o + side * problem.r * normal, on_boundary=True)
+
+    name = 'mme'
+    OPTIONS = {
+        'amplitude': OptionSpec(1.0, 'sideways step as a fraction of r', 0.0, 1.0),
+        'period': OptionSpec(1, 'measurement steps on one side before switching', 1, 10**6),
+    }
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """Sideways off the slot while the leader drives straight, else the slot."""
+        if not context.leader_straight:
+            return make_solution(problem, problem.p_o.copy(), self.name)
+        theta_o = math.atan2(problem.p_o[1], problem.p_o[0])
+        side = 1.0 if (int(context.step) // int(self.settings['period'])) % 2 == 0 else -1.0
+        normal = np.array([-math.sin(theta_o), math.cos(theta_o)])
+        amplitude = float(self.settings['amplitude'])
+        return make_solution(problem, problem.p_o + side * amplitude * problem.r * normal,
+                             self.name, on_boundary=amplitude == 1.0)
 
 
 @lru_cache(maxsize=8)
@@ -61,20 +83,21 @@ def unit_grid(cell: float) -> np.ndarray:
     return grid
 
 
-def plan_gbs(problem: Problem, rng: np.random.Generator | None = None,
-             cell: float = DEFAULT_GBS_CELL) -> Plan:
-    """GBS, grid-based search: the best centre of a square grid over the disc.
+class GridSearch(Strategy):
+    """GBS, grid-based search: the best centre of a square grid over the disc (p_o included)."""
 
-    Args:
-        cell: grid spacing as a fraction of r (0 < cell <= 1); the slot p_o is a grid point.
-    """
-    cell = float(cell)
-    if not (0.0 < cell <= 1.0):
-        raise ValueError(f'gbs option cell must be in (0, 1] (fraction of r), got {cell!r}')
-    points, monomials = grid_monomials(problem, cell)
-    best = int(np.argmax(problem.gain_from_monomials(monomials)))
-    return Plan(points[best].copy(), len(points),
-                bool(np.hypot(*(points[best] - problem.p_o)) >= problem.r * (1 - cell)))
+    name = 'gbs'
+    OPTIONS = {'cell': OptionSpec(DEFAULT_GBS_CELL, 'grid spacing as a fraction of r',
+                                  MIN_GBS_CELL, 1.0)}
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The grid point of highest gain."""
+        cell = float(self.settings['cell'])
+        points, monomials = grid_monomials(problem, cell)
+        best = int(np.argmax(problem.gain_from_monomials(monomials)))
+        return make_solution(problem, points[best].copy(), self.name,
+                             bool(np.hypot(*(points[best] - problem.p_o))
+                                  >= problem.r * (1 - cell)), len(points))
 
 
 _GRID_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}

@@ -1,34 +1,15 @@
-"""Pieces shared by several strategies: the plan record, range-arc logic, boundary polishing."""
+"""Pieces shared by RAM and RQ: the range arc logic, the boundary Fourier series, polishing."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from formopt_ros.core.cost import Problem, point_from_q
+from formopt_ros.core.strategies.base import Solution, make_solution
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
-
-
-@dataclass
-class Plan:
-    """What a strategy returns: the chosen point and how it was found.
-
-    Attributes:
-        p: chosen position in the leader frame, shape (2,), m.
-        candidates: number of critical/grid points whose cost was evaluated.
-        on_boundary: True when p lies on the circle |p - p_o| = r.
-        fallback: name of the method used when the primary route lost accuracy, else None.
-        details: method-specific diagnostics (polynomial degrees, residuals, ...).
-    """
-
-    p: np.ndarray
-    candidates: int = 1
-    on_boundary: bool = False
-    fallback: str | None = None
-    details: dict = field(default_factory=dict)
 
 
 def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
@@ -37,7 +18,7 @@ def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
 
 
 def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
-                              candidates: int) -> Plan:
+                              candidates: int, method: str) -> Solution:
     """Range case (paper Fig. 3): the best bearing on the feasible arc and its nearest point.
 
     The range gain depends on the bearing theta only, is pi-periodic and unimodal per period.
@@ -50,9 +31,11 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
         theta_star: unconstrained maximiser of the gain, rad (any representative mod pi).
         flat: every direction ties; return p_o.
         candidates: critical points the caller already examined.
+        method: name of the calling strategy.
     """
     if flat:
-        return Plan(problem.p_o.copy(), candidates, False, details={'flat': True})
+        return make_solution(problem, problem.p_o.copy(), method, False, candidates,
+                             details={'flat': True})
     theta_o, delta = problem.bearing_arc()
     offset = (theta_star - theta_o + 0.5 * math.pi) % math.pi - 0.5 * math.pi
     if abs(offset) <= delta:
@@ -62,8 +45,8 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     units = np.array([[math.cos(t), math.sin(t)] for t in thetas])
     points = (units @ problem.p_o)[:, None] * units
     best = int(np.argmax(problem.gain(points))) if len(thetas) > 1 else 0
-    return Plan(points[best], candidates + len(thetas), len(thetas) > 1,
-                details={'flat': False, 'theta': thetas[best]})
+    return make_solution(problem, points[best], method, len(thetas) > 1,
+                         candidates + len(thetas), details={'flat': False, 'theta': thetas[best]})
 
 
 def _fourier(X: np.ndarray, a: np.ndarray, rho: float) -> np.ndarray:

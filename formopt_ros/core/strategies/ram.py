@@ -49,20 +49,23 @@ Every real root sigma in [0, 1] gives up to four angles; each is back-substitute
 or from g = 0), checked against the other equation and feasibility, polished by Newton steps on
 the exact stationarity conditions and evaluated. If the route loses accuracy (no admissible
 candidate, non-finite coefficients, or a probe point beats the best candidate) RAM says so in
-``Plan.fallback`` and returns the exact RQ optimum instead of a wrong point.
+``Solution.fallback`` and returns the exact RQ optimum instead of a wrong point.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from functools import lru_cache, reduce
 
 import numpy as np
 
 from formopt_ros.core.cost import Problem, point_from_q
+from formopt_ros.core.strategies.base import (
+    OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.common import (
-    Plan, best_of, boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
+    best_of, boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
     range_plan_from_direction)
-from formopt_ros.core.strategies.rq import plan_rq
+from formopt_ros.core.strategies.rq import rq_optimum
 
 #: Relative KKT residual above which a back-substituted root is rejected as spurious.
 RESIDUAL_TOLERANCE = 1e-4
@@ -92,7 +95,7 @@ def range_coefficients(problem: Problem) -> tuple[float, ...]:
     return a1, a2, a3, p4, 0.5 * (p1 - p2), 0.5 * (p1 + p2) + problem.R
 
 
-def _plan_range(problem: Problem) -> Plan:
+def _plan_range(problem: Problem) -> Solution:
     a1, a2, a3, a4, a5, a6 = range_coefficients(problem)
     b1, b2, b3 = a3 * a5 - a2 * a6, a1 * a6 - a3 * a4, a1 * a5 - a2 * a4
     rho = math.hypot(b1, b2)
@@ -104,7 +107,7 @@ def _plan_range(problem: Problem) -> Plan:
                       [math.cos(theta_max_f), math.sin(theta_max_f)]])
     g = problem.gain(units * problem.d_o)
     return range_plan_from_direction(problem, theta_min_f, rho == 0 or gains_tie(
-        problem, float(g[0]), float(g[1])), 2)
+        problem, float(g[0]), float(g[1])), 2, 'ram')
 
 
 # --- homogeneous bivariate polynomials in (c, s): coefficient k multiplies c^(n-k) s^k --------
@@ -307,7 +310,7 @@ def _polish_interior(problem: Problem, p: np.ndarray, iterations: int = 4) -> np
     return point_from_q(q)
 
 
-def _plan_bearing(problem: Problem) -> Plan:
+def _plan_bearing(problem: Problem) -> Solution:
     kkt = kkt_polynomials(problem)
     interior, doubtful = _interior_candidates(problem, *kkt)
     active = _active_candidates(problem, *active_polynomials(problem, kkt))
@@ -328,16 +331,16 @@ def _plan_bearing(problem: Problem) -> Plan:
     if probe_gain - gains[best] > PROBE_TOLERANCE * max(problem.base_cost - probe_gain, 1e-300):
         raise FloatingPointError('a probe point beats every critical point')
     on_boundary = best >= len(interior) + len(polished)
-    return Plan(points[best], len(points), on_boundary, details=details)
+    return make_solution(problem, points[best], 'ram', on_boundary, len(points),
+                         details=details)
 
 
-def plan_ram(problem: Problem, rng: np.random.Generator | None = None,
-             fallback: bool = True) -> Plan:
+def ram_optimum(problem: Problem, fallback: bool = True) -> Solution:
     """The paper's analytic optimum (Sec. IV); see the module docstring.
 
     Args:
         fallback: when the polynomial route loses accuracy, return the exact RQ optimum (and
-            name it in ``Plan.fallback``); with False, raise FloatingPointError instead.
+            name it in ``Solution.fallback``); with False, raise FloatingPointError instead.
     """
     if problem.measurement == 'range':
         return _plan_range(problem)
@@ -347,7 +350,17 @@ def plan_ram(problem: Problem, rng: np.random.Generator | None = None,
     except (FloatingPointError, np.linalg.LinAlgError) as error:
         if not fallback:
             raise
-        plan = plan_rq(problem)
-        plan.fallback = 'rq'
-        plan.details['reason'] = str(error)
-        return plan
+        exact = rq_optimum(problem, 'ram')
+        return replace(exact, fallback='rq', details={**exact.details, 'reason': str(error)})
+
+
+class RelaxedAlgebraicMethod(Strategy):
+    """RAM: the paper's analytic method, falling back to RQ visibly when it loses accuracy."""
+
+    name = 'ram'
+    OPTIONS = {'fallback': OptionSpec(True, 'fall back to RQ when the polynomial route loses '
+                                            'accuracy; false: raise FloatingPointError')}
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The analytic greedy optimum."""
+        return ram_optimum(problem, bool(self.settings['fallback']))

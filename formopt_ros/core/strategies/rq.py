@@ -18,8 +18,9 @@ import math
 import numpy as np
 
 from formopt_ros.core.cost import Problem, point_from_q
+from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, make_solution
 from formopt_ros.core.strategies.common import (
-    Plan, best_of, boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
+    best_of, boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
     range_plan_from_direction)
 
 #: Distance of a root of the boundary polynomial from |z| = 1 up to which it counts as real.
@@ -49,7 +50,7 @@ def boundary_candidates(problem: Problem) -> np.ndarray:
     return boundary_points(problem, polish_boundary_angles(F, t))
 
 
-def plan_rq(problem: Problem, rng: np.random.Generator | None = None) -> Plan:
+def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
     """Exact optimum of problem Pi_1 through generalised eigenvalues (see module docstring)."""
     if problem.measurement == 'range':
         A = problem.M[:2, :2]
@@ -57,14 +58,26 @@ def plan_rq(problem: Problem, rng: np.random.Generator | None = None) -> Plan:
         values, vectors = generalized_eigh(A, B)
         theta_star = math.atan2(vectors[1, 1], vectors[0, 1])
         return range_plan_from_direction(problem, theta_star,
-                                         gains_tie(problem, values[1], values[0]), 1)
+                                         gains_tie(problem, values[1], values[0]), 1, method)
     values, vectors = generalized_eigh(problem.M, problem.N)
     top = vectors[:, 2]
     centre, rho = problem.q_disc()
     if abs(top[2]) > 1e-300:
         q = -top[:2] / top[2]
         if math.hypot(q[0] - centre[0], q[1] - centre[1]) < rho:
-            return Plan(point_from_q(q), 1, False, details={'interior': True})
+            return make_solution(problem, point_from_q(q), method, False, 1,
+                                 details={'interior': True})
     points = boundary_candidates(problem)
     best, _ = best_of(problem, points)
-    return Plan(points[best], 1 + len(points), True, details={'interior': False})
+    return make_solution(problem, points[best], method, True, 1 + len(points),
+                         details={'interior': False})
+
+
+class RayleighQuotient(Strategy):
+    """RQ: the exact generalised-Rayleigh-quotient solver (beyond the paper)."""
+
+    name = 'rq'
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The exact greedy optimum."""
+        return rq_optimum(problem, self.name)

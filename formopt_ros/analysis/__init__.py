@@ -1,0 +1,1 @@
+"""Offline analysis of recorded runs: re-estimation, report, figures (no rclpy)."""

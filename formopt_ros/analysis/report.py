@@ -1,0 +1,178 @@
+"""Figures and a summary of one recorded formation run (an .mcap bag), without ROS."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.analysis.figures import nees_figure, trace_figure, trajectory_figure
+from formopt_ros.analysis.recording import FollowerRecording, Recording
+from formopt_ros.bag import BagError
+from formopt_ros.core.model import normalized_estimation_error
+from formopt_ros.core.protocol import SUBSTEPS, Timebase
+from formopt_ros.core.study import nees_band, steady_window
+from formopt_ros.wire.messages import estimate_values, header_ns, pose_values
+
+
+@dataclass
+class Run:
+    """Per-step arrays of a recorded run (step k at row k - 1)."""
+
+    steps: np.ndarray            # (n,) measurement step index
+    time: np.ndarray             # (n,) simulated time of the step, s
+    estimate: np.ndarray         # (n, 3) x_k|k in {L}
+    covariance: np.ndarray       # (n, 3, 3)
+    weighted_trace: np.ndarray   # (n,) tr(W P W) from the status, m^2
+    truth: np.ndarray            # (n, 3) true pose in {L}, NaN where not recorded
+    leader: np.ndarray           # (n, 3) leader pose (x m, y m, yaw rad) in the fixed frame
+    waypoints: np.ndarray        # (n, 2) chosen position for step k in {L}, NaN if missing
+    nees: np.ndarray             # (n,) NaN where no truth
+    strategy: str
+    measurement: str
+    p_o: np.ndarray
+    r: float
+    dt: float
+    last_status: object
+
+
+def _latest_before(stamps: np.ndarray, values: np.ndarray, stamp: int) -> np.ndarray | None:
+    """The value with the largest stamp <= stamp (+1 us), or None."""
+    index = int(np.searchsorted(stamps, stamp + 1000, side='right')) - 1
+    return values[index] if index >= 0 else None
+
+
+def load_run(recording: Recording, follower: FollowerRecording) -> Run:
+    """Decode and align a follower's estimates, statuses, truth, waypoints and leader odometry."""
+    estimates = recording.follower_messages(follower, 'estimate')
+    statuses = recording.follower_messages(follower, 'status')
+    if not estimates or not statuses:
+        raise BagError(f'{recording.bag.path}: no estimate or status messages of '
+                       f'{follower.namespace} (empty run)')
+    description = follower.description
+    scenario = description.scenario
+    timebase = Timebase.from_dt(scenario.dt)
+    step_of = {header_ns(s): s for s in statuses}
+    rows = []
+    for index, msg in enumerate(estimates):
+        status = step_of.get(header_ns(msg))
+        x, P = estimate_values(msg)
+        rows.append((int(status.step) if status else index + 1, x, P,
+                     status.weighted_trace if status else math.nan))
+    n = len(rows)
+    steps = np.array([row[0] for row in rows])
+    stamp_of_step = {int(m.step): header_ns(m)
+                     for m in recording.follower_messages(follower, 'measurement')}
+    truth_by_stamp = {header_ns(m): pose_values(m.pose)
+                      for m in recording.follower_messages(follower, 'truth')}
+    truth = np.full((n, 3), np.nan)
+    leader = np.zeros((n, 3))
+    odom = [m for _, m in recording.messages(recording.leader_topic)]
+    odom_stamps = np.array([header_ns(m) for m in odom])
+    odom_xy = np.array([pose_values(m.pose.pose) for m in odom])
+    for i, k in enumerate(steps):
+        stamp = stamp_of_step.get(int(k), timebase.measurement_stamp(int(k)))
+        if stamp in truth_by_stamp:
+            truth[i] = truth_by_stamp[stamp]
+        if len(odom):
+            position = _latest_before(odom_stamps, odom_xy, stamp)
+            if position is not None:
+                leader[i] = position
+    chosen = {int(w.step): (w.position.x, w.position.y)
+              for w in recording.follower_messages(follower, 'waypoint')}
+    way = np.array([chosen.get(int(k), (math.nan, math.nan)) for k in steps])
+    estimate = np.array([row[1] for row in rows])
+    covariance = np.array([row[2] for row in rows])
+    nees = np.array([normalized_estimation_error(truth[i], estimate[i], covariance[i])
+                     if np.all(np.isfinite(truth[i])) else math.nan for i in range(n)])
+    return Run(steps, SUBSTEPS * steps * scenario.dt, estimate, covariance,
+               np.array([row[3] for row in rows]), truth, leader, way, nees,
+               description.strategy, scenario.measurement, scenario.slot, scenario.r,
+               scenario.dt, statuses[-1])
+
+
+def make_report(recording: Recording, out: Path, trajectory_steps: int = 100,
+                follower_id: str | None = None) -> dict[str, Any]:
+    """Write trajectory.png, weighted_trace.png, nees.png, summary.json and summary.md."""
+    bag = recording.bag
+    follower = recording.follower(follower_id)
+    run = load_run(recording, follower)
+    out.mkdir(parents=True, exist_ok=True)
+    n = len(run.steps)
+    shown = slice(0, min(n, trajectory_steps))
+    has_truth = bool(np.any(np.isfinite(run.truth[:, 0])))
+    has_way = bool(np.any(np.isfinite(run.waypoints[:, 0])))
+    panel = {'leader': run.leader[shown], 'followers': [{
+        'label': follower.follower_id, 'strategy': run.strategy,
+        'estimate': run.estimate[shown], 'covariance': run.covariance[shown],
+        'truth': run.truth[shown] if has_truth else None,
+        'waypoints': run.waypoints[shown] if has_way else None, 'p_o': run.p_o, 'r': run.r}]}
+    figures = [trajectory_figure(
+        {run.strategy.upper(): panel}, out / 'trajectory.png',
+        f'{bag.path.name}: {run.measurement}, first {len(run.steps[shown])} steps',
+        every=max(3, len(run.steps[shown]) // 30))]
+    figures.append(trace_figure(run.time, {run.strategy: run.weighted_trace},
+                                out / 'weighted_trace.png',
+                                f'{bag.path.name}: weighted trace ({run.measurement})'))
+    valid = np.isfinite(run.nees)
+    if np.any(valid):
+        figures.append(nees_figure(run.time[valid], {run.strategy: run.nees[valid]},
+                                   nees_band(1), out / 'nees.png',
+                                   f'{bag.path.name}: NEES (one run)'))
+    window = steady_window(n)
+    status = run.last_status
+    counts = bag.counts()
+    times = [r.log_time for r in bag.messages]
+    summary = {
+        'bag': str(bag.path),
+        'follower_id': follower.follower_id,
+        'description': 'reconstructed from the messages' if follower.legacy else 'recorded',
+        'steps': int(status.step),
+        'estimates': n,
+        'strategy': run.strategy,
+        'measurement': run.measurement,
+        'dt_s': run.dt,
+        'duration_s': (max(times) - min(times)) * 1e-9 if times else 0.0,
+        'steady_weighted_trace': float(np.nanmean(run.weighted_trace[-window:])),
+        'steady_window_steps': window,
+        'final_weighted_trace': float(run.weighted_trace[-1]),
+        'mean_nees': float(np.mean(run.nees[valid])) if np.any(valid) else None,
+        'nees_steps': int(np.sum(valid)),
+        'nees_band_95': list(nees_band(1)),
+        'rejected_measurements': int(status.rejected_measurements),
+        'rejected_odometry': int(status.rejected_odometry),
+        'accepted_measurements': int(status.accepted_measurements),
+        'message_counts': counts,
+        'figures': [p.name for p in figures],
+    }
+    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    (out / 'summary.md').write_text(_markdown(summary))
+    return summary
+
+
+def _markdown(s: dict) -> str:
+    nees = 'n/a (no truth recorded)' if s['mean_nees'] is None else (
+        f"{s['mean_nees']:.3f} over {s['nees_steps']} steps (95% band for one run "
+        f"{s['nees_band_95'][0]:.3f} to {s['nees_band_95'][1]:.3f})")
+    lines = [
+        f"# Formation run: {Path(s['bag']).name}", '',
+        '| quantity | value |', '|---|---|',
+        f"| steps | {s['steps']} |",
+        f"| strategy | {s['strategy']} |",
+        f"| measurement | {s['measurement']} |",
+        f"| sub-step dt | {s['dt_s']} s |",
+        f"| recorded duration | {s['duration_s']:.3f} s |",
+        f"| steady tr(W P W) (last {s['steady_window_steps']} steps) | "
+        f"{s['steady_weighted_trace']:.6g} m^2 |",
+        f"| final tr(W P W) | {s['final_weighted_trace']:.6g} m^2 |",
+        f'| mean NEES | {nees} |',
+        f"| rejected measurements / odometry (last status) | {s['rejected_measurements']} / "
+        f"{s['rejected_odometry']} |",
+        f"| accepted measurements | {s['accepted_measurements']} |", '',
+        '## Messages per topic', '', '| topic | messages |', '|---|---|']
+    lines += [f'| {topic} | {count} |' for topic, count in sorted(s['message_counts'].items())]
+    lines += ['', '## Figures', ''] + [f'![{name}]({name})' for name in s['figures']]
+    return '\n'.join(lines) + '\n'

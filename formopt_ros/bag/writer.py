@@ -1,0 +1,104 @@
+"""Writing one rosbag2-compatible .mcap file: ros2 profile, cdr messages, ros2msg schemas."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import IO
+
+from formopt_ros.bag.errors import BagError
+from formopt_ros.bag.schema import SCHEMA_ENCODING, has_header, header_stamp_ns, message_definition
+
+PROFILE = 'ros2'
+MESSAGE_ENCODING = 'cdr'
+LIBRARY = 'formopt_ros.bag'
+COMPRESSIONS = ('zstd', 'lz4', 'none')
+
+
+class BagWriter:
+    """One rosbag2-compatible .mcap file: ros2 profile, cdr messages, ros2msg schemas.
+
+    Channels are registered per topic with the offered QoS (YAML) and the type hash as channel
+    metadata, like rosbag2_storage_mcap. The file is opened exclusively: an existing file is
+    never overwritten. :meth:`flush` closes the current chunk and hands it to the OS, so a killed
+    writer loses only what came after the last flush (see :func:`formopt_ros.bag.repair`).
+    """
+
+    def __init__(self, path: str | Path, chunk_size: int = 1 << 20,
+                 compression: str = 'zstd') -> None:
+        from mcap.writer import CompressionType, Writer
+        kinds = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
+                 'none': CompressionType.NONE}
+        if compression not in kinds:
+            raise BagError(f"compression must be one of {', '.join(kinds)}, got {compression!r}")
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file: IO[bytes] = open(self.path, 'xb')
+        except FileExistsError:
+            raise BagError(f'{self.path}: file exists; refusing to overwrite it') from None
+        except OSError as error:
+            raise BagError(f'{self.path}: cannot create: {error.strerror}') from None
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=kinds[compression])
+        self._writer.start(profile=PROFILE, library=LIBRARY)
+        self._file.flush()                  # a valid (empty) bag on disk from the start
+        self._schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.types: dict[str, str] = {}
+        self.counts: dict[str, int] = {}
+        self._stamped: dict[str, bool] = {}
+        self._dirty = False
+        self.closed = False
+
+    def add_channel(self, topic: str, type_name: str, offered_qos_profiles: str = '',
+                    type_hash: str = '') -> int:
+        """Register the topic (once) with its schema; returns the channel id."""
+        if topic in self.channels:
+            return self.channels[topic]
+        if type_name not in self._schemas:
+            self._schemas[type_name] = self._writer.register_schema(
+                type_name, SCHEMA_ENCODING, message_definition(type_name).encode())
+        metadata = {'offered_qos_profiles': offered_qos_profiles}
+        if type_hash:
+            metadata['topic_type_hash'] = type_hash
+        self.channels[topic] = self._writer.register_channel(
+            topic, MESSAGE_ENCODING, self._schemas[type_name], metadata)
+        self.types[topic] = type_name
+        self.counts[topic] = 0
+        self._stamped[topic] = has_header(type_name)
+        return self.channels[topic]
+
+    def write(self, topic: str, data: bytes, log_time: int, publish_time: int | None = None
+              ) -> None:
+        """Append one serialized (CDR) message of a registered topic; times in ns.
+
+        publish_time defaults to the header stamp when the type has a header, else log_time.
+        """
+        if publish_time is None:
+            stamp = header_stamp_ns(data) if self._stamped[topic] else None
+            publish_time = log_time if stamp is None else stamp
+        self._writer.add_message(self.channels[topic], log_time, bytes(data), publish_time,
+                                 sequence=self.counts[topic])
+        self.counts[topic] += 1
+        self._dirty = True
+
+    def add_metadata(self, name: str, values: dict[str, str]) -> None:
+        """Write an MCAP metadata record (e.g. the run description)."""
+        self._writer.add_metadata(name, values)
+        self._dirty = True
+
+    def flush(self) -> bool:
+        """Close the current chunk and flush it to the OS; True when something was written."""
+        if not self._dirty or self.closed:
+            return False
+        self._writer.flush()
+        self._dirty = False
+        return True
+
+    def close(self) -> None:
+        """Write the summary and index and close the file (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()

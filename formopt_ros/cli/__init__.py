@@ -1,0 +1,1 @@
+"""Thin argparse front ends of the package's commands (one error convention, see common)."""

@@ -1,0 +1,95 @@
+"""One convention for every command: one line 'prog: error: ...' naming the option and value,
+exit code 2, never a traceback; argument types that check ranges and refuse to overwrite."""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import NoReturn
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with a one-line error message (no usage dump) and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``prog: error: message`` and exit 2."""
+        self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
+
+
+def fail(prog: str, message: str) -> NoReturn:
+    """Stop a command with one error line and exit code 2."""
+    print(f'{prog}: error: {message}', file=sys.stderr)
+    sys.exit(2)
+
+
+def integer(low: int, high: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer in [low, high]."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'must be an integer, got {text!r}') from None
+        if value < low or (high is not None and value > high):
+            where = f'>= {low}' if high is None else f'in [{low}, {high}]'
+            raise argparse.ArgumentTypeError(f'must be an integer {where}, got {value}')
+        return value
+    return parse
+
+
+def number(low: float, high: float = math.inf, low_open: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite number in [low, high] (or (low, high] with low_open)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'must be a number, got {text!r}') from None
+        inside = (value > low if low_open else value >= low) and value <= high
+        if not (math.isfinite(value) and inside):
+            bracket = '(' if low_open else '['
+            upper = 'inf)' if math.isinf(high) else f'{high:g}]'
+            raise argparse.ArgumentTypeError(f'must be a finite number in {bracket}{low:g}, '
+                                             f'{upper}, got {text}')
+        return value
+    return parse
+
+
+def new_file(text: str) -> Path:
+    """argparse type: a file path that does not exist yet and whose folder can be made."""
+    path = Path(text)
+    if path.exists():
+        raise argparse.ArgumentTypeError(f'{text} exists; refusing to overwrite it')
+    _check_parent(path, text)
+    return path
+
+
+def new_folder(text: str) -> Path:
+    """argparse type: an output folder that does not exist yet, or exists and is empty."""
+    path = Path(text)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise argparse.ArgumentTypeError(f'{text} exists and is not an empty folder; refusing '
+                                         'to overwrite what is in it (choose a new folder)')
+    _check_parent(path, text)
+    return path
+
+
+def _check_parent(path: Path, text: str) -> None:
+    parent = path.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f'cannot create {text}: {parent} is not a folder')
+    import os
+    if not os.access(parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f'cannot create {text}: {parent} is not writable')
+
+
+def existing_file(text: str) -> Path:
+    """argparse type: a file that exists."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f'{text}: is a directory; expected a file')
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f'{text}: no such file')
+    return path

@@ -1,0 +1,148 @@
+"""replay: republish a formation bag with its recorded timing, or (--offline, no ROS needed)
+re-run a follower's estimator over the bag's inputs and compare with what it published."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from formopt_ros.analysis.offline import offline
+from formopt_ros.analysis.recording import load_recording
+from formopt_ros.bag import BagError, read_bag
+from formopt_ros.cli.common import ArgumentParser, existing_file, fail, integer, new_file, number
+from formopt_ros.core.strategies import STRATEGIES
+
+PROG = 'replay'
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(plain arguments, ROS arguments) of a command line: ROS ones follow '--ros-args' up to
+    '--' (or the end), as rcl parses them."""
+    plain: list[str] = []
+    ros: list[str] = []
+    inside = False
+    for arg in argv:
+        if arg == '--ros-args':
+            inside = True
+            ros.append(arg)
+        elif arg == '--' and inside:
+            inside = False
+        elif inside:
+            ros.append(arg)
+        else:
+            plain.append(arg)
+    return plain, ros
+
+
+def option_value(text: str) -> tuple[str, Any]:
+    """NAME=VALUE of --strategy-option, the value parsed as JSON (numbers, true/false)."""
+    name, sep, value = text.partition('=')
+    if not sep or not name:
+        raise ValueError(f'expected NAME=VALUE, got {text!r}')
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
+
+
+def build_parser() -> ArgumentParser:
+    """Command-line flags of ``replay`` (ROS arguments after --ros-args are passed through)."""
+    out = ArgumentParser(prog=PROG, description=__doc__)
+    out.add_argument('bag', type=existing_file, nargs='?',
+                     help='the .mcap file (or -p bag_path:=... after --ros-args)')
+    speed = out.add_mutually_exclusive_group()
+    speed.add_argument('--rate', type=number(1e-3, 1e6), help='playback speed factor '
+                       '(default 1)')
+    speed.add_argument('--fast', action='store_true', help='ignore the recorded timing')
+    out.add_argument('--topics', nargs='+', help='topics to replay (default: all)')
+    out.add_argument('--wait-subscribers', type=integer(0, 1000),
+                     help='wait for this many subscribers per topic before starting')
+    flags = out.add_argument_group('offline mode (no ROS needed)')
+    flags.add_argument('--offline', action='store_true',
+                       help="re-run a follower's estimator from the core over the bag instead")
+    flags.add_argument('--follower', help='which follower (default: the only one)')
+    flags.add_argument('--strategy', choices=tuple(STRATEGIES),
+                       help='default: from the run description')
+    flags.add_argument('--strategy-option', action='append', default=[], metavar='NAME=VALUE',
+                       help="a strategy option (e.g. cell=0.01), replacing the recorded one")
+    flags.add_argument('--seed', type=integer(0, 2**31 - 1),
+                       help='seed of the run (default: from the run description)')
+    flags.add_argument('--trial', type=integer(0, 2**31 - 1),
+                       help='trial index (default: from the run description)')
+    flags.add_argument('--tolerance', type=number(0.0), default=1e-9,
+                       help='largest admissible difference (default 1e-9)')
+    flags.add_argument('--json', type=new_file, help='also write the result here (a new file)')
+    return out
+
+
+def offline_main(args: Any) -> int:
+    """``replay BAG --offline``: print the differences; exit 1 above tolerance, 2 on errors."""
+    try:
+        options = dict(option_value(text) for text in args.strategy_option)
+    except ValueError as error:
+        fail(PROG, f'--strategy-option: {error}')
+    try:
+        recording = load_recording(read_bag(args.bag))
+        follower = recording.follower(args.follower)
+        merged = None
+        if options or args.strategy:
+            base = {} if args.strategy and args.strategy != follower.description.strategy \
+                else dict(follower.description.options)
+            merged = {**base, **options}
+        result = offline(recording, args.follower, strategy=args.strategy, options=merged,
+                         seed=args.seed, trial=args.trial)
+    except BagError as error:
+        fail(PROG, str(error))
+    ok = result.max_diff <= args.tolerance
+    way = 'n/a' if result.max_waypoint_diff is None else f'{result.max_waypoint_diff:.3e}'
+    source = 'reconstructed from the messages' if result.legacy else 'recorded'
+    print(f'offline replay of {args.bag} ({result.follower_id}): {result.steps} steps '
+          f're-estimated ({result.recorded_steps} recorded; strategy {result.strategy}, '
+          f'{result.measurement}, {result.mode}; run description {source})')
+    print(f'max |estimate - recorded|: state {result.max_state_diff:.3e}, covariance '
+          f'{result.max_covariance_diff:.3e}; waypoints {way} m; stamps '
+          f'{result.max_stamp_diff_ns} ns')
+    print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
+          f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {'bag': str(args.bag), **result.as_dict(), 'tolerance': args.tolerance, 'ok': ok},
+            indent=2) + '\n')
+    return 0 if ok else 1
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console entry point: ``replay BAG [--rate F | --fast] [--topics ...] [--offline]``."""
+    argv = list(sys.argv[1:] if args is None else args)
+    plain, ros = split_ros_args(argv)
+    options = build_parser().parse_args(plain)
+    if options.offline:
+        if options.bag is None:
+            fail(PROG, '--offline needs BAG')
+        sys.exit(offline_main(options))
+    from formopt_ros.ros.nodes.replay import PARAMS, SUMMARY, Replay, select_topics
+    from formopt_ros.ros.runtime import node_main
+    preloaded = None
+    extra: list[str] = []
+    if options.bag is not None:
+        try:
+            preloaded = read_bag(options.bag)
+            select_topics(preloaded, options.topics or ['*'])
+        except BagError as error:
+            fail(PROG, str(error))
+        extra += ['-p', f'bag_path:={json.dumps(str(options.bag))}']
+    if options.rate is not None:
+        extra += ['-p', f'rate:={float(options.rate)!r}']
+    if options.fast:
+        extra += ['-p', 'fast:=true']
+    if options.topics:
+        extra += ['-p', f'topics:={json.dumps(options.topics)}']
+    if options.wait_subscribers is not None:
+        extra += ['-p', f'wait_subscribers:={options.wait_subscribers}']
+    ros_args = (ros or ['--ros-args']) + extra if (ros or extra) else []
+    sys.exit(node_main(lambda: Replay(preloaded), PROG, SUMMARY, PARAMS, ros_args))
+
+
+if __name__ == '__main__':
+    main()

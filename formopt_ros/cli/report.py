@@ -1,0 +1,42 @@
+"""formopt-report: figures and a summary of one recorded formation run (an .mcap bag)."""
+from __future__ import annotations
+
+import sys
+
+from formopt_ros.analysis.recording import load_recording
+from formopt_ros.analysis.report import make_report
+from formopt_ros.bag import BagError, read_bag
+from formopt_ros.cli.common import ArgumentParser, existing_file, fail, integer, new_folder
+
+
+def build_parser() -> ArgumentParser:
+    """The command-line interface."""
+    parser = ArgumentParser(prog='formopt-report', description='Figures (trajectory, weighted '
+                            'trace, NEES) and a summary of a recorded formation run.')
+    parser.add_argument('bag', type=existing_file, help='the recorded .mcap file')
+    parser.add_argument('--out', type=new_folder, required=True,
+                        help='output folder (new, or empty)')
+    parser.add_argument('--follower', help='which follower (default: the only one)')
+    parser.add_argument('--trajectory-steps', type=integer(1), default=100,
+                        help='steps drawn in the trajectory figure (default: first 100)')
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: ``formopt-report BAG --out DIR``; exit 2 on a bad bag."""
+    args = build_parser().parse_args(argv)
+    try:
+        summary = make_report(load_recording(read_bag(args.bag)), args.out,
+                              args.trajectory_steps, args.follower)
+    except BagError as error:
+        fail('formopt-report', str(error))
+    nees = 'n/a' if summary['mean_nees'] is None else f"{summary['mean_nees']:.3f}"
+    print(f"{args.bag}: {summary['steps']} steps, {summary['strategy']}, "
+          f"{summary['measurement']}; steady tr(W P W) {summary['steady_weighted_trace']:.6g} "
+          f"m^2; mean NEES {nees}; wrote {', '.join(summary['figures'])}, summary.json, "
+          f'summary.md to {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,110 @@
+"""The Sec. V measurement step: sub-steps, motion commands and the integer-nanosecond timebase.
+
+One measurement step k (1-based) = ``SUBSTEPS`` sub-steps of ``dt`` (rotate in place, then
+translate), then one range or bearing measurement. Global sub-step index ``n`` (0-based) of
+step k is ``SUBSTEPS * (k - 1) + j`` for j = 0 .. SUBSTEPS - 1.
+
+Lockstep timebase (simulated time, integer nanoseconds, so stamps match exactly across
+processes and bags): sub-step n ends at ``(n + 1) dt_ns``; the measurement of step k is taken
+at the end of its last sub-step, ``SUBSTEPS k dt_ns``; the waypoint of step k is issued at the
+start of its first sub-step, ``SUBSTEPS (k - 1) dt_ns``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from formopt_ros.core.model import propagate_state, wrap_angle
+
+#: Sub-steps per measurement step: rotate, then translate.
+SUBSTEPS = 2
+#: Nanoseconds per second.
+NS_PER_S = 1_000_000_000
+
+
+def seconds_to_ns(seconds: float) -> int:
+    """Integer nanoseconds of a time in seconds (rounded to the nearest ns)."""
+    return int(round(seconds * NS_PER_S))
+
+
+@dataclass(frozen=True)
+class Timebase:
+    """Lockstep simulated time on a grid of ``dt_ns`` nanoseconds (see module docstring)."""
+
+    dt_ns: int
+
+    @classmethod
+    def from_dt(cls, dt: float) -> 'Timebase':
+        """The timebase of sub-step length ``dt`` seconds (> 0)."""
+        dt_ns = seconds_to_ns(dt)
+        if dt_ns <= 0:
+            raise ValueError(f'dt must be at least 1 ns, got {dt!r} s')
+        return cls(dt_ns)
+
+    def substep_end(self, substep: int) -> int:
+        """Stamp (ns) at the end of global sub-step ``substep`` (0-based)."""
+        return (substep + 1) * self.dt_ns
+
+    def substep_ending_at(self, stamp_ns: int) -> int | None:
+        """Global sub-step index whose end is ``stamp_ns``, or None when off the grid."""
+        index, rest = divmod(stamp_ns, self.dt_ns)
+        return index - 1 if rest == 0 and index >= 1 else None
+
+    def measurement_stamp(self, step: int) -> int:
+        """Stamp (ns) of the measurement of step ``step`` (1-based)."""
+        return SUBSTEPS * step * self.dt_ns
+
+    def waypoint_stamp(self, step: int) -> int:
+        """Stamp (ns) at which the waypoint of step ``step`` (1-based) is issued."""
+        return SUBSTEPS * (step - 1) * self.dt_ns
+
+    def step_of_measurement(self, stamp_ns: int) -> int | None:
+        """The step whose measurement is stamped ``stamp_ns``, or None off the grid."""
+        step, rest = divmod(stamp_ns, SUBSTEPS * self.dt_ns)
+        return step if rest == 0 and step >= 1 else None
+
+
+def step_substeps(step: int) -> range:
+    """Global sub-step indices (0-based) of measurement step ``step`` (1-based)."""
+    return range(SUBSTEPS * (step - 1), SUBSTEPS * step)
+
+
+@dataclass(frozen=True)
+class MotionCommand:
+    """Commanded follower velocities per sub-step of one measurement step.
+
+    Attributes:
+        linear: forward speed per sub-step, m/s, length SUBSTEPS.
+        angular: yaw rate per sub-step, rad/s, length SUBSTEPS.
+    """
+
+    linear: tuple[float, ...]
+    angular: tuple[float, ...]
+
+
+def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
+                    omega_l: float) -> MotionCommand:
+    """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m).
+
+    Sub-step 1 rotates in place (v = 0) to the heading of the remaining displacement; sub-step
+    2 translates (omega = omega_L, i.e. no turn relative to the leader) so that the
+    Euler-propagated pose (paper eq. 10) lands exactly on target while the leader moves at
+    (v_l m/s, omega_l rad/s).
+    """
+    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
+    dx = target[0] - x1[0] - omega_l * x1[1] * dt + v_l * dt
+    dy = target[1] - x1[1] + omega_l * x1[0] * dt
+    heading = math.atan2(dy, dx)
+    turn = float(wrap_angle(heading - x[2]))
+    return MotionCommand((0.0, math.hypot(dx, dy) / dt), (turn / dt + omega_l, omega_l))
+
+
+def held_leader_motion(latest: tuple[float, float]) -> tuple[tuple[float, float], ...]:
+    """Expected leader (v m/s, omega rad/s) per sub-step of the next step: the latest held.
+
+    The planner knows the leader only through its odometry as it comes, so it expects the last
+    reported velocity to persist over the coming sub-steps (simulator and nodes alike).
+    """
+    return (latest,) * SUBSTEPS

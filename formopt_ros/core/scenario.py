@@ -1,0 +1,285 @@
+"""What defines a run: the leader's path and one follower's scenario (paper Sec. V defaults).
+
+Everything here is plain data with validation and a JSON-friendly dict form, so that the same
+description configures the simulator, the study, the nodes and is recorded in every bag.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.core.model import BEARING, MEASUREMENT_KINDS, RANGE
+
+#: Shapes of leader path.
+PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
+
+
+def _finite(name: str, value: float) -> float:
+    number = float(value)
+    if not math.isfinite(number):
+        raise ValueError(f'{name} must be a finite number, got {value!r}')
+    return number
+
+
+def _positive(name: str, value: float, unit: str) -> float:
+    number = _finite(name, value)
+    if number <= 0.0:
+        raise ValueError(f'{name} must be > 0 ({unit}), got {value!r}')
+    return number
+
+
+def _non_negative(name: str, value: float, unit: str) -> float:
+    number = _finite(name, value)
+    if number < 0.0:
+        raise ValueError(f'{name} must be >= 0 ({unit}), got {value!r}')
+    return number
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One piece of a segmented leader path: ``duration`` s at (speed m/s, yaw_rate rad/s)."""
+
+    duration: float
+    speed: float
+    yaw_rate: float = 0.0
+
+    def __post_init__(self) -> None:
+        _positive('segment duration', self.duration, 's')
+        _finite('segment speed', self.speed)
+        _finite('segment yaw_rate', self.yaw_rate)
+
+
+@dataclass(frozen=True)
+class LeaderPath:
+    """The leader's velocities over time, piecewise constant per sub-step.
+
+    Attributes:
+        kind: 'straight' (speed, no turn), 'arc' (constant ``yaw_rate``), 's-curve' (yaw rate
+            ``amplitude sin(2 pi t / period)``) or 'segments' (the list ``segments``, then the
+            last one held, or the list repeated when ``repeat``).
+        speed: forward speed, m/s (all kinds but 'segments').
+        yaw_rate: yaw rate of an arc, rad/s.
+        amplitude: peak yaw rate of an S-curve, rad/s.
+        period: period of an S-curve, s.
+        segments: pieces of a segmented path.
+        repeat: repeat the segments cyclically instead of holding the last one.
+
+    The velocity of global sub-step n (0-based, length dt) is the path's value at its start
+    t = n dt.
+    """
+
+    kind: str = 'straight'
+    speed: float = 1.0
+    yaw_rate: float = 0.0
+    amplitude: float = 0.0
+    period: float = 10.0
+    segments: tuple[Segment, ...] = ()
+    repeat: bool = False
+
+    def __post_init__(self) -> None:
+        if self.kind not in PATH_KINDS:
+            raise ValueError(f'leader path kind must be one of {PATH_KINDS}, got {self.kind!r}')
+        _finite('leader speed', self.speed)
+        _finite('leader yaw_rate', self.yaw_rate)
+        _finite('leader amplitude', self.amplitude)
+        _positive('leader period', self.period, 's')
+        if self.kind == 'straight' and self.yaw_rate != 0.0:
+            raise ValueError(f'a straight leader path has yaw_rate 0, got {self.yaw_rate!r}; '
+                             "use kind 'arc'")
+        if self.kind == 'segments' and not self.segments:
+            raise ValueError("a leader path of kind 'segments' needs at least one segment")
+        object.__setattr__(self, 'segments', tuple(
+            s if isinstance(s, Segment) else Segment(**s) for s in self.segments))
+
+    @classmethod
+    def constant(cls, speed: float, yaw_rate: float = 0.0) -> 'LeaderPath':
+        """Straight when ``yaw_rate`` is 0, else an arc."""
+        return cls('straight' if yaw_rate == 0.0 else 'arc', speed, yaw_rate)
+
+    def velocity(self, substep: int, dt: float) -> tuple[float, float]:
+        """(v_L m/s, omega_L rad/s) during global sub-step ``substep`` (0-based) of length dt."""
+        t = substep * dt
+        if self.kind == 'straight':
+            return self.speed, 0.0
+        if self.kind == 'arc':
+            return self.speed, self.yaw_rate
+        if self.kind == 's-curve':
+            return self.speed, self.amplitude * math.sin(2.0 * math.pi * t / self.period)
+        total = sum(s.duration for s in self.segments)
+        if self.repeat:
+            t = math.fmod(t, total)
+        for segment in self.segments:
+            if t < segment.duration:
+                return segment.speed, segment.yaw_rate
+            t -= segment.duration
+        last = self.segments[-1]
+        return last.speed, last.yaw_rate
+
+    def is_straight(self) -> bool:
+        """True when the leader never turns (the unobservable case of the paper)."""
+        if self.kind == 'segments':
+            return all(s.yaw_rate == 0.0 for s in self.segments)
+        return self.kind == 'straight' or (self.kind == 's-curve' and self.amplitude == 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form (inverse: :meth:`from_dict`)."""
+        out = asdict(self)
+        out['segments'] = [asdict(s) for s in self.segments]
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> 'LeaderPath':
+        """Inverse of :meth:`to_dict`; unknown keys raise ValueError naming them."""
+        _check_keys('leader path', data, {f.name for f in fields(cls)})
+        values = dict(data)
+        values['segments'] = tuple(Segment(**s) if isinstance(s, dict) else s
+                                   for s in values.get('segments', ()))
+        return cls(**values)
+
+
+def _check_keys(what: str, data: dict[str, Any], known: set[str]) -> None:
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f'{what}: unknown keys {unknown} (known: {sorted(known)})')
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything that defines one follower's run except strategy and seed (paper Sec. V).
+
+    Attributes:
+        measurement: 'range' or 'bearing'.
+        p_o: formation slot in the leader frame, m.
+        r: allowed deviation from the slot, m; 0 < r < |p_o|.
+        sigma: measurement noise standard deviation, m or rad.
+        leader: the leader's path.
+        dt: sub-step length, s.
+        sigma_v, sigma_omega: follower velocity noise standard deviations, m/s and rad/s.
+        initial_covariance: diagonal of P_1|1 (m^2, m^2, rad^2); the estimate starts at
+            [p_o, 0] and the truth is drawn from N(estimate, P_1|1).
+    """
+
+    measurement: str
+    p_o: tuple[float, float]
+    r: float
+    sigma: float
+    leader: LeaderPath = field(default_factory=LeaderPath)
+    dt: float = 0.05
+    sigma_v: float = 0.2
+    sigma_omega: float = 0.1
+    initial_covariance: tuple[float, float, float] = (0.1, 0.1, 4e-4)
+
+    def __post_init__(self) -> None:
+        if self.measurement not in MEASUREMENT_KINDS:
+            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
+                             f'got {self.measurement!r}')
+        p_o = tuple(_finite('p_o', v) for v in self.p_o)
+        if len(p_o) != 2:
+            raise ValueError(f'p_o must be [x, y] in m, got {list(self.p_o)!r}')
+        d_o = math.hypot(*p_o)
+        if d_o == 0.0:
+            raise ValueError('p_o must not be the leader position [0, 0]')
+        r = _positive('r', self.r, 'm')
+        if r >= d_o:
+            raise ValueError(f'r must be smaller than |p_o| = {d_o:.6g} m so that the disc does '
+                             f'not reach the leader, got r = {r:.6g} m')
+        _positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
+        _positive('dt', self.dt, 's')
+        _non_negative('sigma_v', self.sigma_v, 'm/s')
+        _non_negative('sigma_omega', self.sigma_omega, 'rad/s')
+        covariance = tuple(_positive('initial_covariance', v, 'm^2 or rad^2')
+                           for v in self.initial_covariance)
+        if len(covariance) != 3:
+            raise ValueError('initial_covariance must have 3 entries (x, y, phi), got '
+                             f'{list(self.initial_covariance)!r}')
+        leader = self.leader if isinstance(self.leader, LeaderPath) else \
+            LeaderPath.from_dict(self.leader)
+        object.__setattr__(self, 'p_o', p_o)
+        object.__setattr__(self, 'initial_covariance', covariance)
+        object.__setattr__(self, 'leader', leader)
+
+    @classmethod
+    def paper(cls, measurement: str, **overrides: Any) -> 'Scenario':
+        """The paper's Sec. V settings for 'range' (p_o = [-1, -2], sigma_d = 0.1 m) or
+        'bearing' (p_o = [-1, 2], sigma_beta = 0.02 rad); r = 0.1 |p_o| unless overridden."""
+        if measurement not in MEASUREMENT_KINDS:
+            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
+                             f'got {measurement!r}')
+        p_o = tuple(overrides.pop('p_o', (-1.0, -2.0) if measurement == RANGE
+                                  else (-1.0, 2.0)))
+        values: dict[str, Any] = dict(measurement=measurement, p_o=p_o,
+                                      r=0.1 * math.hypot(*p_o),
+                                      sigma=0.1 if measurement == RANGE else 0.02)
+        values.update(overrides)
+        return cls(**values)
+
+    @property
+    def slot(self) -> np.ndarray:
+        """p_o as a numpy array, shape (2,), m."""
+        return np.array(self.p_o, dtype=float)
+
+    @property
+    def d_o(self) -> float:
+        """|p_o|, m."""
+        return math.hypot(*self.p_o)
+
+    def initial_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x_1|1 = [p_o, 0] (3,), P_1|1 (3, 3))."""
+        return np.array([self.p_o[0], self.p_o[1], 0.0]), np.diag(self.initial_covariance)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form (inverse: :meth:`from_dict`)."""
+        out = asdict(self)
+        out['p_o'] = list(self.p_o)
+        out['initial_covariance'] = list(self.initial_covariance)
+        out['leader'] = self.leader.to_dict()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> 'Scenario':
+        """Inverse of :meth:`to_dict`; unknown keys raise ValueError naming them."""
+        _check_keys('scenario', data, {f.name for f in fields(cls)})
+        values = dict(data)
+        if isinstance(values.get('leader'), dict):
+            values['leader'] = LeaderPath.from_dict(values['leader'])
+        for key in ('p_o', 'initial_covariance'):
+            if key in values:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+    def differences(self, other: 'Scenario', rtol: float = 1e-12) -> list[tuple[str, Any, Any]]:
+        """(field, this value, other value) for every field that differs (relative rtol)."""
+        mine, theirs = _flatten(self.to_dict()), _flatten(other.to_dict())
+        out = []
+        for key in sorted(set(mine) | set(theirs)):
+            a, b = mine.get(key), theirs.get(key)
+            if isinstance(a, float) and isinstance(b, float):
+                same = a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+            else:
+                same = a == b
+            if not same:
+                out.append((key, a, b))
+        return out
+
+
+def _flatten(data: Any, prefix: str = '') -> dict[str, Any]:
+    """Nested dicts and lists as {'a.b.0': value}; ints become floats so 1 == 1.0 compares."""
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(_flatten(value, f'{prefix}{key}.'))
+        return out
+    if isinstance(data, (list, tuple)):
+        out = {}
+        for index, value in enumerate(data):
+            out.update(_flatten(value, f'{prefix}{index}.'))
+        return out
+    if isinstance(data, int) and not isinstance(data, bool):
+        data = float(data)
+    return {prefix[:-1]: data}
+
+
+__all__ = ['BEARING', 'LeaderPath', 'PATH_KINDS', 'RANGE', 'Scenario', 'Segment']

@@ -1,0 +1,177 @@
+"""Which odometry and which measurement make measurement step k: one implementation for the
+estimator node and for the offline re-estimation of a bag.
+
+Inputs are keyed by integer nanosecond stamps. Two modes:
+
+* lockstep: step k is ready when its measurement and the follower's and the leader's odometry
+  of its sub-steps, stamped exactly on the :class:`~formopt_ros.core.protocol.Timebase` grid,
+  are all in, whatever order they came in (a replayed bag delivers each topic's queue at its
+  own pace). Inputs off the grid, of steps already processed, duplicates, and inputs more than
+  ``LOCKSTEP_LOOKAHEAD_STEPS`` steps ahead are refused; a refused input changes nothing, so a
+  stamp from far in the future cannot block the real ones.
+* realtime: a step is ready when a measurement of a step not yet processed is in; it takes the
+  follower odometry stamped up to the measurement, each paired with the latest leader odometry
+  stamped at or before it. Stamps more than ``future_tolerance_ns`` after the caller's clock are
+  refused, so one bad stamp cannot block the order check of the later real messages. A lost
+  measurement is skipped (the next one carries the odometry since) and counted.
+
+realtime: per input stream, stamps must not decrease; refused inputs never move that check.
+Every refusal returns a reason (a short text) to count.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from formopt_ros.core.protocol import Timebase, step_substeps
+
+#: Realtime: how far (ns) a stamp may lie in the future of the receiving clock.
+DEFAULT_FUTURE_TOLERANCE_NS = 500_000_000
+#: Lockstep: inputs may belong to at most this many steps after the next one (the skew a replay
+#: of a bag can produce between topics is bounded by the subscription queue depth).
+LOCKSTEP_LOOKAHEAD_STEPS = 2000
+
+
+@dataclass(frozen=True)
+class Motion:
+    """One propagation sub-step: follower odometry and the leader velocity paired with it."""
+
+    v_f: float            # m/s
+    omega_f: float        # rad/s
+    v_l: float            # m/s
+    omega_l: float        # rad/s
+
+
+@dataclass(frozen=True)
+class ReadyStep:
+    """Everything one EKF step needs: the motions to propagate, then the measurement."""
+
+    step: int
+    stamp_ns: int
+    motions: tuple[Motion, ...]
+    value: float          # m or rad
+    variance: float       # m^2 or rad^2
+    skipped: int = 0      # realtime: steps whose measurement never came
+
+
+@dataclass
+class StepAssembler:
+    """Collects timestamped inputs and hands out ready steps in order (see module docstring).
+
+    Attributes:
+        lockstep: lockstep (True) or realtime (False) rules.
+        timebase: the lockstep grid (also used for nothing else in realtime).
+        latest_leader: the last leader (v m/s, omega rad/s) used; the planner expects it to
+            persist. Starts at the scenario's first leader velocity.
+        next_step: the step the assembler waits for.
+    """
+
+    lockstep: bool
+    timebase: Timebase
+    latest_leader: tuple[float, float]
+    future_tolerance_ns: int = DEFAULT_FUTURE_TOLERANCE_NS
+    next_step: int = 1
+    _follower: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
+    _leader: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
+    _measurements: dict[int, tuple[int, float, float]] = field(default_factory=dict,
+                                                                 repr=False)
+    _last: dict[str, int] = field(default_factory=dict, repr=False)
+
+    # --- inputs ------------------------------------------------------------------------------
+    def add_follower_odometry(self, stamp_ns: int, v: float, omega: float,
+                              now_ns: int | None = None) -> str | None:
+        """Store one follower odometry sub-step; the reason when refused, else None."""
+        reason = self._check_stamp('follower odometry', stamp_ns, now_ns, self._follower)
+        if reason is None:
+            self._follower[stamp_ns] = (v, omega)
+        return reason
+
+    def add_leader_odometry(self, stamp_ns: int, v: float, omega: float,
+                            now_ns: int | None = None) -> str | None:
+        """Store one leader odometry sub-step; the reason when refused, else None."""
+        reason = self._check_stamp('leader odometry', stamp_ns, now_ns, self._leader)
+        if reason is None:
+            self._leader[stamp_ns] = (v, omega)
+        return reason
+
+    def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
+                        now_ns: int | None = None) -> str | None:
+        """Store the measurement of ``step``; the reason when refused, else None."""
+        if step < self.next_step:
+            return f'step {step} already processed'
+        if self.lockstep and self.timebase.measurement_stamp(step) != stamp_ns:
+            return (f'stamp {stamp_ns} ns is not the lockstep stamp of step {step} '
+                    f'({self.timebase.measurement_stamp(step)} ns)')
+        if step in self._measurements:
+            return f'a measurement of step {step} is already waiting'
+        reason = self._check_stamp('measurement', stamp_ns, now_ns, {})
+        if reason is None:
+            self._measurements[step] = (stamp_ns, value, variance)
+        return reason
+
+    def _check_stamp(self, stream: str, stamp_ns: int, now_ns: int | None,
+                     pending: dict[int, tuple[float, float]]) -> str | None:
+        if self.lockstep:
+            substep = self.timebase.substep_ending_at(stamp_ns)
+            if substep is None:
+                return f'stamp {stamp_ns} ns is off the lockstep grid of {self.timebase.dt_ns} ns'
+            if substep < step_substeps(self.next_step)[0]:
+                return f'stamp {stamp_ns} ns belongs to a step already processed'
+            last_step = self.next_step + LOCKSTEP_LOOKAHEAD_STEPS
+            if substep > step_substeps(last_step)[-1]:
+                return (f'stamp {stamp_ns} ns belongs to a step after {last_step} (waiting for '
+                        f'step {self.next_step})')
+            if stamp_ns in pending:
+                return f'duplicate {stream} stamped {stamp_ns} ns'
+            return None
+        if now_ns is not None and stamp_ns > now_ns + self.future_tolerance_ns:
+            return f'stamp {stamp_ns} ns is {(stamp_ns - now_ns) * 1e-9:.3f} s in the future'
+        last = self._last.get(stream)
+        if last is not None and stamp_ns < last:
+            return f'stamp {stamp_ns} ns before the last {stream} at {last} ns'
+        self._last[stream] = stamp_ns
+        return None
+
+    # --- output ------------------------------------------------------------------------------
+    def pop_ready(self) -> ReadyStep | None:
+        """The next ready step (its inputs removed), or None when it is not complete yet."""
+        return self._pop_lockstep() if self.lockstep else self._pop_realtime()
+
+    def _pop_lockstep(self) -> ReadyStep | None:
+        k = self.next_step
+        if k not in self._measurements:
+            return None
+        stamps = [self.timebase.substep_end(n) for n in step_substeps(k)]
+        if any(t not in self._follower or t not in self._leader for t in stamps):
+            return None
+        motions = []
+        for t in stamps:
+            v_l, omega_l = self._leader.pop(t)
+            v_f, omega_f = self._follower.pop(t)
+            motions.append(Motion(v_f, omega_f, v_l, omega_l))
+            self.latest_leader = (v_l, omega_l)
+        stamp, value, variance = self._measurements.pop(k)
+        self.next_step = k + 1
+        return ReadyStep(k, stamp, tuple(motions), value, variance)
+
+    def _pop_realtime(self) -> ReadyStep | None:
+        if not self._measurements:
+            return None
+        k = min(self._measurements)
+        stamp, value, variance = self._measurements.pop(k)
+        motions = []
+        for t in sorted(t for t in self._follower if t <= stamp):
+            earlier = [u for u in self._leader if u <= t]
+            if earlier:
+                self.latest_leader = self._leader[max(earlier)]
+                for u in earlier:
+                    del self._leader[u]
+            v_f, omega_f = self._follower.pop(t)
+            motions.append(Motion(v_f, omega_f, *self.latest_leader))
+        skipped = k - self.next_step
+        self.next_step = k + 1
+        return ReadyStep(k, stamp, tuple(motions), value, variance, skipped)
+
+    def pending(self) -> dict[str, int]:
+        """How many inputs wait, per stream (for status and diagnostics)."""
+        return {'follower_odometry': len(self._follower), 'leader_odometry': len(self._leader),
+                'measurements': len(self._measurements)}

@@ -1,0 +1,172 @@
+"""The strategy interface: ``Strategy(**options).plan(problem, context) -> Solution``.
+
+A strategy is an object, created once per follower with its options (declared in ``OPTIONS``
+with default, unit and admissible range, so nodes and commands expose them without special
+cases), and asked once per measurement step for the next position. What changes from step to
+step comes in a :class:`PlanContext`: the step index, the leader motion expected during the
+step, the random stream and a read-only view of the estimator (its posterior, history and the
+exact move-dependent prior), so a stateful, multi-step strategy needs no change in the
+simulator or the nodes.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from formopt_ros.core.cost import Problem
+
+
+@dataclass(frozen=True)
+class Solution:
+    """The chosen next position, what it costs and how it was found.
+
+    Attributes:
+        p: chosen position in the leader frame, shape (2,), m.
+        cost: tr(W P_post W) after a measurement at p, m^2.
+        cost_at_slot: the same cost at the formation slot p_o, m^2.
+        method: strategy name.
+        measurement: 'range' or 'bearing'.
+        on_boundary: True when |p - p_o| = r (constraint active).
+        candidates: number of critical or grid points examined.
+        solve_time_s: wall time of the strategy, s (set by the solver).
+        fallback: method used when the primary route could not certify its answer, else None.
+        details: method-specific diagnostics.
+    """
+
+    p: np.ndarray
+    cost: float
+    cost_at_slot: float
+    method: str
+    measurement: str
+    on_boundary: bool = False
+    candidates: int = 1
+    solve_time_s: float = 0.0
+    fallback: str | None = None
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+def make_solution(problem: Problem, p: np.ndarray, method: str, on_boundary: bool = False,
+                  candidates: int = 1, fallback: str | None = None,
+                  details: dict[str, Any] | None = None) -> Solution:
+    """A :class:`Solution` for point p (2,) with its cost and the cost at the slot."""
+    costs = problem.cost(np.vstack([p, problem.p_o]))
+    return Solution(p=p, cost=float(costs[0]), cost_at_slot=float(costs[1]), method=method,
+                    measurement=problem.measurement, on_boundary=on_boundary,
+                    candidates=candidates, fallback=fallback, details=details or {})
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """One processed step of the estimator: its posterior and the position it had chosen."""
+
+    step: int
+    x: np.ndarray          # (3,) posterior [x, y, phi] in the leader frame
+    P: np.ndarray          # (3, 3) posterior covariance
+    target: np.ndarray     # (2,) position the step's motion aimed at, m
+
+
+@dataclass(frozen=True)
+class EstimatorView:
+    """What a strategy may read of the estimator before choosing the next position.
+
+    Attributes:
+        x, P: current posterior (before the coming motion), shapes (3,) and (3, 3).
+        history: the most recent processed steps, oldest first (bounded length).
+        prior_for: target (2,) -> the exact prior covariance (3, 3) after driving to target
+            with the protocol's commands under the expected leader motion.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    history: Sequence[StepRecord]
+    prior_for: Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class PlanContext:
+    """Per-step information for a strategy.
+
+    Attributes:
+        step: the measurement step (1-based) the motion leads to.
+        leader_velocities: expected (v_L m/s, omega_L rad/s) of the leader per sub-step.
+        rng: random stream of randomised strategies (CRM).
+        estimator: the estimator's state, or None for a one-off problem.
+        dt: sub-step length, s.
+        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+    """
+
+    step: int = 1
+    leader_velocities: tuple[tuple[float, float], ...] = ((1.0, 0.0), (1.0, 0.0))
+    rng: np.random.Generator | None = None
+    estimator: EstimatorView | None = None
+    dt: float = 0.05
+    sigma_v: float = 0.2
+    sigma_omega: float = 0.1
+
+    @property
+    def leader_straight(self) -> bool:
+        """True when the leader is expected to drive straight (the unobservable case)."""
+        return all(omega == 0.0 for _, omega in self.leader_velocities)
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One strategy option: default, meaning with unit, admissible closed range [low, high]."""
+
+    default: float | int | bool
+    description: str
+    low: float = 0.0
+    high: float = 1.0
+
+    def check(self, strategy: str, name: str, value: object) -> float | int | bool:
+        """The value as the option's type, or ValueError naming strategy, option and range."""
+        if isinstance(self.default, bool):
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f'{strategy} option {name} must be true or false '
+                                 f'({self.description}), got {value!r}')
+            return bool(value)
+        expected = f'a number in [{self.low:g}, {self.high:g}] ({self.description})'
+        if isinstance(self.default, int):
+            expected = f'an integer in [{self.low:g}, {self.high:g}] ({self.description})'
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer,
+                                                              np.floating)):
+            raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
+        if isinstance(self.default, int):
+            if float(value) != int(value):
+                raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
+            number: float | int = int(value)
+        else:
+            number = float(value)
+        if not (math.isfinite(number) and self.low <= number <= self.high):
+            raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
+        return number
+
+
+class Strategy:
+    """Base class: options validated at construction, :meth:`plan` once per step."""
+
+    #: Name used in configuration (``solve(method=...)``, the ``strategy`` parameter).
+    name: ClassVar[str] = ''
+    #: Options accepted by the constructor.
+    OPTIONS: ClassVar[dict[str, OptionSpec]] = {}
+
+    def __init__(self, **options: object) -> None:
+        unknown = sorted(set(options) - set(self.OPTIONS))
+        if unknown:
+            raise ValueError(f'method {self.name!r} accepts options {sorted(self.OPTIONS)}, '
+                             f'got unknown {unknown}')
+        self.settings: dict[str, float | int | bool] = {
+            key: spec.check(self.name, key, options.get(key, spec.default))
+            for key, spec in self.OPTIONS.items()}
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The next position for ``problem`` (a :class:`Solution`, solve_time_s unset)."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        settings = ', '.join(f'{k}={v!r}' for k, v in self.settings.items())
+        return f'{type(self).__name__}({settings})'

@@ -1,0 +1,296 @@
+"""Node parameters: one spec per parameter (default, unit, range, read-only), declared and
+validated the same way in every node; the scenario and strategy parameters shared by nodes."""
+from __future__ import annotations
+
+import difflib
+import math
+import textwrap
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import (
+    FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from formopt_ros.core.model import MEASUREMENT_KINDS
+from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.strategies import STRATEGIES, make_strategy
+from formopt_ros.wire.description import MODES
+
+#: Parameters rclpy declares itself; never reported as unknown.
+ROS_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
+
+
+class ParameterError(ValueError):
+    """A parameter value outside its documented range (the node exits with code 2)."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """One node parameter.
+
+    Attributes:
+        name: parameter name.
+        default: default value; its type is the parameter's type (int values are accepted for
+            float parameters).
+        description: meaning and unit.
+        low, high: admissible closed range of a number (None: unbounded).
+        choices: admissible strings.
+        read_only: fixed at start-up (``ros2 param set`` is refused); otherwise validated on set.
+    """
+
+    name: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = True
+
+    def descriptor(self) -> ParameterDescriptor:
+        """The ROS descriptor, with range and read-only flag (ros2 param describe shows them)."""
+        text = self.description
+        if self.choices:
+            text += f" (one of: {', '.join(self.choices)})"
+        descriptor = ParameterDescriptor(description=text, read_only=self.read_only)
+        if self.low is not None and self.high is not None and not isinstance(self.default,
+                                                                             bool):
+            if isinstance(self.default, int):
+                descriptor.integer_range = [IntegerRange(
+                    from_value=int(self.low), to_value=int(self.high), step=1)]
+            elif isinstance(self.default, float):
+                descriptor.floating_point_range = [FloatingPointRange(
+                    from_value=float(self.low), to_value=float(self.high), step=0.0)]
+        return descriptor
+
+    def check(self, value: Any) -> Any:
+        """Return value if admissible, else raise ParameterError naming the parameter."""
+        expected = self.expected()
+        if isinstance(self.default, float) and isinstance(value, int) \
+                and not isinstance(value, bool):
+            value = float(value)
+        if isinstance(self.default, list) and isinstance(value, (list, tuple)):
+            value = list(value)
+        elif type(value) is not type(self.default):
+            raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
+        if self.choices and value not in self.choices:
+            raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
+        numbers = value if isinstance(value, list) else [value]
+        for number in numbers:
+            if isinstance(number, (int, float)) and not isinstance(number, bool):
+                if isinstance(number, float) and not math.isfinite(number):
+                    raise ParameterError(f"parameter '{self.name}' must be {expected}, "
+                                         f'got {value!r}')
+                if (self.low is not None and number < self.low) or \
+                        (self.high is not None and number > self.high):
+                    raise ParameterError(f"parameter '{self.name}' must be {expected}, "
+                                         f'got {value!r}')
+        return value
+
+    def expected(self) -> str:
+        """What the parameter accepts, in words."""
+        if self.choices:
+            return 'one of ' + ', '.join(repr(c) for c in self.choices)
+        kind = {bool: 'a bool', int: 'an integer', float: 'a number', str: 'a string',
+                list: 'a list of numbers' if self.low is not None else 'a list of strings'
+                }.get(type(self.default), type(self.default).__name__)
+        if self.low is not None or self.high is not None:
+            return f'{kind} in [{_number(self.low)}, {_number(self.high)}] ({self.description})'
+        return f'{kind} ({self.description})'
+
+    def documentation(self) -> str:
+        """One paragraph for the config file: meaning, type, range, default, mutability."""
+        if self.choices:
+            accepts = 'one of ' + ', '.join(self.choices)
+        else:
+            accepts = {bool: 'bool', int: 'integer', float: 'number', str: 'string',
+                       list: 'list'}.get(type(self.default), type(self.default).__name__)
+            if self.low is not None or self.high is not None:
+                accepts += f' in [{_number(self.low)}, {_number(self.high)}]'
+        mutable = 'read-only' if self.read_only else 'settable at run time'
+        return (f'{self.description[0].upper()}{self.description[1:]}. Accepts {accepts}; '
+                f'default {_yaml_value(self.default)}; {mutable}.')
+
+
+def _number(value: float | None) -> str:
+    if value is None:
+        return '-inf'
+    if float(value).is_integer() and abs(value) < 1e15:
+        return str(int(value))
+    return f'{value:g}'
+
+
+def _override_value(node: Node, name: str) -> Any:
+    override = node._parameter_overrides.get(name)
+    return None if override is None else override.value
+
+
+def declare(node: Node, specs: list[Param]) -> dict[str, Any]:
+    """Declare every parameter with its descriptor and return the validated values.
+
+    A parameter the node does not have is refused (ParameterError) when it is close to one it
+    has (a typo such as 'stratgy'), and logged as a warning otherwise (a shared ``/**``
+    parameters file may carry other nodes' parameters). Values of the wrong type or outside
+    their range are refused; integers are accepted for float parameters. Mutable parameters
+    are validated again when set at run time (:func:`validate_on_set`).
+    """
+    known = {spec.name for spec in specs} | ROS_PARAMETERS
+    for name in sorted(set(node._parameter_overrides) - known):
+        close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.8)
+        if close:
+            raise ParameterError(f"unknown parameter '{name}' for {node.get_name()}; did you "
+                                 f"mean '{close[0]}'?")
+        node.get_logger().warning(f"ignoring parameter '{name}': {node.get_name()} has no "
+                                  'such parameter (see --help)')
+    values = {}
+    for spec in specs:
+        override = _override_value(node, spec.name)
+        if isinstance(spec.default, float) and isinstance(override, int) \
+                and not isinstance(override, bool):
+            node._parameter_overrides[spec.name] = Parameter(spec.name, value=float(override))
+        elif override is not None:
+            spec.check(override)            # our message before rclpy's type exception
+        try:
+            node.declare_parameter(spec.name, spec.default, spec.descriptor())
+        except Exception as error:           # rclpy rejects out-of-range or mistyped overrides
+            raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got "
+                                 f'{override!r} ({type(error).__name__})') from None
+        value = node.get_parameter(spec.name).value
+        values[spec.name] = spec.check(list(value) if isinstance(spec.default, list)
+                                       and value is not None else value)
+    return values
+
+
+def validate_on_set(node: Node, specs: list[Param],
+                    apply: Callable[[dict[str, Any]], str | None]) -> None:
+    """Validate run-time ``ros2 param set`` of mutable parameters, then hand them to ``apply``.
+
+    ``apply`` gets {name: value} of the accepted change and returns a reason to refuse it (or
+    None); read-only parameters are refused by rclpy itself.
+    """
+    by_name = {spec.name: spec for spec in specs}
+
+    def on_set(parameters: list[Parameter]) -> SetParametersResult:
+        change = {}
+        for parameter in parameters:
+            spec = by_name.get(parameter.name)
+            if spec is None:
+                continue
+            try:
+                change[parameter.name] = spec.check(parameter.value)
+            except ParameterError as error:
+                return SetParametersResult(successful=False, reason=str(error))
+        reason = apply(change) if change else None
+        return SetParametersResult(successful=reason is None, reason=reason or '')
+
+    node.add_on_set_parameters_callback(on_set)
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return f"'{value}'" if value == '' or not value.replace('_', '').isalnum() else value
+    if isinstance(value, list):
+        return '[' + ', '.join(_yaml_value(v) for v in value) + ']'
+    return repr(value)
+
+
+def config_yaml(node: str, summary: str, specs: list[Param]) -> str:
+    """The documented parameters file of a node (config/<node>.yaml): every parameter at its
+    default, with meaning, unit, range and whether it can be set at run time."""
+    lines = textwrap.wrap(f'Parameters of {node}. {summary}', 97, initial_indent='# ',
+                          subsequent_indent='# ')
+    lines += textwrap.wrap(f'Use: ros2 run formopt_ros {node} --ros-args --params-file '
+                           f'config/{node}.yaml (scripts/{node}.sh passes this file). The '
+                           'values are the defaults. Generated from the parameter specs of the '
+                           'node by: python -m formopt_ros.ros.nodes --write-configs config',
+                           97, initial_indent='# ', subsequent_indent='# ')
+    lines += [f'/**/{node}:', '  ros__parameters:']
+    for spec in specs:
+        lines += textwrap.wrap(spec.documentation(), 95, initial_indent='    # ',
+                               subsequent_indent='    # ', break_on_hyphens=False)
+        lines.append(f'    {spec.name}: {_yaml_value(spec.default)}')
+    return '\n'.join(lines) + '\n'
+
+
+# --- parameters shared by several nodes ----------------------------------------------------
+FOLLOWER_ID = Param('follower_id', '', "id of the follower (frames, message filter); '' means "
+                    "the last part of the node namespace ('follower' at the root)")
+LEADER_ID = Param('leader_id', 'leader', "id of the leader: its namespace and frame; followers "
+                  'subscribe to /<leader_id>/odom')
+MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
+             'realtime: timers at 1/dt', choices=MODES)
+DT = Param('dt', 0.05, 'sub-step length, s', 1e-3, 10.0)
+MEASUREMENT = Param('measurement', 'range', 'the follower sensor', choices=MEASUREMENT_KINDS)
+SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)', 0, 2**31 - 1)
+TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)', 0, 2**31 - 1)
+SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', 0.0, 100.0)
+SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s', 0.0,
+                    100.0)
+RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', 1e-9, 1e3)
+BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', 1e-9, 3.2)
+SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
+             '[0.0] means the paper default for the measurement kind', -1e6, 1e6)
+DEVIATION = Param('deviation_fraction', 0.1, 'allowed deviation r as a fraction of |p_o|',
+                  1e-6, 0.999)
+V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', -100.0, 100.0)
+OMEGA_LEADER = Param('omega_leader', 0.0, 'leader yaw rate, rad/s (0: straight, else an arc)',
+                     -100.0, 100.0)
+SUMMARY_PATH = Param('summary_path', '', 'write a JSON summary of the node here when it ends, '
+                     'also on SIGINT/SIGTERM (empty: none)')
+LEADER_PARAMS = [V_LEADER, OMEGA_LEADER]
+SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, RANGE_SIGMA, BEARING_SIGMA, SLOT,
+                   DEVIATION] + LEADER_PARAMS
+
+
+def leader_path_from(values: dict[str, Any]) -> LeaderPath:
+    """The leader path described by the leader parameters."""
+    return LeaderPath.constant(values['v_leader'], values['omega_leader'])
+
+
+def scenario_from(values: dict[str, Any]) -> Scenario:
+    """The Scenario described by the shared parameters (paper defaults otherwise)."""
+    kind = values['measurement']
+    slot = values['formation_slot']
+    if list(slot) != [0.0] and len(slot) != 2:
+        raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
+                             f'{slot!r}')
+    p_o = Scenario.paper(kind).p_o if list(slot) == [0.0] else (float(slot[0]), float(slot[1]))
+    try:
+        return Scenario.paper(
+            kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
+            sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
+            leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
+            sigma_omega=values['sigma_omega'])
+    except ValueError as error:
+        raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
+
+
+def strategy_params() -> list[Param]:
+    """The 'strategy' parameter and every strategy option as '<strategy>_<option>'."""
+    params = [Param('strategy', 'ram', 'motion strategy', choices=tuple(STRATEGIES),
+                    read_only=False)]
+    for name, cls in STRATEGIES.items():
+        for option, spec in cls.OPTIONS.items():
+            default = spec.default
+            bounded = not isinstance(default, bool)
+            params.append(Param(f'{name}_{option}', default, f'{name}: {spec.description}',
+                                spec.low if bounded else None, spec.high if bounded else None,
+                                read_only=False))
+    return params
+
+
+def strategy_options(name: str, values: dict[str, Any]) -> dict[str, Any]:
+    """Options of strategy ``name`` from the '<strategy>_<option>' parameter values."""
+    return {option: values[f'{name}_{option}'] for option in STRATEGIES[name].OPTIONS}
+
+
+def check_strategy(name: str, values: dict[str, Any]) -> None:
+    """ParameterError when the strategy cannot be built with these option values."""
+    try:
+        make_strategy(name, **strategy_options(name, values))
+    except ValueError as error:
+        raise ParameterError(str(error)) from None

@@ -1,0 +1,88 @@
+"""QoS profiles of the formation topics (by the kinds of the topic table) and the recorder's
+translation between rclpy and rosbag2's QoS vocabulary."""
+from __future__ import annotations
+
+from rclpy.qos import (
+    DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_system_default)
+
+from formopt_ros.bag import qos as bag_qos
+
+#: Depth of streaming topics.
+STREAM_DEPTH = 1000
+
+#: Streaming topics: reliable (lockstep must not drop a message) and transient local, so that
+#: a subscriber that matches late (the recorder, when discovery takes seconds) still receives
+#: the history; volatile subscriptions (the nodes' own) are compatible with it.
+STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: What the nodes subscribe with: reliable, volatile.
+SUBSCRIBED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+#: The run description: one message that every late subscriber (and every bag) must still get.
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: /clock as rosgraph publishes it (best effort would lose lockstep ticks: reliable, depth 10).
+CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                   reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.VOLATILE)
+#: /tf and /diagnostics: tf2's and diagnostic_updater's defaults.
+TF = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+PROFILES = {'stream': STREAM, 'latched': LATCHED, 'clock': CLOCK, 'tf': TF,
+            'diagnostics': DIAGNOSTICS, 'default': qos_profile_system_default}
+
+
+def profile(kind: str) -> QoSProfile:
+    """The QoS profile of a topic-table QoS kind."""
+    return PROFILES[kind]
+
+
+def _name(policy: object) -> str:
+    return policy.name.upper() if hasattr(policy, 'name') else str(policy).upper()
+
+
+def offered_qos(qos: QoSProfile) -> bag_qos.Qos:
+    """A publisher's QoS (from get_publishers_info_by_topic) as rosbag2 stores it."""
+    def member(enum: type, policy: object) -> object:
+        return enum.__members__.get(_name(policy), enum.__members__['UNKNOWN'])
+
+    return bag_qos.Qos(
+        member(bag_qos.QosHistory, qos.history), int(qos.depth),
+        member(bag_qos.QosReliability, qos.reliability),
+        member(bag_qos.QosDurability, qos.durability),
+        bag_qos.duration(qos.deadline.nanoseconds), bag_qos.duration(qos.lifespan.nanoseconds),
+        member(bag_qos.QosLiveliness, qos.liveliness),
+        bag_qos.duration(qos.liveliness_lease_duration.nanoseconds),
+        bool(qos.avoid_ros_namespace_conventions))
+
+
+def adapted(reliable: bool, latched: bool, depth: int = STREAM_DEPTH) -> QoSProfile:
+    """A KEEP_LAST profile, reliable or best effort, transient-local or volatile."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable
+                      else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                      else DurabilityPolicy.VOLATILE)
+
+
+def adapted_to_offers(offers: list[QoSProfile]) -> QoSProfile:
+    """Subscription QoS compatible with every offer (rosbag2's adapt_request_to_offers)."""
+    reliable = all(p.reliability == ReliabilityPolicy.RELIABLE for p in offers)
+    latched = bool(offers) and all(p.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                   for p in offers)
+    return adapted(reliable, latched)
+
+
+def replay_profile(offers: list[bag_qos.Qos]) -> QoSProfile:
+    """QoS offered on replay: reliable/latched when every recorded publisher was."""
+    reliable = all(q.reliability != bag_qos.QosReliability.BEST_EFFORT for q in offers)
+    latched = bool(offers) and all(q.durability == bag_qos.QosDurability.TRANSIENT_LOCAL
+                                   for q in offers)
+    return adapted(reliable, latched, 1 if latched else STREAM_DEPTH)

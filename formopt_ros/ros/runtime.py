@@ -1,0 +1,116 @@
+"""How every node process runs: arguments, help, the spin loop, signals and exit codes."""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+import textwrap
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+from formopt_ros.ros.params import Param, ParameterError
+
+
+class Throttle:
+    """Log a warning at most once per ``period`` seconds per key."""
+
+    def __init__(self, node: Node, period: float = 2.0) -> None:
+        self.node, self.period = node, period
+        self.last: dict[str, float] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        """Log ``text`` unless a warning with this key was logged less than period s ago."""
+        now = time.monotonic()
+        if now - self.last.get(key, -math.inf) >= self.period:
+            self.last[key] = now
+            self.node.get_logger().warning(text)
+
+
+def write_summary(path: str, summary: dict[str, Any]) -> None:
+    """Write a node's JSON summary (folders created); nothing for an empty path."""
+    if path:
+        target = Path(path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps(summary, indent=2) + '\n')
+
+
+def help_text(program: str, summary: str, specs: Sequence[Param]) -> str:
+    """``--help`` of a node: usage and every parameter with default, range and meaning."""
+    lines = [f'usage: {program} [--ros-args -p NAME:=VALUE ... --params-file FILE '
+             '-r __ns:=/NAMESPACE]', '', summary, '', 'parameters:']
+    for spec in specs:
+        default = repr(spec.default)
+        extra = ' (read-only)' if spec.read_only else ' (settable at run time)'
+        lines.append(f'  {spec.name} = {default}{extra}')
+        lines.extend(textwrap.wrap(spec.expected(), 95, initial_indent='      ',
+                                   subsequent_indent='      '))
+    lines += ['', 'A wrong value stops the node with exit code 2 and one line naming the '
+              'parameter.']
+    return '\n'.join(lines)
+
+
+def node_main(factory: Callable[[], Node], program: str, summary: str,
+              specs: Sequence[Param], args: list[str] | None = None) -> int:
+    """Run one node process; returns the exit code.
+
+    ``-h``/``--help`` (before ``--ros-args``) prints the parameters and exits 0; any other
+    argument outside ``--ros-args`` is refused with exit code 2, as is a ParameterError (one line
+    naming the parameter). SIGINT and SIGTERM end the spin loop (within 0.1 s) while the context
+    is still valid, so ``close()`` can still publish and write; then the context shuts down.
+    """
+    from rclpy.utilities import remove_ros_args
+    argv = list(sys.argv if args is None else [program, *args])
+    try:
+        plain = remove_ros_args(argv)[1:]
+    except Exception as error:              # malformed --ros-args section
+        print(f'{program}: error: bad ROS arguments: {error}', file=sys.stderr)
+        return 2
+    if any(a in ('-h', '--help') for a in plain):
+        print(help_text(program, summary, specs))
+        return 0
+    if plain:
+        print(f'{program}: error: unknown argument {plain[0]!r} (node parameters go after '
+              '--ros-args as -p NAME:=VALUE; see --help)', file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as error:              # e.g. a --params-file that does not exist or parse
+        print(f'{program}: error: {str(error).splitlines()[0] if str(error) else error!r}',
+              file=sys.stderr)
+        return 2
+    stop: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda received, _frame: stop.append(received))
+    node = None
+    code = 0
+    try:
+        node = factory()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not stop and not getattr(node, 'finished', False):
+            executor.spin_once(timeout_sec=0.1)
+        code = int(getattr(node, 'exit_code', 0))
+    except ParameterError as error:
+        print(f'{program}: error: {error}', file=sys.stderr)
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    finally:
+        if node is not None:
+            try:
+                node.close()            # type: ignore[attr-defined]
+            except Exception as error:  # never turn a clean stop into a traceback
+                print(f'{program}: warning: shutdown: {error}', file=sys.stderr)
+                code = code or 1
+            node.destroy_node()
+        rclpy.try_shutdown()
+    sys.stdout.flush()
+    return code

@@ -1,0 +1,101 @@
+"""Reading formation messages into core values, and why a message must be refused.
+
+The functions only read attributes, so they accept rclpy messages in the nodes and the
+dataclasses that rosbags decodes from a bag in the offline analysis alike (no ROS import here).
+
+Conventions (see also ``formopt_ros.ros.conversions``, which builds the messages):
+
+* Leader odometry (nav_msgs/Odometry): frame_id 'odom', child_frame_id the leader id;
+  twist.linear.x = v_L (m/s), twist.angular.z = omega_L (rad/s).
+* Follower odometry: child_frame_id the follower id; twist = the measured (commanded)
+  velocities of one sub-step, twist.covariance[0] = sigma_v^2, [35] = sigma_omega^2.
+* Estimate (PoseWithCovarianceStamped) and truth (PoseStamped): the follower pose [x, y, phi]
+  in the leader frame; the 6x6 covariance holds P at indices x=0, y=1, yaw=5.
+* Measurement.kind: 0 range (m), 1 bearing (rad).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.core.model import BEARING, RANGE
+
+#: Measurement.kind codes of the message definition (RANGE=0, BEARING=1).
+KIND_CODES = {RANGE: 0, BEARING: 1}
+KIND_NAMES = {code: name for name, code in KIND_CODES.items()}
+#: Indices of x, y, yaw in a ROS 6x6 pose covariance (x, y, z, roll, pitch, yaw).
+POSE_INDEX = (0, 1, 5)
+
+
+def stamp_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a builtin_interfaces/Time (exact, for matching stamps)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def header_ns(msg: Any) -> int:
+    """Integer nanoseconds of a message's header stamp."""
+    return stamp_ns(msg.header.stamp)
+
+
+def yaw_of(orientation: Any) -> float:
+    """Yaw (rad) of a quaternion message."""
+    return math.atan2(2.0 * (orientation.w * orientation.z + orientation.x * orientation.y),
+                      1.0 - 2.0 * (orientation.y ** 2 + orientation.z ** 2))
+
+
+def pose_values(pose: Any) -> np.ndarray:
+    """[x m, y m, yaw rad] of a geometry_msgs/Pose, shape (3,)."""
+    return np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)])
+
+
+def odometry_values(msg: Any) -> tuple[float, float, float, float]:
+    """(v m/s, omega rad/s, var_v, var_omega) of an odometry message."""
+    return (float(msg.twist.twist.linear.x), float(msg.twist.twist.angular.z),
+            float(msg.twist.covariance[0]), float(msg.twist.covariance[35]))
+
+
+def estimate_values(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(x (3,), P (3, 3)) of a PoseWithCovarianceStamped estimate."""
+    covariance = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+    return pose_values(msg.pose.pose), covariance[np.ix_(POSE_INDEX, POSE_INDEX)]
+
+
+def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
+    """Why a measurement must be refused (None when it is acceptable)."""
+    if msg.follower_id != follower_id:
+        return f'for follower {msg.follower_id!r}, not {follower_id!r}'
+    if KIND_NAMES.get(int(msg.kind)) != kind:
+        return f'kind {msg.kind} is not {kind}'
+    if not math.isfinite(msg.value):
+        return f'value {msg.value} is not finite'
+    if not (math.isfinite(msg.variance) and msg.variance > 0.0):
+        return f'variance {msg.variance} is not a finite number > 0'
+    if kind == RANGE and msg.value < 0.0:
+        return f'range {msg.value} m is negative'
+    return None
+
+
+def odometry_problem(msg: Any, child_frame_id: str) -> str | None:
+    """Why an odometry message must be refused (None when it is acceptable)."""
+    if msg.child_frame_id != child_frame_id:
+        return f'child_frame_id {msg.child_frame_id!r} is not {child_frame_id!r}'
+    v, omega, var_v, var_omega = odometry_values(msg)
+    if not (math.isfinite(v) and math.isfinite(omega)):
+        return f'velocities ({v}, {omega}) are not finite'
+    if not all(math.isfinite(x) and x >= 0.0 for x in (var_v, var_omega)):
+        return f'velocity variances ({var_v}, {var_omega}) are not finite and >= 0'
+    return None
+
+
+def waypoint_problem(msg: Any, follower_id: str) -> str | None:
+    """Why a waypoint must be refused (None when it is acceptable)."""
+    if msg.follower_id != follower_id:
+        return f'for follower {msg.follower_id!r}, not {follower_id!r}'
+    commands = list(msg.linear_velocity) + list(msg.angular_velocity)
+    if len(msg.linear_velocity) != len(msg.angular_velocity) or not commands:
+        return 'linear and angular velocity lists must be non-empty and of equal length'
+    if not all(math.isfinite(c) for c in commands):
+        return 'commands are not finite'
+    return None

@@ -1,0 +1,124 @@
+"""The topic table of a formation run: every topic's name, message type, publisher and QoS kind.
+
+Naming: every robot runs in the namespace of its id. The leader's nodes publish in ``/<leader>``
+(default ``/leader``), each follower's follower_sim and estimator_planner in ``/<follower>``
+(default ``/follower``); names below are relative to that namespace. ``/tf``, ``/clock`` and
+``/diagnostics`` are the global ROS conventions.
+
+QoS kinds: 'stream' (reliable, volatile, modest depth: a late subscriber gets live messages
+only), 'latched' (reliable, transient local, depth 1: the run description, which a late
+subscriber must still get), 'tf', 'clock' and 'diagnostics' (the ROS defaults of those topics).
+
+This module imports nothing from ROS: nodes, the recorder, the offline analysis and the scripts
+(``python -m formopt_ros.wire.topics``) all read the same table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+
+DEFAULT_LEADER = 'leader'
+DEFAULT_FOLLOWER = 'follower'
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic of the run.
+
+    Attributes:
+        key: short name used in code and counts.
+        name: name relative to the publisher's namespace, or absolute ('/tf').
+        type: ROS message type 'pkg/msg/Name'.
+        publisher: the node that publishes it.
+        qos: QoS kind ('stream', 'latched', 'tf', 'clock', 'diagnostics').
+        description: what it carries.
+    """
+
+    key: str
+    name: str
+    type: str
+    publisher: str
+    qos: str
+    description: str
+
+
+LEADER_TOPICS = (
+    Topic('leader_odom', 'odom', 'nav_msgs/msg/Odometry', 'leader_sim', 'stream',
+          "the leader's odometry per sub-step (pose in 'odom', twist in the leader frame)"),
+)
+FOLLOWER_TOPICS = (
+    Topic('follower_odom', 'odom', 'nav_msgs/msg/Odometry', 'follower_sim', 'stream',
+          "the follower's odometry per sub-step: commanded velocities, noise variances"),
+    Topic('measurement', 'measurement', 'formopt_interfaces/msg/Measurement', 'follower_sim',
+          'stream', 'one range or bearing measurement per step'),
+    Topic('truth', 'truth', 'geometry_msgs/msg/PoseStamped', 'follower_sim', 'stream',
+          'the true follower pose in the leader frame (evaluation only)'),
+    Topic('estimate', 'estimate', 'geometry_msgs/msg/PoseWithCovarianceStamped',
+          'estimator_planner', 'stream', 'the EKF estimate of the pose in the leader frame'),
+    Topic('waypoint', 'waypoint', 'formopt_interfaces/msg/Waypoint', 'estimator_planner',
+          'stream', 'the next position and the commands that reach it'),
+    Topic('status', 'status', 'formopt_interfaces/msg/PlannerStatus', 'estimator_planner',
+          'stream', 'progress, cost and input counters after each step'),
+    Topic('description', 'description', 'formopt_interfaces/msg/RunDescription',
+          'estimator_planner', 'latched', 'the run description (scenario, strategy, seed)'),
+)
+BY_KEY = {t.key: t for t in LEADER_TOPICS + FOLLOWER_TOPICS}
+
+
+def resolve(namespace: str, topic: Topic) -> str:
+    """Absolute name of ``topic`` published in ``namespace`` (a robot id or '/id')."""
+    if topic.name.startswith('/'):
+        return topic.name
+    return '/' + '/'.join(part for part in (namespace.strip('/'), topic.name) if part)
+
+
+def leader_topic(key: str, leader: str = DEFAULT_LEADER) -> str:
+    """Absolute name of a leader topic, e.g. ``leader_topic('leader_odom') == '/leader/odom'``."""
+    return resolve(leader, BY_KEY[key])
+
+
+def follower_topic(key: str, follower: str = DEFAULT_FOLLOWER) -> str:
+    """Absolute name of a follower topic, e.g. '/follower/estimate'."""
+    return resolve(follower, BY_KEY[key])
+
+
+def formation_topics(leader: str = DEFAULT_LEADER,
+                     followers: tuple[str, ...] = (DEFAULT_FOLLOWER,)) -> dict[str, str]:
+    """Absolute name -> message type of every topic of a formation (what a bag records)."""
+    out = {resolve(leader, t): t.type for t in LEADER_TOPICS}
+    for follower in followers:
+        out.update({resolve(follower, t): t.type for t in FOLLOWER_TOPICS})
+    return out
+
+
+def split_follower_topic(name: str) -> tuple[str, str] | None:
+    """('/f1' namespace, key) of a recorded follower topic name, or None if it is not one."""
+    namespace, _, last = name.rpartition('/')
+    for topic in FOLLOWER_TOPICS:
+        if topic.name == last and namespace:
+            return namespace, topic.key
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m formopt_ros.wire.topics [--leader L] [--followers F ...] [--json]``."""
+    parser = argparse.ArgumentParser(prog='python -m formopt_ros.wire.topics',
+                                     description='Print the topics of a formation run.')
+    parser.add_argument('--leader', default=DEFAULT_LEADER, help='leader id (default leader)')
+    parser.add_argument('--followers', nargs='+', default=[DEFAULT_FOLLOWER],
+                        help='follower ids (default follower)')
+    parser.add_argument('--json', action='store_true', help='print {name: type} as JSON')
+    args = parser.parse_args(argv)
+    topics = formation_topics(args.leader, tuple(args.followers))
+    if args.json:
+        print(json.dumps(topics, indent=2))
+    else:
+        for name, type_name in topics.items():
+            print(f'{name} {type_name}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,273 @@
+"""formopt_ros.bag without ROS: schemas, QoS YAML, the MCAP writer and reader, repair, CLI."""
+from __future__ import annotations
+
+import os
+import random
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip('mcap', reason='the tools extra (mcap, rosbags) is not installed')
+pytest.importorskip('rosbags', reason='the tools extra (mcap, rosbags) is not installed')
+from mcap.reader import make_reader  # noqa: E402
+
+from formopt_ros import bag  # noqa: E402
+from formopt_ros.bag import qos, schema  # noqa: E402
+from formopt_ros.wire.topics import formation_topics  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+ODOMETRY = 'nav_msgs/msg/Odometry'
+try:
+    schema.definition_file(ODOMETRY)
+    schema.definition_file('formopt_interfaces/msg/Waypoint')
+except bag.BagError as error:        # no ROS message definitions installed here
+    pytest.skip(str(error), allow_module_level=True)
+
+
+def test_definition_is_rosbag2_format() -> None:
+    """Root text first, then each nested type once after 80 '=' and 'MSG: pkg/Type'."""
+    text = schema.message_definition(ODOMETRY)
+    root = schema.definition_file(ODOMETRY).read_text()
+    assert text.startswith(root)
+    blocks = text[len(root):].split('\n' + '=' * 80 + '\n')
+    assert blocks[0] == ''
+    names = [block.split('\n', 1)[0] for block in blocks[1:]]
+    # depth first, dependencies of each type in sorted order, each once (rosbag2's std::set)
+    assert names == ['MSG: geometry_msgs/PoseWithCovariance', 'MSG: geometry_msgs/Pose',
+                     'MSG: geometry_msgs/Point', 'MSG: geometry_msgs/Quaternion',
+                     'MSG: geometry_msgs/TwistWithCovariance', 'MSG: geometry_msgs/Twist',
+                     'MSG: geometry_msgs/Vector3', 'MSG: std_msgs/Header',
+                     'MSG: builtin_interfaces/Time']
+    for block in blocks[1:]:
+        name, body = block.split('\n', 1)
+        assert body == schema.definition_file(name[len('MSG: '):]).read_text()
+
+
+def test_custom_definition_has_its_nested_types() -> None:
+    """Waypoint nests Header (and Time) and geometry_msgs/Point, once each."""
+    text = schema.message_definition('formopt_interfaces/msg/Waypoint')
+    assert text.count('MSG: geometry_msgs/Point\n') == 1
+    assert text.count('MSG: std_msgs/Header\n') == 1
+    assert text.count('MSG: builtin_interfaces/Time\n') == 1
+    assert '/msg/' not in ''.join(line for line in text.splitlines() if line.startswith('MSG:'))
+
+
+def test_dependencies_skip_primitives_constants_and_comments() -> None:
+    text = ('# Pose pose in a comment\nuint8 KIND=1\nfloat64[36] covariance\nPoint[] points\n'
+            'std_msgs/Header header\nstring<=8 name\n  Vector3   v\n')
+    assert schema.msg_dependencies(text, 'geometry_msgs') == [
+        'geometry_msgs/Point', 'geometry_msgs/Vector3', 'std_msgs/Header']
+
+
+def test_unknown_type_is_a_bag_error() -> None:
+    with pytest.raises(bag.BagError, match='unknown message type'):
+        schema.message_definition('nosuch_msgs/msg/Thing')
+    with pytest.raises(bag.BagError, match='malformed'):
+        schema.split_type('not a type')
+
+
+def test_header_detection_and_stamp() -> None:
+    """Every formation type starts with a Header (Measurement after its constants)."""
+    assert all(schema.has_header(t) for t in formation_topics().values())
+    assert not schema.has_header('geometry_msgs/msg/Point')
+    little = bytes([0, 1, 0, 0]) + struct.pack('<iI', 12, 345) + b'rest'
+    big = bytes([0, 0, 0, 0]) + struct.pack('>iI', 12, 345)
+    assert schema.header_stamp_ns(little) == schema.header_stamp_ns(big) == 12_000_000_345
+    assert schema.header_stamp_ns(b'\x00\x01\x00\x00') is None
+
+
+def test_qos_yaml_matches_rosbag2_and_round_trips() -> None:
+    """rosbag2's version-9 layout (policy names, sec/nsec durations); rosbags reads it back."""
+    default = qos.Qos(qos.QosHistory.UNKNOWN, 0, qos.QosReliability.RELIABLE,
+                      qos.QosDurability.VOLATILE, qos.duration(qos.INFINITE_NS),
+                      qos.duration(qos.INFINITE_NS), qos.QosLiveliness.AUTOMATIC,
+                      qos.duration(qos.INFINITE_NS), False)
+    other = qos.Qos(qos.QosHistory.KEEP_LAST, 10, qos.QosReliability.BEST_EFFORT,
+                    qos.QosDurability.TRANSIENT_LOCAL, qos.duration(0), qos.duration(5),
+                    qos.QosLiveliness.AUTOMATIC, qos.duration(7), True)
+    text = qos.qos_yaml([default, other])
+    assert text.splitlines()[:7] == ['- history: unknown', '  depth: 0',
+                                     '  reliability: reliable', '  durability: volatile',
+                                     '  deadline:', '    sec: 9223372036',
+                                     '    nsec: 854775807']
+    assert qos.parse_qos_yaml(text) == [default, other]
+    assert qos.qos_yaml([]) == '' and qos.parse_qos_yaml('') == []
+    older = qos.parse_qos_yaml('- history: 1\n  depth: 5\n  reliability: 2\n  durability: 2\n'
+                               '  deadline: {sec: 0, nsec: 0}\n  lifespan: {sec: 0, nsec: 0}\n'
+                               '  liveliness: 1\n  liveliness_lease_duration: {sec: 0, nsec: 0}\n'
+                               '  avoid_ros_namespace_conventions: false\n')
+    assert older[0].reliability == qos.QosReliability.BEST_EFFORT
+    with pytest.raises(bag.BagError, match='offered_qos_profiles'):
+        qos.parse_qos_yaml('- depth: [')
+
+
+RELIABLE = qos.Qos(qos.QosHistory.KEEP_LAST, 100, qos.QosReliability.RELIABLE,
+                   qos.QosDurability.VOLATILE, qos.duration(0), qos.duration(0),
+                   qos.QosLiveliness.AUTOMATIC, qos.duration(0), False)
+
+
+def write_bag(path: Path, messages: int, flush_every: int = 0, chunk_size: int = 1 << 20
+              ) -> list[tuple[str, int]]:
+    """A bag of synthetic CDR payloads on two topics; returns (topic, log_time) per message."""
+    writer = bag.BagWriter(path, chunk_size=chunk_size)
+    writer.add_channel('/leader/odom', ODOMETRY, qos.qos_yaml([RELIABLE]), 'RIHS01_x')
+    writer.add_channel('/follower/status', 'formopt_interfaces/msg/PlannerStatus')
+    rng = random.Random(4)
+    written = []
+    for i in range(messages):
+        topic = '/leader/odom' if i % 3 else '/follower/status'
+        payload = bytes([0, 1, 0, 0]) + struct.pack('<iI', i, 0) + rng.randbytes(rng.randrange(
+            0, 200))
+        writer.write(topic, payload, 1_000_000 * (i + 1))
+        written.append((topic, 1_000_000 * (i + 1)))
+        if flush_every and (i + 1) % flush_every == 0:
+            writer.flush()
+    writer.close()
+    return written
+
+
+def test_writer_reader_round_trip(tmp_path: Path) -> None:
+    """Profile, encodings, metadata, counts and times survive; mcap's indexed reader agrees."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 90)
+    loaded = bag.read_bag(path)
+    assert loaded.profile == 'ros2'
+    assert loaded.counts() == {'/leader/odom': 60, '/follower/status': 30}
+    assert [(r.topic, r.log_time) for r in loaded.messages] == written
+    odom = loaded.channels['/leader/odom']
+    assert (odom.type, odom.schema_encoding, odom.message_encoding) == (
+        ODOMETRY, 'ros2msg', 'cdr')
+    assert odom.metadata['topic_type_hash'] == 'RIHS01_x'
+    assert odom.qos == [RELIABLE]
+    assert 'topic_type_hash' not in loaded.channels['/follower/status'].metadata
+    assert loaded.messages[4].publish_time == 4 * 1_000_000_000     # header stamp: sec = i
+    assert loaded.find('leader/odom') == '/leader/odom'
+    with pytest.raises(bag.BagError, match='no topic'):
+        loaded.find('follower/estimate')
+    with open(path, 'rb') as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary.statistics.message_count == 90
+    assert set(summary.statistics.channel_message_counts.values()) == {60, 30}
+
+
+def test_writer_refuses_to_overwrite(tmp_path: Path) -> None:
+    path = tmp_path / 'run.mcap'
+    path.write_bytes(b'keep me')
+    with pytest.raises(bag.BagError, match='exists'):
+        bag.BagWriter(path)
+    assert path.read_bytes() == b'keep me'
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_repair_keeps_every_complete_chunk(tmp_path: Path, seed: int) -> None:
+    """Cut a flushed bag anywhere: repair keeps exactly the messages of the complete chunks."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)          # 10 chunks of 20 messages
+    data = path.read_bytes()
+    rng = random.Random(seed)
+    for cut in sorted(rng.sample(range(len(data) // 4, len(data) - 1), 12)):
+        broken = tmp_path / f'cut{cut}.mcap'
+        fixed = tmp_path / f'fixed{cut}.mcap'
+        broken.write_bytes(data[:cut])
+        with pytest.raises(bag.BagError, match='truncated'):
+            bag.read_bag(broken)
+        result = bag.repair(broken, fixed)
+        assert not result.was_complete
+        assert result.kept == 20 * result.chunks or result.kept == 200
+        complete = bag.scan(broken)
+        assert result.kept == len(complete.messages)
+        loaded = bag.read_bag(fixed)
+        assert [(r.topic, r.log_time) for r in loaded.messages] == written[:result.kept]
+        assert loaded.channels['/leader/odom'].metadata['topic_type_hash'] == 'RIHS01_x'
+    again = bag.repair(path, tmp_path / 'whole.mcap')
+    assert again.was_complete and again.kept == 200
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_repair_skips_a_damaged_chunk_and_keeps_the_rest(tmp_path: Path, seed: int) -> None:
+    """One flipped byte inside a chunk costs that chunk only: every other message is kept."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)          # 10 chunks of 20 messages
+    data = bytearray(path.read_bytes())
+    offsets = chunk_offsets(bytes(data))
+    rng = random.Random(seed)
+    victim = rng.randrange(1, len(offsets) - 1)
+    start, end = offsets[victim]
+    data[rng.randrange(start + 60, end)] ^= 0xFF             # inside the compressed records
+    broken = tmp_path / 'flipped.mcap'
+    broken.write_bytes(bytes(data))
+    with pytest.raises(bag.BagError, match='damaged'):
+        bag.read_bag(broken)
+    result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    assert len(result.damage) == 1 and result.damage[0].offset == start
+    lost = written[20 * victim:20 * (victim + 1)]
+    kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
+    assert kept == [w for w in written if w not in lost]
+    assert result.kept == 180
+
+
+def chunk_offsets(data: bytes) -> list[tuple[int, int]]:
+    """(start, end) byte offsets of every chunk record of an MCAP file."""
+    out, offset = [], 8
+    while offset + 9 <= len(data):
+        length = int.from_bytes(data[offset + 1:offset + 9], 'little')
+        if data[offset] == 0x06:
+            out.append((offset, offset + 9 + length))
+        if data[offset] == 0x02:
+            break
+        offset += 9 + length
+    return out
+
+
+def test_garbage_between_records_is_skipped(tmp_path: Path) -> None:
+    """A corrupted record length (framing lost) resumes at the next readable chunk."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 100, flush_every=20)
+    data = bytearray(path.read_bytes())
+    start, _ = chunk_offsets(bytes(data))[2]
+    data[start + 1:start + 9] = (2**40).to_bytes(8, 'little')     # length beyond the file
+    broken = tmp_path / 'framing.mcap'
+    broken.write_bytes(bytes(data))
+    result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
+    assert kept == written[:40] + written[60:]
+
+
+def run_module(module: str, *args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, '-m', module, *args], capture_output=True, text=True,
+                          timeout=120, env=env, cwd=REPO)
+
+
+def assert_clean_error(result: subprocess.CompletedProcess, text: str) -> None:
+    """Exit code 2, one 'formopt-bag: error:' line naming the problem, no traceback."""
+    assert result.returncode == 2, result.stderr
+    assert 'Traceback' not in result.stderr
+    assert result.stderr.startswith('formopt-bag: error: ') and text in result.stderr, \
+        result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_cli_info_repair_and_bad_files(tmp_path: Path) -> None:
+    path = tmp_path / 'run.mcap'
+    write_bag(path, 30, flush_every=10)
+    cli = 'formopt_ros.cli.bag'
+    info = run_module(cli, 'info', str(path))
+    assert info.returncode == 0 and '/leader/odom' in info.stdout and ' 20' in info.stdout
+    data = path.read_bytes()
+    (tmp_path / 'cut.mcap').write_bytes(data[:len(data) * 2 // 3])
+    fixed = run_module(cli, 'repair', str(tmp_path / 'cut.mcap'), str(tmp_path / 'fixed.mcap'))
+    assert fixed.returncode == 0 and fixed.stdout.startswith('kept ')
+    before = (tmp_path / 'fixed.mcap').read_bytes()
+    assert_clean_error(run_module(cli, 'repair', str(tmp_path / 'cut.mcap'),
+                                  str(tmp_path / 'fixed.mcap')), 'exists')
+    assert (tmp_path / 'fixed.mcap').read_bytes() == before
+    (tmp_path / 'text.mcap').write_text('hello')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path / 'none.mcap')), 'no such file')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path / 'text.mcap')), 'not an MCAP file')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path / 'cut.mcap')), 'truncated')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'directory')
+    assert_clean_error(run_module(cli, 'bogus'), 'invalid choice')

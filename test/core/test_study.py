@@ -1,0 +1,123 @@
+"""Tests of the Sec. V simulator, the Monte Carlo study and the formopt-montecarlo command."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from formopt_ros.core.model import propagate_state
+from formopt_ros.core.protocol import motion_commands
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
+from formopt_ros.core.study import StudyConfig, nees_band, run_study, summarize
+
+
+@pytest.mark.parametrize('kind', ['range', 'bearing'])
+def test_motion_commands_land_the_estimate_on_the_target(kind: str) -> None:
+    """Rotate, then translate: the Euler-propagated estimate reaches p exactly (1e-12 m)."""
+    rng = np.random.default_rng(1)
+    scenario = Scenario.paper(kind)
+    for _ in range(50):
+        x = np.array([*(scenario.slot + 0.3 * rng.normal(size=2)), rng.uniform(-3, 3)])
+        target = scenario.slot + 0.2 * rng.normal(size=2)
+        omega_l = rng.choice([0.0, 0.3])
+        command = motion_commands(x, target, scenario.dt, 1.0, omega_l)
+        v, omega = command.linear, command.angular
+        assert v[0] == 0.0 and omega[1] == omega_l
+        for j in range(2):
+            x = propagate_state(x, v[j], omega[j], scenario.dt, 1.0, omega_l)
+        np.testing.assert_allclose(x[:2], target, atol=1e-12)
+
+
+def test_common_random_numbers_across_strategies() -> None:
+    """Every strategy of a trial starts from the same true pose; trials differ."""
+    scenario = Scenario.paper('range')
+    first = FollowerTruth(scenario, trial_streams(7, 0)[0]).x
+    again = FollowerTruth(scenario, trial_streams(7, 0)[0]).x
+    other = FollowerTruth(scenario, trial_streams(7, 1)[0]).x
+    np.testing.assert_array_equal(first, again)
+    assert np.abs(first - other).max() > 1e-6
+
+
+def test_study_is_independent_of_jobs() -> None:
+    """Same seed, same numbers, whatever the number of worker processes (bit for bit)."""
+    config = StudyConfig('bearing', trials=3, steps=25, seed=5)
+    serial, parallel = run_study(config, jobs=1), run_study(config, jobs=2)
+    for name in config.strategies:
+        np.testing.assert_array_equal(serial.records[name].weighted_trace,
+                                      parallel.records[name].weighted_trace)
+        np.testing.assert_array_equal(serial.records[name].nees, parallel.records[name].nees)
+
+
+@pytest.fixture(scope='module', params=['range', 'bearing'])
+def short_study(request: pytest.FixtureRequest) -> dict:
+    """8 trials x 200 steps, seed 11: long enough for the paper's ordering to show."""
+    return summarize(run_study(StudyConfig(request.param, trials=8, steps=200, seed=11),
+                               jobs=2))
+
+
+def test_paper_ordering(short_study: dict) -> None:
+    """MTF worst, CRM behind RAM, RAM no worse than GBS (0.2 %), RQ equal to RAM (1e-9)."""
+    steady = {name: row['steady_trace'] for name, row in short_study['strategies'].items()}
+    assert steady['mtf'] == max(steady.values())
+    assert steady['crm'] > 1.2 * steady['ram']
+    assert steady['ram'] <= steady['gbs'] * 1.002
+    assert steady['rq'] == pytest.approx(steady['ram'], rel=1e-9)
+
+
+def test_ekf_consistent_for_observable_strategies(short_study: dict) -> None:
+    """Trial-mean NEES inside the 95 % band on most steps for RAM, RQ, GBS and MME.
+
+    CRM is left out of this 200-step run on purpose: with its weak excitation the EKF's
+    linearisation gains spurious information during the transient (NEES ~4 over the first
+    300 steps, ~2.9 afterwards; README, "EKF consistency"); the full study covers it.
+    """
+    for name in ('ram', 'rq', 'gbs', 'mme'):
+        row = short_study['strategies'][name]
+        assert row['nees_in_band'] >= 0.8, (name, row)
+        assert 2.0 < row['nees_mean'] < 4.5, (name, row)
+
+
+def test_nees_band_matches_chi_square() -> None:
+    """One trial: the plain chi2(3) 95 % interval; many trials narrow around 3."""
+    lo, hi = nees_band(1)
+    assert lo == pytest.approx(0.2158, abs=1e-4) and hi == pytest.approx(9.3484, abs=1e-4)
+    lo50, hi50 = nees_band(50)
+    assert 2.3 < lo50 < 3.0 < hi50 < 3.8
+
+
+def test_mtf_uncertainty_grows_in_range_case() -> None:
+    """Range-only and holding the formation: the pose is unobservable, tr(W P W) grows."""
+    trace = run_trial(Scenario.paper('range'), 'mtf', 0, 0, 300).weighted_trace
+    assert trace[-1] > 1.3 * trace[50]
+
+
+def test_command_writes_outputs_and_figures(tmp_path) -> None:
+    """formopt-montecarlo writes summary.json, steps.csv, report.md and non-empty PNGs."""
+    pytest.importorskip('matplotlib')
+    from formopt_ros.cli.montecarlo import main
+    assert main(['--measurement', 'range', '--trials', '2', '--steps', '30', '--jobs', '1',
+                 '--strategies', 'mtf,gbs,ram', '--out', str(tmp_path)]) == 0
+    out = tmp_path / 'range'
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['trials'] == 2 and summary['steps'] == 30
+    assert set(summary['strategies']) == {'mtf', 'gbs', 'ram'}
+    assert summary['options']['gbs'] == {'cell': 0.01}
+    assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
+                                                 'nees_mean', 'nees_in_band',
+                                                 'decision_time_s'}
+    assert len((out / 'steps.csv').read_text().splitlines()) == 31
+    for name in ('fig5_range_weighted_trace.png', 'fig4_trajectories.png', 'nees.png'):
+        assert (out / name).stat().st_size > 10_000, name
+
+
+def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
+    """Unknown strategies and bad counts stop with exit code 2 and a message."""
+    from formopt_ros.cli.montecarlo import main
+    for argv in (['--strategies', 'ram,foo'], ['--trials', '0'], ['--jobs', '0'],
+                 ['--gbs-cell', '2'], ['--gbs-cell', '1e-9'], ['--seed', '-1']):
+        with pytest.raises(SystemExit) as stop:
+            main(argv + ['--out', '/nonexistent/never-written'])
+        assert stop.value.code == 2
+    assert 'foo' in capsys.readouterr().err
