@@ -42,7 +42,7 @@ def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, ti
     shown = [n for n in zoom if n in traces]
     if len(shown) > 1 and len(time) > 10:
         start = len(time) * 2 // 3
-        inset = ax.inset_axes([0.55, 0.45, 0.42, 0.35])
+        inset = ax.inset_axes((0.55, 0.45, 0.42, 0.35))
         for name in shown:
             inset.plot(time[start:], traces[name][start:], color=_colour(name),
                        linestyle='--' if name == 'rq' else '-', linewidth=1.0,
@@ -76,7 +76,8 @@ def covariance_ellipse(centre: np.ndarray, covariance: np.ndarray, sigmas: float
     values, vectors = np.linalg.eigh(covariance)
     angle = np.degrees(np.arctan2(vectors[1, 1], vectors[0, 1]))
     width, height = 2 * sigmas * np.sqrt(np.maximum(values[::-1], 0.0))
-    return Ellipse(centre, width, height, angle=angle, fill=False, **style)
+    return Ellipse((float(centre[0]), float(centre[1])), width, height, angle=angle, fill=False,
+                   **style)
 
 
 def to_fixed_frame(leader: np.ndarray, points: np.ndarray) -> np.ndarray:

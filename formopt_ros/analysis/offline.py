@@ -130,4 +130,3 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
                          description.mode, follower.legacy, state, covariance, waypoint,
                          stamps if lockstep else 0, [o.x for o in outcomes],
                          [o.P for o in outcomes])
-

@@ -36,7 +36,7 @@ class Run:
     p_o: np.ndarray
     r: float
     dt: float
-    last_status: object
+    last_status: Any
 
 
 def _latest_before(stamps: np.ndarray, values: np.ndarray, stamp: int) -> np.ndarray | None:

@@ -150,6 +150,7 @@ def scan(path: str | Path) -> Scan:
                 result.messages.append(item)
             elif isinstance(item, Footer):
                 result.complete = True
+        assert end is not None                   # records parsed: the framing was plausible
         offset = end
         if result.complete:
             break

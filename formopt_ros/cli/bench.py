@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from formopt_ros.cli.common import ArgumentParser, integer, new_file
-from formopt_ros.core import METHODS, solve
+from formopt_ros.core import METHODS, Solution, solve
 from formopt_ros.core.strategies import baselines
 
 KINDS = ('range', 'bearing')
@@ -53,7 +53,7 @@ def random_problem(rng: np.random.Generator,
 
 
 def time_solve(problem: tuple[np.ndarray, np.ndarray, float, float], kind: str, method: str,
-               repeats: int, seed: int = 0) -> tuple[float, object]:
+               repeats: int, seed: int = 0) -> tuple[float, Solution]:
     """Best wall time (s) of ``repeats`` calls of solve(), and the last Solution.
 
     ``seed`` seeds the generator handed to the random strategy (CRM) so runs repeat.
@@ -68,6 +68,7 @@ def time_solve(problem: tuple[np.ndarray, np.ndarray, float, float], kind: str, 
         start = time.perf_counter()
         solution = solve(P, p_o, r, sigma, measurement=kind, method=method, rng=rng)
         best = min(best, time.perf_counter() - start)
+    assert solution is not None                  # repeats >= 1
     return best, solution
 
 

@@ -13,7 +13,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -112,16 +112,21 @@ def formation(args: argparse.Namespace, mode: str, steps: int, dt: float,
         def now() -> float:
             return clock.now().nanoseconds * 1e-9
 
-        probe.create_subscription(Waypoint, follower_topic('waypoint'),
-                                  lambda m: run.waypoints.setdefault(m.step, now()),
+        def on_waypoint(msg: Any) -> None:
+            run.waypoints.setdefault(msg.step, now())
+
+        def on_status(msg: Any) -> None:
+            run.statuses.setdefault(msg.step, now())
+
+        def on_measurement(msg: Any) -> None:
+            run.measurements.setdefault(msg.step, header_ns(msg) * 1e-9)
+
+        probe.create_subscription(Waypoint, follower_topic('waypoint'), on_waypoint,
                                   qos.SUBSCRIBED)
-        probe.create_subscription(PlannerStatus, follower_topic('status'),
-                                  lambda m: run.statuses.setdefault(m.step, now()),
+        probe.create_subscription(PlannerStatus, follower_topic('status'), on_status,
                                   qos.SUBSCRIBED)
-        probe.create_subscription(
-            Measurement, follower_topic('measurement'),
-            lambda m: run.measurements.setdefault(m.step, header_ns(m) * 1e-9),
-            qos.SUBSCRIBED)
+        probe.create_subscription(Measurement, follower_topic('measurement'), on_measurement,
+                                  qos.SUBSCRIBED)
         executor = SingleThreadedExecutor()
         executor.add_node(probe)
         common = {'mode': mode, 'dt': dt, 'measurement': args.measurement, 'seed': args.seed}

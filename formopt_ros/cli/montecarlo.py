@@ -107,6 +107,8 @@ def _figures(result: StudyResult, out: Path, time_s: np.ndarray, mean_trace: dic
     panels = {}
     for name in shown:
         example = result.records[name].example
+        if example is None:
+            continue
         panels[name.upper()] = {'leader': leader, 'followers': [{
             'label': f'{kind} follower', 'strategy': name, 'estimate': example.estimate[:n],
             'covariance': example.covariance[:n], 'truth': example.truth[:n],

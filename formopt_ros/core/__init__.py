@@ -1,4 +1,4 @@
-"""Pure core of formopt_ros (numpy and scipy only): model, cost, strategies, protocol, simulation."""
+"""Pure core of formopt_ros (numpy, scipy): model, cost, strategies, protocol, simulation."""
 from formopt_ros.core.cost import Problem, weighted_trace
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.solver import METHODS, solve

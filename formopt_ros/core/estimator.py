@@ -151,8 +151,8 @@ class EstimatorSession:
     last_stamp_ns: int | None = None
     final_truth: np.ndarray | None = None
     _truth: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
-    _posteriors: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict,
-                                                                   repr=False)
+    _posteriors: dict[int, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, repr=False)
 
     @classmethod
     def create(cls, scenario: Scenario, strategy: Strategy, rng: np.random.Generator | None,

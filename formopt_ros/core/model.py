@@ -85,12 +85,14 @@ def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: floa
     """
     phi = float(x[2])
     c, s = math.cos(phi), math.sin(phi)
-    a, b, e = omega_l * dt, -s * v_f * dt, c * v_f * dt   # Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]]
+    # Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]]
+    a, b, e = omega_l * dt, -s * v_f * dt, c * v_f * dt
     (p00, p01, p02), (_, p11, p12), (_, _, p22) = P.tolist()
     # rows of Phi P
     r00, r01, r02 = p00 + a * p01 + b * p02, p01 + a * p11 + b * p12, p02 + a * p12 + b * p22
     r10, r11, r12 = -a * p00 + p01 + e * p02, -a * p01 + p11 + e * p12, -a * p02 + p12 + e * p22
-    qv, qw = (sigma_v * dt) ** 2, (sigma_omega * dt) ** 2   # G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3'
+    # G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3'
+    qv, qw = (sigma_v * dt) ** 2, (sigma_omega * dt) ** 2
     n00 = r00 + a * r01 + b * r02 + qv * c * c
     n01 = -a * r00 + r01 + e * r02 + qv * c * s
     n11 = -a * r10 + r11 + e * r12 + qv * s * s

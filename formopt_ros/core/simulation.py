@@ -90,7 +90,7 @@ class TrialResult:
 
 
 def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: int,
-              options: dict | None = None) -> TrialResult:
+              options: dict[str, object] | None = None) -> TrialResult:
     """Simulate ``steps`` measurement steps of one trial with one strategy (Sec. V protocol).
 
     The planner knows the leader only through its odometry as it comes: it expects the

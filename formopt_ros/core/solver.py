@@ -1,4 +1,4 @@
-"""The stable public entry point: ``solve(P, p_o, r, sigma, *, measurement, method) -> Solution``."""
+"""The public entry point: ``solve(P, p_o, r, sigma, *, measurement, method) -> Solution``."""
 from __future__ import annotations
 
 import time

@@ -72,8 +72,8 @@ class StepAssembler:
     next_step: int = 1
     _follower: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
     _leader: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
-    _measurements: dict[int, tuple[int, float, float]] = field(default_factory=dict,
-                                                                 repr=False)
+    _measurements: dict[int, tuple[int, float, float]] = field(
+        default_factory=dict, repr=False)
     _last: dict[str, int] = field(default_factory=dict, repr=False)
 
     # --- inputs ------------------------------------------------------------------------------

@@ -8,7 +8,8 @@ from __future__ import annotations
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -120,7 +121,8 @@ def _expected_cost(strategy: str) -> int:
     return {'ram': 3, 'gbs': 2, 'rq': 1}.get(strategy, 0)
 
 
-def _collect(result: StudyResult, outputs, progress: Callable[[int], None] | None) -> None:
+def _collect(result: StudyResult, outputs: Iterable[tuple[str, int, TrialResult]],
+             progress: Callable[[int], None] | None) -> None:
     for strategy, trial, out in outputs:
         record = result.records[strategy]
         record.weighted_trace[trial] = out.weighted_trace
@@ -144,7 +146,7 @@ def steady_window(steps: int) -> int:
     return 200 if steps >= 600 else max(1, steps // 3)
 
 
-def summarize(result: StudyResult) -> dict:
+def summarize(result: StudyResult) -> dict[str, Any]:
     """The summary.json content (see README): per strategy steady trace, NEES, timing."""
     config = result.config
     lo, hi = nees_band(config.trials)
@@ -161,5 +163,6 @@ def summarize(result: StudyResult) -> dict:
             'decision_time_s': float(record.decision_time.mean()),
         }
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
-            'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'], 'options': {name: config.settings(name) for name in strategies},
+            'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],
+            'options': {name: config.settings(name) for name in strategies},
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies}

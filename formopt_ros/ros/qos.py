@@ -2,6 +2,8 @@
 translation between rclpy and rosbag2's QoS vocabulary."""
 from __future__ import annotations
 
+from typing import TypeVar
+
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_system_default)
 
@@ -44,21 +46,24 @@ def profile(kind: str) -> QoSProfile:
     return PROFILES[kind]
 
 
-def _name(policy: object) -> str:
-    return policy.name.upper() if hasattr(policy, 'name') else str(policy).upper()
+_E = TypeVar('_E', bag_qos.QosHistory, bag_qos.QosReliability,
+             bag_qos.QosDurability, bag_qos.QosLiveliness)
+
+
+def _member(enum: type[_E], policy: object) -> _E:
+    """The rosbags enum member named like an rclpy policy (UNKNOWN when it has no such name)."""
+    name = getattr(policy, 'name', str(policy)).upper()
+    return enum.__members__.get(name, enum.__members__['UNKNOWN'])
 
 
 def offered_qos(qos: QoSProfile) -> bag_qos.Qos:
     """A publisher's QoS (from get_publishers_info_by_topic) as rosbag2 stores it."""
-    def member(enum: type, policy: object) -> object:
-        return enum.__members__.get(_name(policy), enum.__members__['UNKNOWN'])
-
     return bag_qos.Qos(
-        member(bag_qos.QosHistory, qos.history), int(qos.depth),
-        member(bag_qos.QosReliability, qos.reliability),
-        member(bag_qos.QosDurability, qos.durability),
+        _member(bag_qos.QosHistory, qos.history), int(qos.depth),
+        _member(bag_qos.QosReliability, qos.reliability),
+        _member(bag_qos.QosDurability, qos.durability),
         bag_qos.duration(qos.deadline.nanoseconds), bag_qos.duration(qos.lifespan.nanoseconds),
-        member(bag_qos.QosLiveliness, qos.liveliness),
+        _member(bag_qos.QosLiveliness, qos.liveliness),
         bag_qos.duration(qos.liveliness_lease_duration.nanoseconds),
         bool(qos.avoid_ros_namespace_conventions))
 

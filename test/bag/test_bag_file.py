@@ -232,6 +232,7 @@ def test_garbage_between_records_is_skipped(tmp_path: Path) -> None:
     broken = tmp_path / 'framing.mcap'
     broken.write_bytes(bytes(data))
     result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    assert len(result.damage) >= 1 and result.kept == 80
     kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
     assert kept == written[:40] + written[60:]
 

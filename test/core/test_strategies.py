@@ -186,6 +186,7 @@ def test_ram_and_rq_agree_and_beat_gbs(kind: str) -> None:
     assert not failures, failures
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', KINDS)
 def test_ram_and_rq_match_dense_reference(kind: str) -> None:
     """150 hard problems per kind: RAM and RQ are within 1e-9 of an independent dense search."""
@@ -202,6 +203,7 @@ def test_ram_and_rq_match_dense_reference(kind: str) -> None:
     assert not failures, failures
 
 
+@pytest.mark.slow
 def test_interior_bearing_optima() -> None:
     """Family (a): 300 constructed bearing problems, most with an interior optimum (RQ's
     details['interior']); RAM and RQ agree to 1e-9, beat GBS, and the first 40 interior ones

@@ -47,17 +47,14 @@ def bad_odometry(step: int) -> list[tuple[str, Odometry]]:
     odom = conversions.odometry
     follower_odom, leader_odom = topic('follower', 'odom'), topic('leader', 'odom')
     return [
-        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
-                                       math.nan, 0.0)),
-        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
-                                       0.5, math.inf)),
-        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0),
-                                       0.5, 0.0, (-1.0, 0.01))),
-        (follower_odom, odom(future, 'follower/odom', 'intruder', (0, 0, 0),
-                                       0.5, 0.0)),
-        # valid values, stamped before the last accepted follower odometry
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0), math.nan, 0.0)),
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0), 0.5, math.inf)),
+        (follower_odom, odom(future, 'follower/odom', 'follower', (0, 0, 0), 0.5, 0.0,
+                             (-1.0, 0.01))),
+        (follower_odom, odom(future, 'follower/odom', 'intruder', (0, 0, 0), 0.5, 0.0)),
+        # valid values, of a step already processed
         (follower_odom, odom(conversions.stamp(seconds_to_ns(DT)), 'follower/odom', 'follower',
-                                       (0, 0, 0), 0.5, 0.0)),
+                             (0, 0, 0), 0.5, 0.0)),
         (leader_odom, odom(future, 'odom', 'leader', (0, 0, 0), 1.0, math.nan)),
         (leader_odom, odom(future, 'odom', 'intruder', (0, 0, 0), 1.0, 0.0)),
     ]

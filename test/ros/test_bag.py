@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from harness.ros import PREFIX, params_file, remap_args, spin_until, tap, topic
+from harness.ros import PREFIX, params_file, remap_args, spin_until, tap
 from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message

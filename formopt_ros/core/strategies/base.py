@@ -53,7 +53,7 @@ def make_solution(problem: Problem, p: np.ndarray, method: str, on_boundary: boo
                   candidates: int = 1, fallback: str | None = None,
                   details: dict[str, Any] | None = None) -> Solution:
     """A :class:`Solution` for point p (2,) with its cost and the cost at the slot."""
-    costs = problem.cost(np.vstack([p, problem.p_o]))
+    costs = problem.base_cost - problem.gain(np.vstack([p, problem.p_o]))
     return Solution(p=p, cost=float(costs[0]), cost_at_slot=float(costs[1]), method=method,
                     measurement=problem.measurement, on_boundary=on_boundary,
                     candidates=candidates, fallback=fallback, details=details or {})
@@ -132,8 +132,8 @@ class OptionSpec:
         expected = f'a number in [{self.low:g}, {self.high:g}] ({self.description})'
         if isinstance(self.default, int):
             expected = f'an integer in [{self.low:g}, {self.high:g}] ({self.description})'
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer,
-                                                              np.floating)):
+        numeric = (int, float, np.integer, np.floating)
+        if isinstance(value, bool) or not isinstance(value, numeric):
             raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
         if isinstance(self.default, int):
             if float(value) != int(value):

@@ -100,7 +100,8 @@ class GridSearch(Strategy):
                                   >= problem.r * (1 - cell)), len(points))
 
 
-_GRID_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_GridKey = tuple[str, float, float, float, float]
+_GRID_CACHE: dict[_GridKey, tuple[np.ndarray, np.ndarray]] = {}
 
 
 def grid_monomials(problem: Problem, cell: float) -> tuple[np.ndarray, np.ndarray]:

@@ -41,9 +41,10 @@ numbers give and trim leading coefficients that vanish to rounding.
 
 Active constraint: grad f || grad g with g = d^2 - 2 d (x_o c + y_o s) + (d_o^2 - r^2)(c^2 + s^2)
 (homogenised), i.e. Q = F_t g_d - F_d g_t = 0 with g_d / 2 = d - l, g_t / 2 = d k,
-l = x_o c + y_o s, k = x_o s - y_o c (mind F_d = 2 zeta). Q is homogeneous of degree 5 and quartic in d; its 6x6
-Sylvester resultant with g is homogeneous of degree 10 in (c, s), so S_c has degree <= 10 in
-sigma (the paper reports 8 after cancellation; again we trim what vanishes).
+l = x_o c + y_o s, k = x_o s - y_o c (mind F_d = 2 zeta). Q is homogeneous of degree 5 and
+quartic in d; its 6x6 Sylvester resultant with g is homogeneous of degree 10 in (c, s), so S_c
+has degree <= 10 in sigma (the paper reports 8 after cancellation; again we trim what
+vanishes).
 
 Every real root sigma in [0, 1] gives up to four angles; each is back-substituted (d from F_d = 0
 or from g = 0), checked against the other equation and feasibility, polished by Newton steps on

@@ -94,9 +94,11 @@ class Recorder(Node):
     def _subscribe(self, topic: str, type_name: str, profile: QoSProfile) -> None:
         cls = message_class(type_name, topic)
         self.counts[topic] = 0
-        subscription = self.create_subscription(
-            cls, topic, lambda data, t=topic, n=type_name: self.on_message(t, n, data), profile,
-            raw=True)
+
+        def receive(data: bytes) -> None:
+            self.on_message(topic, type_name, data)
+
+        subscription = self.create_subscription(cls, topic, receive, profile, raw=True)
         self.sources.append((subscription, topic, type_name))
 
     def on_discovery(self) -> None:

@@ -32,7 +32,7 @@ def select_topics(bag: bags.Bag, names: list[str]) -> list[str]:
     if not names or list(names) == ['*']:
         topics = sorted(bag.channels)
     else:
-        topics = [bag.find(name) for name in names]
+        topics = [bag.find(name) or '' for name in names]
     if not topics:
         raise bags.BagError(f'{bag.path}: the bag has no topics to replay')
     for topic in topics:
