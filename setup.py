@@ -7,7 +7,7 @@ PACKAGE = 'formopt_ros'
 
 setup(
     name=PACKAGE,
-    version='0.1.0',
+    version='0.2.0',
     packages=find_packages(exclude=['test', 'test.*']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
@@ -16,10 +16,10 @@ setup(
         ('share/' + PACKAGE + '/scripts', glob('scripts/*.sh')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy', 'scipy'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'PyYAML', 'mcap>=1.6', 'rosbags'],
     extras_require={
-        'tools': ['matplotlib', 'tqdm', 'mcap', 'rosbags'],
-        'test': ['pytest'],
+        'tools': ['matplotlib', 'tqdm'],
+        'test': ['pytest', 'flake8', 'mypy'],
     },
     zip_safe=True,
     maintainer='formopt_ros developers',

@@ -87,6 +87,9 @@ class TrialResult:
     covariance: np.ndarray         # (steps, 3, 3) P_k|k
     waypoints: np.ndarray          # (steps, 2) chosen positions, m
     decision_time: np.ndarray      # (steps,) strategy wall time, s
+    commands: np.ndarray           # (steps, SUBSTEPS, 2) odometry (v m/s, omega rad/s)
+    leader: np.ndarray             # (steps, SUBSTEPS, 2) leader (v m/s, omega rad/s)
+    measurements: np.ndarray       # (steps,) range (m) or bearing (rad)
 
 
 def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: int,
@@ -103,7 +106,8 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
     latest = scenario.leader.velocity(0, scenario.dt)
     out = TrialResult(np.empty(steps), np.empty(steps), np.empty((steps, 3)),
                       np.empty((steps, 3)), np.empty((steps, 3, 3)), np.empty((steps, 2)),
-                      np.empty(steps))
+                      np.empty(steps), np.empty((steps, SUBSTEPS, 2)),
+                      np.empty((steps, SUBSTEPS, 2)), np.empty(steps))
     for k in range(steps):
         plan = estimator.plan(k + 1, held_leader_motion(latest))
         for j, substep in enumerate(step_substeps(k + 1)):
@@ -111,7 +115,9 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
             v, omega = plan.command.linear[j], plan.command.angular[j]
             truth.execute(v, omega, v_l, omega_l)
             estimator.propagate(v, omega, v_l, omega_l)
-        estimator.update(k + 1, truth.measure())
+            out.commands[k, j], out.leader[k, j] = (v, omega), latest
+        out.measurements[k] = truth.measure()
+        estimator.update(k + 1, out.measurements[k])
         out.weighted_trace[k] = estimator.weighted_trace()
         out.nees[k] = normalized_estimation_error(truth.x, estimator.x, estimator.P)
         out.estimate[k], out.truth[k], out.covariance[k] = estimator.x, truth.x, estimator.P

@@ -1,0 +1,67 @@
+"""Scenario and leader paths: validation that names the field, JSON round trips, velocities."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
+
+
+def test_paper_scenarios() -> None:
+    """Sec. V: p_o = [-1, -2] / [-1, 2], r = 0.1 |p_o|, sigma 0.1 m / 0.02 rad, v_L = 1 m/s."""
+    rng, brg = Scenario.paper('range'), Scenario.paper('bearing')
+    assert (rng.p_o, rng.sigma, brg.p_o, brg.sigma) == ((-1.0, -2.0), 0.1, (-1.0, 2.0), 0.02)
+    assert rng.r == pytest.approx(0.1 * math.sqrt(5), rel=1e-15)
+    assert rng.leader.velocity(123, rng.dt) == (1.0, 0.0) and rng.leader.is_straight()
+
+
+@pytest.mark.parametrize('overrides,field', [
+    ({'measurement': 'sonar'}, 'measurement'), ({'r': 0.0}, 'r'), ({'r': 3.0}, 'r'),
+    ({'sigma': -1.0}, 'sigma'), ({'sigma': math.nan}, 'sigma'), ({'dt': 0.0}, 'dt'),
+    ({'sigma_v': -0.1}, 'sigma_v'), ({'p_o': (0.0, 0.0)}, 'p_o'),
+    ({'p_o': (math.inf, 1.0)}, 'p_o'), ({'initial_covariance': (0.1, 0.1, 0.0)},
+                                        'initial_covariance')])
+def test_bad_scenarios_name_the_field(overrides: dict, field: str) -> None:
+    values = dict(measurement='range', p_o=(-1.0, -2.0), r=0.2, sigma=0.1)
+    values.update(overrides)
+    with pytest.raises(ValueError, match=field):
+        Scenario(**values)
+
+
+def test_round_trip_through_json_and_differences() -> None:
+    """to_dict -> JSON -> from_dict gives an equal scenario; differences() names fields."""
+    path = LeaderPath('segments', segments=(Segment(2.0, 1.0), Segment(1.0, 0.5, 0.3)),
+                      repeat=True)
+    scenario = Scenario.paper('bearing', leader=path, sigma_v=0.3)
+    again = Scenario.from_dict(json.loads(json.dumps(scenario.to_dict())))
+    assert again == scenario
+    other = Scenario.paper('bearing', leader=LeaderPath.constant(1.0, 0.5), dt=0.1)
+    names = [name for name, _, _ in scenario.differences(other)]
+    assert 'dt' in names and 'leader.kind' in names and 'sigma_v' in names
+    assert scenario.differences(again) == []
+    with pytest.raises(ValueError, match='unknown keys'):
+        Scenario.from_dict({**scenario.to_dict(), 'speed': 2})
+
+
+def test_leader_path_velocities() -> None:
+    """Each path kind: the velocity of sub-step n is the path's value at t = n dt."""
+    dt = 0.05
+    assert LeaderPath.constant(2.0, 0.0).kind == 'straight'
+    assert LeaderPath.constant(2.0, 0.5).velocity(7, dt) == (2.0, 0.5)
+    curve = LeaderPath('s-curve', speed=1.0, amplitude=0.4, period=4.0)
+    for n in (0, 10, 25, 40, 55):
+        assert curve.velocity(n, dt) == (1.0, pytest.approx(
+            0.4 * math.sin(2 * math.pi * n * dt / 4.0), abs=1e-15))
+    segments = LeaderPath('segments', segments=(Segment(1.0, 1.0, 0.0), Segment(0.5, 2.0, 1.0)))
+    assert segments.velocity(19, dt) == (1.0, 0.0)          # t = 0.95 s
+    assert segments.velocity(20, dt) == (2.0, 1.0)          # t = 1.00 s
+    assert segments.velocity(1000, dt) == (2.0, 1.0)        # after the end: the last held
+    looped = LeaderPath('segments', segments=segments.segments, repeat=True)
+    assert looped.velocity(30, dt) == (1.0, 0.0)            # t = 1.5 s = 0 s of the loop
+    assert not looped.is_straight() and LeaderPath().is_straight()
+    with pytest.raises(ValueError, match='segment'):
+        LeaderPath('segments')
+    with pytest.raises(ValueError, match="kind 'arc'"):
+        LeaderPath('straight', yaw_rate=0.1)

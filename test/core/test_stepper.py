@@ -1,0 +1,129 @@
+"""The step assembler and the estimator session: the same estimates as the pure simulation
+whatever order the inputs come in, and every bad input refused without harm."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from formopt_ros.core.estimator import EstimatorSession
+from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
+from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.simulation import TrialResult, run_trial, trial_streams
+from formopt_ros.core.stepper import StepAssembler
+from formopt_ros.core.strategies import make_strategy
+
+STEPS, SEED = 40, 4
+#: Same arithmetic in the same order: equal to rounding only.
+TOL = 1e-12
+
+
+def lockstep_inputs(ref: TrialResult, timebase: Timebase) -> list[tuple]:
+    """The inputs the nodes would publish in a lockstep run, step by step."""
+    events = []
+    for k in range(1, len(ref.measurements) + 1):
+        for j, n in enumerate(step_substeps(k)):
+            stamp = timebase.substep_end(n)
+            events.append(('leader', stamp, *ref.leader[k - 1, j]))
+            events.append(('follower', stamp, *ref.commands[k - 1, j]))
+        events.append(('measurement', k, timebase.measurement_stamp(k), ref.measurements[k - 1]))
+    return events
+
+
+def session_for(scenario: Scenario, strategy: str, lockstep: bool = True,
+                steps: int = STEPS) -> EstimatorSession:
+    _, rng = trial_streams(SEED, 0)
+    return EstimatorSession.create(scenario, make_strategy(strategy), rng, lockstep, steps)
+
+
+def feed(session: EstimatorSession, event: tuple, variance: float) -> str | None:
+    kind = event[0]
+    if kind == 'leader':
+        return session.add_leader_odometry(*event[1:])
+    if kind == 'follower':
+        return session.add_follower_odometry(*event[1:])
+    return session.add_measurement(event[1], event[2], event[3], variance)
+
+
+@pytest.mark.parametrize('kind,strategy', [('range', 'ram'), ('bearing', 'crm'),
+                                           ('bearing', 'mme')])
+@pytest.mark.parametrize('order', ['published', 'shuffled'])
+def test_lockstep_session_equals_the_simulation(kind: str, strategy: str, order: str) -> None:
+    """Fed the simulation's inputs (in order, or shuffled within windows of 6 steps, as a
+    replayed bag delivers each topic at its own pace), the session reproduces run_trial: every
+    posterior, every planned waypoint (same planner stream)."""
+    scenario = Scenario.paper(kind, leader=LeaderPath('s-curve', amplitude=0.3, period=3.0))
+    ref = run_trial(scenario, strategy, SEED, 0, STEPS)
+    events = lockstep_inputs(ref, Timebase.from_dt(scenario.dt))
+    if order == 'shuffled':
+        rng = np.random.default_rng(1)
+        window = 6 * (2 * SUBSTEPS + 1)
+        for start in range(0, len(events), window):
+            part = events[start:start + window]
+            events[start:start + window] = [part[i] for i in rng.permutation(len(part))]
+    session = session_for(scenario, strategy)
+    plans = [session.plan_next()]
+    outcomes = []
+    for event in events:
+        assert feed(session, event, scenario.sigma ** 2) is None
+        for outcome in session.advance():
+            outcomes.append(outcome)
+            if outcome.plan is not None:
+                plans.append(outcome.plan)
+    assert [o.step for o in outcomes] == list(range(1, STEPS + 1))
+    for k, outcome in enumerate(outcomes):
+        np.testing.assert_allclose(outcome.x, ref.estimate[k], rtol=0, atol=TOL)
+        np.testing.assert_allclose(outcome.P, ref.covariance[k], rtol=0, atol=TOL)
+        assert outcome.weighted_trace == pytest.approx(ref.weighted_trace[k], rel=TOL)
+    assert len(plans) == STEPS                 # no plan after the last step
+    np.testing.assert_allclose([p.solution.p for p in plans], ref.waypoints, rtol=0, atol=TOL)
+    assert session.finished and session.counters.accepted_measurements == STEPS
+
+
+def test_lockstep_refusals_change_nothing() -> None:
+    """Off-grid, duplicate, already processed and far-future inputs are refused with a reason,
+    counted, and the run goes on to the same result; a stamp 1e6 s ahead blocks nothing."""
+    scenario = Scenario.paper('range')
+    ref = run_trial(scenario, 'ram', SEED, 0, STEPS)
+    timebase = Timebase.from_dt(scenario.dt)
+    session = session_for(scenario, 'ram')
+    session.plan_next()
+    far = timebase.measurement_stamp(10_000_000)             # 1e6 s, step k + 1e7
+    assert 'after' in session.add_measurement(10_000_000, far, 1.0, 0.01)
+    assert 'after' in session.add_follower_odometry(far, 1.0, 0.0)
+    assert 'grid' in session.add_leader_odometry(timebase.substep_end(0) + 1, 1.0, 0.0)
+    for event in lockstep_inputs(ref, timebase):
+        assert feed(session, event, scenario.sigma ** 2) is None
+        session.advance()
+        if event[0] == 'follower' and event[1] == timebase.substep_end(0):
+            assert 'duplicate' in session.add_follower_odometry(event[1], 9.0, 9.0)
+        if event[0] == 'measurement' and event[1] == 5:
+            assert 'already processed' in session.add_measurement(5, event[2], 9.0, 0.01)
+            assert 'processed' in session.add_follower_odometry(timebase.substep_end(0), 9.0, 9.0)
+    assert session.step == STEPS
+    np.testing.assert_allclose(session.estimator.x, ref.estimate[-1], rtol=0, atol=TOL)
+    counters = session.counters
+    assert (counters.rejected_measurements, counters.rejected_odometry) == (2, 4)
+
+
+def test_realtime_pairs_each_odometry_with_the_latest_leader_and_skips_lost_steps() -> None:
+    """Realtime: a measurement takes the follower odometry stamped up to it, each with the
+    latest leader odometry at or before it; a lost measurement is skipped and counted; a stamp
+    in the future of the receiving clock is refused and does not block later ones."""
+    assembler = StepAssembler(False, Timebase.from_dt(0.05), (1.0, 0.0))
+    ms = 1_000_000
+    assert assembler.add_leader_odometry(10 * ms, 1.0, 0.1, now_ns=11 * ms) is None
+    assert assembler.add_follower_odometry(20 * ms, 0.5, 0.0, now_ns=21 * ms) is None
+    assert assembler.add_leader_odometry(30 * ms, 2.0, 0.2, now_ns=31 * ms) is None
+    assert assembler.add_follower_odometry(40 * ms, 0.6, 0.1, now_ns=41 * ms) is None
+    assert 'future' in assembler.add_follower_odometry(10**15, 0.0, 0.0, now_ns=42 * ms)
+    assert assembler.add_follower_odometry(50 * ms, 0.7, 0.0, now_ns=51 * ms) is None
+    assert assembler.add_measurement(1, 45 * ms, 3.0, 0.01, now_ns=46 * ms) is None
+    ready = assembler.pop_ready()
+    assert ready is not None and ready.step == 1 and ready.skipped == 0
+    assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.5, 1.0), (0.6, 2.0)]
+    assert 'before' in assembler.add_follower_odometry(45 * ms, 0.0, 0.0, now_ns=60 * ms)
+    assert assembler.add_measurement(3, 55 * ms, 3.1, 0.01, now_ns=56 * ms) is None
+    ready = assembler.pop_ready()
+    assert ready is not None and (ready.step, ready.skipped) == (3, 1)
+    assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.7, 2.0)]
+    assert assembler.next_step == 4
