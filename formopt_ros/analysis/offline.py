@@ -101,9 +101,9 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
     for log_time, kind, msg in _inputs(recording, follower):
         now = None if lockstep else log_time
         if kind == 'follower_odom':
-            inputs.feed_follower_odometry(session, msg, description.follower_id, now)
+            inputs.feed_odometry(session, 'follower', msg, description.follower_id, now)
         elif kind == 'leader_odom':
-            inputs.feed_leader_odometry(session, msg, description.leader_id, now)
+            inputs.feed_odometry(session, 'leader', msg, description.leader_id, now)
         elif kind == 'truth':
             inputs.feed_truth(session, msg)
         else:

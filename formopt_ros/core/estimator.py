@@ -176,16 +176,11 @@ class EstimatorSession:
         """The decision for the step after the last processed one."""
         return self.estimator.plan(self.step + 1, held_leader_motion(self.assembler.latest_leader))
 
-    def add_follower_odometry(self, stamp_ns: int, v: float, omega: float,
-                              now_ns: int | None = None) -> str | None:
-        """Follower odometry of one sub-step; the refusal reason, or None."""
-        return self._count(self.assembler.add_follower_odometry(stamp_ns, v, omega, now_ns),
-                           'rejected_odometry')
-
-    def add_leader_odometry(self, stamp_ns: int, v: float, omega: float,
-                            now_ns: int | None = None) -> str | None:
-        """Leader odometry of one sub-step; the refusal reason, or None."""
-        return self._count(self.assembler.add_leader_odometry(stamp_ns, v, omega, now_ns),
+    def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
+                     now_ns: int | None = None) -> str | None:
+        """Odometry of one sub-step of robot 'follower' or 'leader'; the refusal reason, or
+        None."""
+        return self._count(self.assembler.add_odometry(robot, stamp_ns, v, omega, now_ns),
                            'rejected_odometry')
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,

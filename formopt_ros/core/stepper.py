@@ -77,20 +77,14 @@ class StepAssembler:
     _last: dict[str, int] = field(default_factory=dict, repr=False)
 
     # --- inputs ------------------------------------------------------------------------------
-    def add_follower_odometry(self, stamp_ns: int, v: float, omega: float,
-                              now_ns: int | None = None) -> str | None:
-        """Store one follower odometry sub-step; the reason when refused, else None."""
-        reason = self._check_stamp('follower odometry', stamp_ns, now_ns, self._follower)
+    def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
+                     now_ns: int | None = None) -> str | None:
+        """Store one odometry sub-step of robot 'follower' or 'leader' (v m/s, omega rad/s);
+        the reason when refused, else None."""
+        store = {'follower': self._follower, 'leader': self._leader}[robot]
+        reason = self._check_stamp(f'{robot} odometry', stamp_ns, now_ns, store)
         if reason is None:
-            self._follower[stamp_ns] = (v, omega)
-        return reason
-
-    def add_leader_odometry(self, stamp_ns: int, v: float, omega: float,
-                            now_ns: int | None = None) -> str | None:
-        """Store one leader odometry sub-step; the reason when refused, else None."""
-        reason = self._check_stamp('leader odometry', stamp_ns, now_ns, self._leader)
-        if reason is None:
-            self._leader[stamp_ns] = (v, omega)
+            store[stamp_ns] = (v, omega)
         return reason
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,

@@ -15,24 +15,15 @@ from formopt_ros.wire.messages import (
     header_ns, measurement_problem, odometry_problem, odometry_values, pose_values)
 
 
-def feed_follower_odometry(session: EstimatorSession, msg: Any, follower_id: str,
-                           now_ns: int | None = None) -> str | None:
-    """The follower's odometry of one sub-step."""
-    problem = odometry_problem(msg, follower_id)
+def feed_odometry(session: EstimatorSession, robot: str, msg: Any, child_frame_id: str,
+                  now_ns: int | None = None) -> str | None:
+    """One sub-step of the odometry of robot 'follower' or 'leader' (whose odometry must carry
+    ``child_frame_id``)."""
+    problem = odometry_problem(msg, child_frame_id)
     if problem is not None:
-        return session.reject('rejected_odometry', f'follower odometry {problem}')
+        return session.reject('rejected_odometry', f'{robot} odometry {problem}')
     v, omega, _, _ = odometry_values(msg)
-    return session.add_follower_odometry(header_ns(msg), v, omega, now_ns)
-
-
-def feed_leader_odometry(session: EstimatorSession, msg: Any, leader_id: str,
-                         now_ns: int | None = None) -> str | None:
-    """The leader's odometry of one sub-step."""
-    problem = odometry_problem(msg, leader_id)
-    if problem is not None:
-        return session.reject('rejected_odometry', f'leader odometry {problem}')
-    v, omega, _, _ = odometry_values(msg)
-    return session.add_leader_odometry(header_ns(msg), v, omega, now_ns)
+    return session.add_odometry(robot, header_ns(msg), v, omega, now_ns)
 
 
 def feed_measurement(session: EstimatorSession, msg: Any, follower_id: str,

@@ -38,9 +38,9 @@ def session_for(scenario: Scenario, strategy: str, lockstep: bool = True,
 def feed(session: EstimatorSession, event: tuple, variance: float) -> str | None:
     kind = event[0]
     if kind == 'leader':
-        return session.add_leader_odometry(*event[1:])
+        return session.add_odometry('leader', *event[1:])
     if kind == 'follower':
-        return session.add_follower_odometry(*event[1:])
+        return session.add_odometry('follower', *event[1:])
     return session.add_measurement(event[1], event[2], event[3], variance)
 
 
@@ -89,16 +89,17 @@ def test_lockstep_refusals_change_nothing() -> None:
     session.plan_next()
     far = timebase.measurement_stamp(10_000_000)             # 1e6 s, step k + 1e7
     assert 'after' in session.add_measurement(10_000_000, far, 1.0, 0.01)
-    assert 'after' in session.add_follower_odometry(far, 1.0, 0.0)
-    assert 'grid' in session.add_leader_odometry(timebase.substep_end(0) + 1, 1.0, 0.0)
+    assert 'after' in session.add_odometry('follower', far, 1.0, 0.0)
+    assert 'grid' in session.add_odometry('leader', timebase.substep_end(0) + 1, 1.0, 0.0)
     for event in lockstep_inputs(ref, timebase):
         assert feed(session, event, scenario.sigma ** 2) is None
         session.advance()
         if event[0] == 'follower' and event[1] == timebase.substep_end(0):
-            assert 'duplicate' in session.add_follower_odometry(event[1], 9.0, 9.0)
+            assert 'duplicate' in session.add_odometry('follower', event[1], 9.0, 9.0)
         if event[0] == 'measurement' and event[1] == 5:
             assert 'already processed' in session.add_measurement(5, event[2], 9.0, 0.01)
-            assert 'processed' in session.add_follower_odometry(timebase.substep_end(0), 9.0, 9.0)
+            first = timebase.substep_end(0)
+            assert 'processed' in session.add_odometry('follower', first, 9.0, 9.0)
     assert session.step == STEPS
     np.testing.assert_allclose(session.estimator.x, ref.estimate[-1], rtol=0, atol=TOL)
     counters = session.counters
@@ -111,17 +112,17 @@ def test_realtime_pairs_each_odometry_with_the_latest_leader_and_skips_lost_step
     in the future of the receiving clock is refused and does not block later ones."""
     assembler = StepAssembler(False, Timebase.from_dt(0.05), (1.0, 0.0))
     ms = 1_000_000
-    assert assembler.add_leader_odometry(10 * ms, 1.0, 0.1, now_ns=11 * ms) is None
-    assert assembler.add_follower_odometry(20 * ms, 0.5, 0.0, now_ns=21 * ms) is None
-    assert assembler.add_leader_odometry(30 * ms, 2.0, 0.2, now_ns=31 * ms) is None
-    assert assembler.add_follower_odometry(40 * ms, 0.6, 0.1, now_ns=41 * ms) is None
-    assert 'future' in assembler.add_follower_odometry(10**15, 0.0, 0.0, now_ns=42 * ms)
-    assert assembler.add_follower_odometry(50 * ms, 0.7, 0.0, now_ns=51 * ms) is None
+    assert assembler.add_odometry('leader', 10 * ms, 1.0, 0.1, now_ns=11 * ms) is None
+    assert assembler.add_odometry('follower', 20 * ms, 0.5, 0.0, now_ns=21 * ms) is None
+    assert assembler.add_odometry('leader', 30 * ms, 2.0, 0.2, now_ns=31 * ms) is None
+    assert assembler.add_odometry('follower', 40 * ms, 0.6, 0.1, now_ns=41 * ms) is None
+    assert 'future' in assembler.add_odometry('follower', 10**15, 0.0, 0.0, now_ns=42 * ms)
+    assert assembler.add_odometry('follower', 50 * ms, 0.7, 0.0, now_ns=51 * ms) is None
     assert assembler.add_measurement(1, 45 * ms, 3.0, 0.01, now_ns=46 * ms) is None
     ready = assembler.pop_ready()
     assert ready is not None and ready.step == 1 and ready.skipped == 0
     assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.5, 1.0), (0.6, 2.0)]
-    assert 'before' in assembler.add_follower_odometry(45 * ms, 0.0, 0.0, now_ns=60 * ms)
+    assert 'before' in assembler.add_odometry('follower', 45 * ms, 0.0, 0.0, now_ns=60 * ms)
     assert assembler.add_measurement(3, 55 * ms, 3.1, 0.01, now_ns=56 * ms) is None
     ready = assembler.pop_ready()
     assert ready is not None and (ready.step, ready.skipped) == (3, 1)

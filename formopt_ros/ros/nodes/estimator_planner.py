@@ -113,14 +113,14 @@ class EstimatorPlannerNode(Node):
     def on_follower_odom(self, msg: Odometry) -> None:
         """One sub-step of the follower's odometry."""
         self.received['follower_odom'] += 1
-        self._refused('follower_odom', inputs.feed_follower_odometry(
-            self.session, msg, self.follower_id, self._now_ns()))
+        self._refused('follower_odom', inputs.feed_odometry(
+            self.session, 'follower', msg, self.follower_id, self._now_ns()))
 
     def on_leader_odom(self, msg: Odometry) -> None:
         """One sub-step of the leader's odometry."""
         self.received['leader_odom'] += 1
-        self._refused('leader_odom', inputs.feed_leader_odometry(
-            self.session, msg, self.leader_id, self._now_ns()))
+        self._refused('leader_odom', inputs.feed_odometry(
+            self.session, 'leader', msg, self.leader_id, self._now_ns()))
 
     def on_measurement(self, msg: Measurement) -> None:
         """One range or bearing measurement."""
