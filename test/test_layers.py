@@ -15,12 +15,14 @@ PACKAGE = REPO / 'formopt_ros'
 #: layer -> (project layers it may import, third-party libraries it may import)
 RULES: dict[str, tuple[set[str], set[str]]] = {
     'core': ({'core'}, {'numpy', 'scipy'}),
-    'wire': ({'core', 'wire'}, {'numpy'}),
+    'wire': ({'core', 'wire'}, {'numpy', 'yaml'}),
     'bag': ({'bag'}, {'mcap', 'rosbags', 'yaml'}),
     'analysis': ({'core', 'wire', 'bag', 'analysis'}, {'numpy', 'scipy', 'matplotlib'}),
     'ros': ({'core', 'wire', 'bag', 'ros'}, {'numpy', 'yaml', 'rclpy', 'rcl_interfaces',
                                              'builtin_interfaces', 'std_msgs', 'geometry_msgs',
-                                             'nav_msgs', 'formopt_interfaces'}),
+                                             'nav_msgs', 'formopt_interfaces', 'tf2_msgs',
+                                             'rosgraph_msgs', 'visualization_msgs',
+                                             'diagnostic_msgs'}),
     'cli': ({'core', 'wire', 'bag', 'analysis', 'ros', 'cli'},
             {'numpy', 'tqdm', 'rclpy', 'formopt_interfaces'}),
 }
@@ -28,7 +30,8 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
 ROS_FREE = ['core', 'wire', 'bag', 'analysis', 'cli.montecarlo', 'cli.bench', 'cli.report',
             'cli.bag', 'cli.replay', 'cli.bench_ros']
 ROS_PACKAGES = ('rclpy', 'rosidl_runtime_py', 'rpyutils', 'std_msgs', 'geometry_msgs',
-                'nav_msgs', 'formopt_interfaces', 'builtin_interfaces', 'rcl_interfaces')
+                'nav_msgs', 'formopt_interfaces', 'builtin_interfaces', 'rcl_interfaces',
+                'tf2_msgs', 'rosgraph_msgs', 'visualization_msgs', 'diagnostic_msgs')
 
 IMPORT_ALL = '''
 import importlib, json, pkgutil, sys

@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Ellipse  # noqa: E402
 
+from formopt_ros.core.model import covariance_ellipse  # noqa: E402
+
 #: One colour per strategy, stable across figures.
 COLOURS = {'mtf': 'tab:gray', 'crm': 'tab:orange', 'mme': 'tab:purple', 'gbs': 'tab:green',
            'ram': 'tab:blue', 'rq': 'tab:red'}
@@ -70,14 +72,12 @@ def nees_figure(time: np.ndarray, nees: dict[str, np.ndarray], band: tuple[float
     return _save(fig, path)
 
 
-def covariance_ellipse(centre: np.ndarray, covariance: np.ndarray, sigmas: float = 3.0,
-                       **style: object) -> Ellipse:
+def ellipse_patch(centre: np.ndarray, covariance: np.ndarray, sigmas: float = 3.0,
+                  **style: Any) -> Ellipse:
     """The ``sigmas``-sigma ellipse of a 2x2 position covariance (m^2) around centre (m)."""
-    values, vectors = np.linalg.eigh(covariance)
-    angle = np.degrees(np.arctan2(vectors[1, 1], vectors[0, 1]))
-    width, height = 2 * sigmas * np.sqrt(np.maximum(values[::-1], 0.0))
-    return Ellipse((float(centre[0]), float(centre[1])), width, height, angle=angle, fill=False,
-                   **style)
+    major, minor, angle = covariance_ellipse(covariance, sigmas)
+    return Ellipse((float(centre[0]), float(centre[1])), 2 * major, 2 * minor,
+                   angle=float(np.degrees(angle)), fill=False, **style)
 
 
 def to_fixed_frame(leader: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -126,7 +126,7 @@ def trajectory_figure(panels: dict[str, dict[str, Any]], path: Path, title: str,
             for k in range(0, len(leader), every):
                 ax.add_patch(Circle(slot[k], follower['r'], fill=False, color='0.6',
                                     linewidth=0.5))
-                ax.add_patch(covariance_ellipse(
+                ax.add_patch(ellipse_patch(
                     estimate[k], _rotated(follower['covariance'][k][:2, :2], leader[k, 2]),
                     color=colour, linewidth=0.6))
         ax.set_aspect('equal')

@@ -86,8 +86,8 @@ def load_recording(bag: Bag) -> Recording:
             grouped.setdefault(found[0], {})[found[1]] = topic
     recording = Recording(bag, None)
     for namespace, topics in sorted(grouped.items()):
-        if not {'estimate', 'status', 'measurement', 'description'} & set(topics):
-            continue            # only odometry under this name: not a follower of ours
+        if not {'estimate', 'status', 'measurement'} & set(topics):
+            continue            # the leader (odometry, description): not a follower
         recording.leader_topic = _leader_topic(bag, namespace, DEFAULT_LEADER)
         follower = FollowerRecording(namespace, topics, _placeholder(namespace))
         described = recording.messages(topics.get('description'))

@@ -1,13 +1,10 @@
-"""Benchmark the three ROS nodes as separate processes: lockstep throughput, realtime latency."""
+"""formopt-bench-ros: the nodes as separate processes; lockstep throughput and start-up time,
+realtime latency, with 1 and 2 followers."""
 from __future__ import annotations
 
-import argparse
+import json
 import os
-import re
-import shutil
-import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -17,245 +14,204 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from formopt_ros.cli.common import ArgumentParser, integer, number
+from formopt_ros.cli.run_formation import Launcher
 from formopt_ros.core.protocol import SUBSTEPS
 
-NODES = ('leader_sim', 'follower_sim', 'estimator_planner')
 DESCRIPTION = """\
-Start leader_sim, follower_sim and estimator_planner as separate processes (the executables
-of lib/formopt_ros, as `ros2 run` does) and measure, with a probe subscriber in this process:
-  lockstep:  steps per second, from the first waypoint's arrival to the last status's;
-  realtime:  at 1/dt, the latency from a measurement's publication (its header stamp, node
-             clock) to the arrival of the waypoint it produced at the probe (receive time),
-             median and p99; and the share of follower timer cycles that missed their period
-             (a tick without its waypoint holds, which delays the measurement: counted from
-             the measurement stamps), plus the share of steps longer than 1.5 step periods.
+Start leader_sim and, per follower, follower_sim and estimator_planner as separate processes
+(through scripts/<node>.sh, as a user does), with a probe in this process that subscribes to
+every topic of the formation (the nodes wait for it as they would for a recorder), and measure:
+  lockstep:  start-up: from starting the processes to the first waypoint at the probe; steps
+             per second, from the first waypoint to the last step's status (every follower);
+  realtime:  at 1/dt, the latency from a measurement's stamp (node clock) to the arrival at
+             the probe of the waypoint it produced, median and p99, and the share of steps
+             longer than 1.5 step periods.
 Prints a plain table. Set --domain-id to keep the run apart from other ROS users."""
 
 
-def executable(node: str) -> str:
-    """Path of formopt_ros's executable ``node``: AMENT_PREFIX_PATH, this prefix, PATH."""
-    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    for prefix in prefixes + [sys.prefix]:
-        path = Path(prefix) / 'lib' / 'formopt_ros' / node
-        if path.is_file() and os.access(path, os.X_OK):
-            return str(path)
-    found = shutil.which(node)
-    if found is None:
-        raise SystemExit(f'bench_ros: error: executable {node} not found (lib/formopt_ros under '
-                         'AMENT_PREFIX_PATH or this prefix, or PATH); run scripts/setup.sh')
-    return found
-
-
 @dataclass
-class Run:
-    """One formation run: node processes, their logs and what the probe received."""
+class Probe:
+    """What the probe received: per follower, waypoint and status arrival times, measurement
+    stamps (s)."""
 
-    log_dir: Path
-    processes: dict[str, subprocess.Popen] = field(default_factory=dict)
-    waypoints: dict[int, float] = field(default_factory=dict)      # step -> receive, s
-    statuses: dict[int, float] = field(default_factory=dict)       # step -> receive, s
-    measurements: dict[int, float] = field(default_factory=dict)   # step -> stamp, s
-
-    def start(self, node: str, params: dict[str, object]) -> None:
-        """Start one node with -p overrides; stdout and stderr go to <log_dir>/<node>.log."""
-        args = [executable(node), '--ros-args']
-        for name, value in params.items():
-            args += ['-p', f'{name}:={value}']
-        log = open(self.log_dir / f'{node}.log', 'w')
-        self.processes[node] = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
-                                                start_new_session=True)
-        log.close()
-
-    def log(self, node: str) -> str:
-        """The node's log so far."""
-        return (self.log_dir / f'{node}.log').read_text(errors='replace')
-
-    def wait_ready(self, node: str, deadline: float) -> None:
-        """Block until the node logged its ready line (or fail)."""
-        while f'{node} ready' not in self.log(node):
-            if self.processes[node].poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f'bench_ros: error: {node} did not start:\n{self.log(node)}')
-            time.sleep(0.05)
-
-    def stop(self) -> dict[str, int]:
-        """SIGINT every node still running (SIGKILL after 20 s); their exit codes."""
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        codes = {}
-        for node, process in self.processes.items():
-            try:
-                codes[node] = process.wait(timeout=20.0)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                codes[node] = process.wait()
-        return codes
+    waypoints: dict[str, dict[int, float]] = field(default_factory=dict)
+    statuses: dict[str, dict[int, float]] = field(default_factory=dict)
+    measurements: dict[str, dict[int, float]] = field(default_factory=dict)
 
 
-def formation(args: argparse.Namespace, mode: str, steps: int, dt: float,
-              log_dir: Path) -> tuple[Run, dict[str, int]]:
-    """Run the three nodes for ``steps`` steps with a probe; return the run and exit codes."""
+def formation_run(args: Any, mode: str, followers: int, steps: int, dt: float,
+                  out: Path) -> tuple[Probe, float, dict[str, int | None]]:
+    """One run: (what the probe saw, the time the processes were started, exit codes)."""
     import rclpy
-    from formopt_interfaces.msg import Measurement, PlannerStatus, Waypoint
     from rclpy.executors import SingleThreadedExecutor
 
-    from formopt_ros.ros import qos
-    from formopt_ros.wire.messages import header_ns
-    from formopt_ros.wire.topics import follower_topic
+    from formopt_ros.ros.runtime import fast_announcements
+    fast_announcements()
 
-    run = Run(log_dir)
+    from formopt_ros.ros import qos
+    from formopt_ros.ros.conversions import message_class
+    from formopt_ros.wire.messages import header_ns
+    from formopt_ros.wire.topics import formation_topics
+
+    ids = tuple(f'f{i + 1}' for i in range(followers))
+    probe = Probe({f: {} for f in ids}, {f: {} for f in ids}, {f: {} for f in ids})
+    prefix = f'/bench{os.getpid()}'
+    launcher = Launcher(out)
+    common = {'mode': mode, 'dt': dt, 'recorders': 1}
+    started = time.monotonic()
+    started_wall = time.time()
+    launcher.start('leader_sim', 'leader_sim', f'{prefix}/leader',
+                   {**common, 'followers': list(ids)})
+    for i, follower in enumerate(ids):
+        params = {**common, 'measurement': args.measurement, 'seed': args.seed + i}
+        launcher.start(f'{follower}.follower_sim', 'follower_sim', f'{prefix}/{follower}',
+                       params)
+        launcher.start(f'{follower}.estimator_planner', 'estimator_planner',
+                       f'{prefix}/{follower}', {**params, 'strategy': args.strategy,
+                                                'steps': steps})
+    # The probe's participant is created after the processes start, as a recorder started with
+    # them would be: participants that start together discover each other at once, while a
+    # participant that started earlier answers a newcomer only at its next periodic
+    # announcement (Fast DDS: every 3 s), which would be timed as start-up.
     rclpy.init()
     try:
-        probe = rclpy.create_node('bench_probe')
-        clock = probe.get_clock()          # system time, like the nodes' clocks
+        node = rclpy.create_node('bench_probe')
+        clock = node.get_clock()
 
-        def now() -> float:
-            return clock.now().nanoseconds * 1e-9
+        def receive(name: str) -> Any:
+            robot, _, kind = name[len(prefix) + 1:].rpartition('/')
 
-        def on_waypoint(msg: Any) -> None:
-            run.waypoints.setdefault(msg.step, now())
+            def on_message(msg: Any) -> None:
+                now = clock.now().nanoseconds * 1e-9
+                if kind == 'waypoint':
+                    probe.waypoints[robot].setdefault(msg.step, now)
+                elif kind == 'status' and msg.step > 0:
+                    probe.statuses[robot].setdefault(msg.step, now)
+                elif kind == 'measurement':
+                    probe.measurements[robot].setdefault(msg.step, header_ns(msg) * 1e-9)
+            return on_message
 
-        def on_status(msg: Any) -> None:
-            run.statuses.setdefault(msg.step, now())
-
-        def on_measurement(msg: Any) -> None:
-            run.measurements.setdefault(msg.step, header_ns(msg) * 1e-9)
-
-        probe.create_subscription(Waypoint, follower_topic('waypoint'), on_waypoint,
-                                  qos.SUBSCRIBED)
-        probe.create_subscription(PlannerStatus, follower_topic('status'), on_status,
-                                  qos.SUBSCRIBED)
-        probe.create_subscription(Measurement, follower_topic('measurement'), on_measurement,
-                                  qos.SUBSCRIBED)
+        for name, type_name in formation_topics('leader', ids, prefix).items():
+            if not name.endswith('/description') and name != '/tf_static':
+                node.create_subscription(message_class(type_name), name, receive(name),
+                                         qos.STREAM)
         executor = SingleThreadedExecutor()
-        executor.add_node(probe)
-        common = {'mode': mode, 'dt': dt, 'measurement': args.measurement, 'seed': args.seed}
-        deadline = time.monotonic() + args.timeout
-        run.start('leader_sim', common)
-        run.start('follower_sim', common)
-        for node in ('leader_sim', 'follower_sim'):
-            run.wait_ready(node, deadline)
-        # peers: leader_sim, follower_sim and this probe listen to the waypoints
-        run.start('estimator_planner', dict(common, strategy=args.strategy, steps=steps,
-                                            peers=3))
-        estimator = run.processes['estimator_planner']
-        while steps not in run.statuses and time.monotonic() < deadline:
+        executor.add_node(node)
+        deadline = started + args.timeout
+        while any(steps not in s for s in probe.statuses.values()):
             executor.spin_once(timeout_sec=0.05)
-            if estimator.poll() is not None and steps not in run.statuses:
-                executor.spin_once(timeout_sec=1.0)      # the last status may be in flight
-                break
-        codes = run.stop()
-        probe.destroy_node()
+            dead = [p for p in launcher.processes if not p.alive()
+                    and not p.name.endswith('estimator_planner')]
+            if dead or time.monotonic() > deadline:
+                raise SystemExit(f'formopt-bench-ros: error: the {mode} run did not finish '
+                                 f'(logs in {out}): '
+                                 + (f'{dead[0].name} exited' if dead else 'timeout'))
+        node.destroy_node()
     finally:
         rclpy.try_shutdown()
-    if steps not in run.statuses:
-        raise SystemExit(f'bench_ros: error: {mode} run did not finish {steps} steps '
-                         f'(last status {max(run.statuses, default=0)}); logs in {log_dir}')
-    return run, codes
+        launcher.stop(launcher.processes)
+    return probe, started_wall, {p.name: p.code for p in launcher.processes}
 
 
-def resends(run: Run) -> int:
-    """How often the estimator resent a waypoint (a peer was late: lockstep stalls ~1 s)."""
-    return len(re.findall('resending its waypoint', run.log('estimator_planner')))
-
-
-def lockstep(args: argparse.Namespace, log_dir: Path) -> list[tuple[str, str]]:
-    """Rows of the lockstep throughput benchmark."""
+def lockstep_rows(args: Any, followers: int, out: Path) -> list[tuple[str, str]]:
+    """Rows of the lockstep benchmark with ``followers`` followers."""
     steps = args.steps
-    run, codes = formation(args, 'lockstep', steps, args.dt, log_dir)
-    first = min(run.waypoints)
-    elapsed = run.statuses[steps] - run.waypoints[first]
-    done = steps - first + 1
-    periods = np.diff([run.statuses[k] for k in sorted(run.statuses)])
+    probe, started, codes = formation_run(args, 'lockstep', followers, steps, args.dt, out)
+    first = min(min(w.values()) for w in probe.waypoints.values())
+    last = max(s[steps] for s in probe.statuses.values())
+    periods = np.diff(sorted(max(s[k] for s in probe.statuses.values())
+                             for k in range(1, steps + 1)))
+    label = f'lockstep, {followers} follower{"s" if followers > 1 else ""}'
     return [
-        ('lockstep steps', f'{done} (steps {first}..{steps})'),
-        ('lockstep wall time', f'{elapsed:.3f} s (first waypoint -> last status)'),
-        ('lockstep throughput', f'{done / elapsed:.1f} steps/s'),
-        ('lockstep step time median / p99', f'{1e3 * np.median(periods):.2f} / '
-                                            f'{1e3 * np.percentile(periods, 99):.2f} ms'),
-        ('lockstep waypoint resends', str(resends(run))),
-        ('lockstep exit codes', ' '.join(f'{n}={codes[n]}' for n in NODES)),
+        (f'{label}: start-up to first waypoint', f'{first - started:.3f} s'),
+        (f'{label}: throughput', f'{(steps - 1) / (last - first):.1f} steps/s ({steps} steps '
+                                 f'in {last - first:.3f} s after the first waypoint)'),
+        (f'{label}: step time median / p99', f'{1e3 * np.median(periods):.2f} / '
+                                             f'{1e3 * np.percentile(periods, 99):.2f} ms'),
+        (f'{label}: exit codes', ' '.join(f'{k}={v}' for k, v in codes.items())),
     ]
 
 
-def realtime(args: argparse.Namespace, log_dir: Path) -> list[tuple[str, str]]:
-    """Rows of the realtime latency benchmark."""
+def realtime_rows(args: Any, out: Path) -> list[tuple[str, str]]:
+    """Rows of the realtime latency benchmark (one follower)."""
     dt = args.realtime_dt
     period = SUBSTEPS * dt
     steps = max(2, round(args.duration / period))
-    run, codes = formation(args, 'realtime', steps, dt, log_dir)
-    latency = [run.waypoints[k + 1] - stamp for k, stamp in run.measurements.items()
-               if k + 1 in run.waypoints]
-    stamps = [run.measurements[k] for k in sorted(run.measurements)]
+    probe, _, codes = formation_run(args, 'realtime', 1, steps, dt, out)
+    measurements, waypoints = probe.measurements['f1'], probe.waypoints['f1']
+    latency = 1e3 * np.array([waypoints[k + 1] - stamp for k, stamp in measurements.items()
+                              if k + 1 in waypoints])
+    stamps = [measurements[k] for k in sorted(measurements)]
     intervals = np.diff(stamps)
-    ticks = np.maximum(np.rint(intervals / dt), SUBSTEPS)       # timer ticks per step
-    missed = int(np.sum(ticks - SUBSTEPS))
-    late_steps = int(np.sum(intervals > 1.5 * period))
-    follower = re.findall(r"'missed_cycles': (\d+)", run.log('follower_sim'))
-    lat_ms = 1e3 * np.asarray(latency)
+    late = int(np.sum(intervals > 1.5 * period))
     return [
-        ('realtime rate / steps', f'{1 / dt:.0f} Hz (dt {dt} s), {steps} steps, '
-                                  f'{steps * period:.0f} s'),
-        ('realtime latency samples', str(len(latency))),
-        ('realtime latency median', f'{statistics.median(lat_ms):.2f} ms'),
-        ('realtime latency p99', f'{np.percentile(lat_ms, 99):.2f} ms'),
-        ('realtime latency max', f'{lat_ms.max():.2f} ms'),
-        ('realtime missed cycles', f'{missed} of {int(ticks.sum())} ticks '
-                                   f'({100 * missed / max(ticks.sum(), 1):.2f} %)'),
-        ('realtime steps > 1.5 periods', f'{late_steps} of {len(intervals)} '
-                                         f'({100 * late_steps / max(len(intervals), 1):.2f} %)'),
-        ('realtime follower missed_cycles', (follower[-1] if follower else '?')
-         + ' (its counter; includes ticks after the last waypoint)'),
-        ('realtime exit codes', ' '.join(f'{n}={codes[n]}' for n in NODES)),
+        ('realtime: rate / steps', f'{1 / dt:.0f} Hz (dt {dt} s), {steps} steps, '
+                                   f'{steps * period:.0f} s'),
+        ('realtime: latency median / p99 / max', f'{statistics.median(latency):.2f} / '
+                                                 f'{np.percentile(latency, 99):.2f} / '
+                                                 f'{latency.max():.2f} ms '
+                                                 f'({len(latency)} samples)'),
+        ('realtime: steps > 1.5 periods', f'{late} of {len(intervals)} '
+                                          f'({100 * late / max(len(intervals), 1):.2f} %)'),
+        ('realtime: exit codes', ' '.join(f'{k}={v}' for k, v in codes.items())),
     ]
+
+
+def build_parser() -> ArgumentParser:
+    """The command-line interface."""
+    parser = ArgumentParser(prog='formopt-bench-ros', description=DESCRIPTION)
+    parser.add_argument('--steps', type=integer(2, 10**6), default=600,
+                        help='lockstep: measurement steps (default 600)')
+    parser.add_argument('--dt', type=number(1e-3, 10.0), default=0.05,
+                        help='lockstep: sub-step length, s (simulated; default 0.05)')
+    parser.add_argument('--followers', type=integer(1, 16), nargs='+', default=[1, 2],
+                        help='lockstep runs with these numbers of followers (default 1 2)')
+    parser.add_argument('--realtime-dt', type=number(1e-3, 10.0), default=0.05,
+                        help='realtime: sub-step length, s; timers at 1/dt (default 0.05)')
+    parser.add_argument('--duration', type=number(0.5, 3600.0), default=30.0,
+                        help='realtime: run length, s (default 30)')
+    parser.add_argument('--measurement', choices=('range', 'bearing'), default='range',
+                        help='the followers\' sensor (default range)')
+    parser.add_argument('--strategy', default='ram', help='motion strategy (default ram)')
+    parser.add_argument('--seed', type=integer(0, 2**31 - 1), default=0, help='seed')
+    parser.add_argument('--only', choices=('lockstep', 'realtime'),
+                        help='run one of the two benchmarks only')
+    parser.add_argument('--domain-id', type=integer(0, 232),
+                        help='ROS_DOMAIN_ID of the runs (default: $ROS_DOMAIN_ID, else 0)')
+    parser.add_argument('--timeout', type=number(1.0, 3600.0), default=300.0,
+                        help='give up a run after this long, s (default 300)')
+    parser.add_argument('--json', type=Path, help='also write the rows here as JSON')
+    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
-    parser = argparse.ArgumentParser(prog='python -m formopt_ros.cli.bench_ros',
-                                     description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--steps', type=int, default=600,
-                        help='lockstep: measurement steps (default 600)')
-    parser.add_argument('--dt', type=float, default=0.05,
-                        help='lockstep: sub-step length, s (simulated; default 0.05)')
-    parser.add_argument('--realtime-dt', type=float, default=0.05,
-                        help='realtime: sub-step length, s; the timers run at 1/dt '
-                             '(default 0.05 = 20 Hz)')
-    parser.add_argument('--duration', type=float, default=30.0,
-                        help='realtime: run length, s (default 30)')
-    parser.add_argument('--measurement', choices=('range', 'bearing'), default='range',
-                        help='the follower sensor (default range)')
-    parser.add_argument('--strategy', default='ram', help='motion strategy (default ram)')
-    parser.add_argument('--seed', type=int, default=0, help='seed (default 0)')
-    parser.add_argument('--only', choices=('lockstep', 'realtime'),
-                        help='run one of the two benchmarks only')
-    parser.add_argument('--domain-id', type=int,
-                        help='ROS_DOMAIN_ID of the run (default: $ROS_DOMAIN_ID, else 0)')
-    parser.add_argument('--timeout', type=float, default=300.0,
-                        help='give up a run after this long, s (default 300)')
-    parser.add_argument('--log-dir', type=Path,
-                        help='keep the node logs here (default: a temporary folder)')
-    args = parser.parse_args(argv)
-    if args.steps < 2 or args.dt <= 0 or args.realtime_dt <= 0 or args.duration <= 0:
-        parser.error('--steps must be >= 2; --dt, --realtime-dt and --duration > 0')
+    args = build_parser().parse_args(argv)
+    from formopt_ros.core.strategies import STRATEGIES
+    if args.strategy not in STRATEGIES:
+        build_parser().error(f'argument --strategy: invalid choice: {args.strategy!r}')
     if args.domain_id is not None:
         os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     rows: list[tuple[str, str]] = []
     with tempfile.TemporaryDirectory(prefix='bench_ros_') as tmp:
-        base = args.log_dir or Path(tmp)
-        for name, bench in (('lockstep', lockstep), ('realtime', realtime)):
-            if args.only in (None, name):
-                folder = base / name
-                folder.mkdir(parents=True, exist_ok=True)
-                rows += bench(args, folder)
+        if args.only in (None, 'lockstep'):
+            for followers in args.followers:
+                folder = Path(tmp) / f'lockstep{followers}'
+                folder.mkdir()
+                rows += lockstep_rows(args, followers, folder)
+        if args.only in (None, 'realtime'):
+            folder = Path(tmp) / 'realtime'
+            folder.mkdir()
+            rows += realtime_rows(args, folder)
     width = max(len(name) for name, _ in rows)
-    domain = os.environ.get('ROS_DOMAIN_ID', '0')
-    print(f'bench_ros: {args.measurement}, {args.strategy}, seed {args.seed}, '
-          f'ROS_DOMAIN_ID={domain}, {os.cpu_count()} CPUs')
+    print(f'formopt-bench-ros: {args.measurement}, {args.strategy}, seed {args.seed}, '
+          f'ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID", "0")}, {os.cpu_count()} CPUs')
     for name, value in rows:
         print(f'{name:<{width}}  {value}')
+    if args.json:
+        args.json.write_text(json.dumps(dict(rows), indent=2) + '\n')
     return 0
 
 

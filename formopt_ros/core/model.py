@@ -157,3 +157,25 @@ def normalized_estimation_error(x_true: np.ndarray, x_est: np.ndarray, P: np.nda
     """NEES of [x, y, phi] (heading error wrapped): e' P^-1 e, dimensionless."""
     e = state_difference(x_true, x_est)
     return float(e @ np.linalg.solve(P, e))
+
+
+def covariance_ellipse(covariance: np.ndarray, sigmas: float = 3.0) -> tuple[float, float, float]:
+    """The ``sigmas``-sigma ellipse of a 2x2 position covariance (m^2).
+
+    Returns:
+        (major semi-axis m, minor semi-axis m, angle of the major axis rad): the eigen-
+        decomposition of the covariance, semi-axes ``sigmas * sqrt(eigenvalue)``.
+    """
+    values, vectors = np.linalg.eigh(np.asarray(covariance, dtype=float)[:2, :2])
+    major, minor = (sigmas * math.sqrt(max(float(v), 0.0)) for v in values[::-1])
+    return major, minor, math.atan2(float(vectors[1, 1]), float(vectors[0, 1]))
+
+
+def ellipse_points(centre: np.ndarray, covariance: np.ndarray, sigmas: float = 3.0,
+                   count: int = 48) -> np.ndarray:
+    """A closed polygon (count + 1, 2) on the ``sigmas``-sigma ellipse around centre (m)."""
+    major, minor, angle = covariance_ellipse(covariance, sigmas)
+    t = np.linspace(0.0, 2.0 * math.pi, count + 1)
+    c, s = math.cos(angle), math.sin(angle)
+    x, y = major * np.cos(t), minor * np.sin(t)
+    return np.asarray(centre, dtype=float)[:2] + np.stack([c * x - s * y, s * x + c * y], axis=1)

@@ -6,12 +6,14 @@ description configures the simulator, the study, the nodes and is recorded in ev
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
 from formopt_ros.core.model import BEARING, MEASUREMENT_KINDS, RANGE
+from formopt_ros.core.strategies import make_strategy
 
 #: Shapes of leader path.
 PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
@@ -282,4 +284,149 @@ def _flatten(data: Any, prefix: str = '') -> dict[str, Any]:
     return {prefix[:-1]: data}
 
 
-__all__ = ['BEARING', 'LeaderPath', 'PATH_KINDS', 'RANGE', 'Scenario', 'Segment']
+#: A robot id: a ROS name token (it is the robot's namespace and the stem of its frames).
+_ID = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+
+
+def check_id(what: str, value: object) -> str:
+    """``value`` if it is a valid robot id (letters, digits, underscores; a letter first)."""
+    if not isinstance(value, str) or not _ID.match(value):
+        raise ValueError(f'{what} must be a name of letters, digits and underscores starting '
+                         f'with a letter (it becomes a ROS namespace), got {value!r}')
+    return value
+
+
+@dataclass(frozen=True)
+class FollowerSpec:
+    """One follower of a formation.
+
+    Attributes:
+        id: its id (namespace and frame stem).
+        scenario: what its estimator assumes (and its simulator does).
+        strategy: motion strategy name; options: its options.
+        seed: its random streams are seeded by (seed, trial).
+    """
+
+    id: str
+    scenario: Scenario
+    strategy: str = 'ram'
+    options: dict[str, Any] = field(default_factory=dict)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_id('follower id', self.id)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f'follower {self.id}: seed must be an integer >= 0, '
+                             f'got {self.seed!r}')
+        make_strategy(self.strategy, **self.options)      # ValueError naming the option
+
+
+@dataclass(frozen=True)
+class Formation:
+    """One leader and its followers, sharing the leader's path and the sub-step length.
+
+    Attributes:
+        leader_id: the leader's id (namespace and frame).
+        followers: the followers, in the order of the file.
+        trial: trial index of every follower's random streams.
+    """
+
+    leader_id: str
+    followers: tuple[FollowerSpec, ...]
+    trial: int = 0
+
+    def __post_init__(self) -> None:
+        check_id('leader id', self.leader_id)
+        if not self.followers:
+            raise ValueError('a formation needs at least one follower')
+        ids = [f.id for f in self.followers]
+        if len(set(ids) | {self.leader_id}) != len(ids) + 1:
+            raise ValueError(f'robot ids must be unique, got leader {self.leader_id!r} and '
+                             f'followers {ids}')
+        first = self.followers[0].scenario
+        for follower in self.followers[1:]:
+            if (follower.scenario.leader, follower.scenario.dt) != (first.leader, first.dt):
+                raise ValueError(f'follower {follower.id}: every follower shares the leader '
+                                 'path and dt')
+
+    @property
+    def leader(self) -> LeaderPath:
+        """The leader's path."""
+        return self.followers[0].scenario.leader
+
+    @property
+    def dt(self) -> float:
+        """The sub-step length, s."""
+        return self.followers[0].scenario.dt
+
+    def follower(self, follower_id: str) -> FollowerSpec:
+        """The follower of that id; ValueError naming the ids there are."""
+        for follower in self.followers:
+            if follower.id == follower_id:
+                return follower
+        raise ValueError(f'no follower {follower_id!r} in the formation (it has: '
+                         f"{', '.join(f.id for f in self.followers)})")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> 'Formation':
+        """A formation from its file layout (see config/formation_fig4.yaml); ValueError that
+        names the key for anything unknown, missing or out of range."""
+        _check_keys('formation', data, {'leader', 'dt', 'seed', 'trial', 'followers'})
+        leader = dict(data.get('leader') or {})
+        _check_keys('formation leader', leader, {'id', 'path'})
+        path = LeaderPath.from_dict(dict(leader.get('path') or {}))
+        dt = data.get('dt', 0.05)
+        seed = data.get('seed', 0)
+        followers = data.get('followers')
+        if not isinstance(followers, list) or not followers:
+            raise ValueError('formation followers must be a non-empty list')
+        specs = []
+        for index, item in enumerate(followers):
+            if not isinstance(item, dict):
+                raise ValueError(f'formation follower {index + 1} must be a mapping, '
+                                 f'got {item!r}')
+            specs.append(_follower_from_dict(item, path, dt, seed + index))
+        return cls(str(leader.get('id', 'leader')), tuple(specs), int(data.get('trial', 0)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The file layout (inverse of :meth:`from_dict`, every value explicit)."""
+        return {
+            'leader': {'id': self.leader_id, 'path': self.leader.to_dict()},
+            'dt': self.dt, 'trial': self.trial,
+            'followers': [{
+                'id': f.id, 'sensor': f.scenario.measurement, 'slot': list(f.scenario.p_o),
+                'deviation': f.scenario.r / f.scenario.d_o, 'noise': f.scenario.sigma,
+                'odometry_noise': [f.scenario.sigma_v, f.scenario.sigma_omega],
+                'initial_covariance': list(f.scenario.initial_covariance),
+                'strategy': f.strategy, 'options': dict(f.options), 'seed': f.seed}
+                for f in self.followers]}
+
+
+_FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'odometry_noise',
+                  'initial_covariance', 'strategy', 'options', 'seed'}
+
+
+def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float,
+                        default_seed: int) -> FollowerSpec:
+    name = item.get('id', '?')
+    _check_keys(f'formation follower {name}', item, _FOLLOWER_KEYS)
+    missing = sorted({'id', 'sensor', 'slot'} - set(item))
+    if missing:
+        raise ValueError(f'formation follower {name}: missing keys {missing}')
+    try:
+        base = Scenario.paper(item['sensor'], p_o=tuple(item['slot']))
+        sigma_v, sigma_omega = item.get('odometry_noise', (base.sigma_v, base.sigma_omega))
+        scenario = Scenario.paper(
+            item['sensor'], p_o=base.p_o, r=float(item.get('deviation', 0.1)) * base.d_o,
+            sigma=float(item.get('noise', base.sigma)), leader=path, dt=float(dt),
+            sigma_v=float(sigma_v), sigma_omega=float(sigma_omega),
+            initial_covariance=tuple(item.get('initial_covariance',
+                                              base.initial_covariance)))
+        return FollowerSpec(str(name), scenario, str(item.get('strategy', 'ram')),
+                            dict(item.get('options') or {}), item.get('seed', default_seed))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f'formation follower {name}: {error}') from None
+
+
+__all__ = ['BEARING', 'Formation', 'FollowerSpec', 'LeaderPath', 'PATH_KINDS', 'RANGE',
+           'Scenario', 'Segment', 'check_id']

@@ -28,7 +28,7 @@ from formopt_ros.core.model import (
     BEARING, integrate_unicycle, normalized_estimation_error, predict_measurement,
     propagate_state, wrap_angle)
 from formopt_ros.core.protocol import SUBSTEPS, held_leader_motion, step_substeps
-from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.scenario import Formation, Scenario
 from formopt_ros.core.strategies import make_strategy
 
 
@@ -126,5 +126,12 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
     return out
 
 
-__all__ = ['SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult', 'leader_poses', 'run_trial',
-           'trial_streams']
+def run_formation(formation: Formation, steps: int) -> dict[str, TrialResult]:
+    """Every follower of a formation for ``steps`` steps: followers do not interact, so each
+    is one :func:`run_trial` with its scenario (the shared leader path), strategy and seed."""
+    return {f.id: run_trial(f.scenario, f.strategy, f.seed, formation.trial, steps, f.options)
+            for f in formation.followers}
+
+
+__all__ = ['SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult', 'leader_poses',
+           'run_formation', 'run_trial', 'trial_streams']

@@ -10,12 +10,17 @@ from collections.abc import Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from formopt_interfaces.msg import Measurement, PlannerStatus, RunDescription, Waypoint
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped, TransformStamped
 from nav_msgs.msg import Odometry
-from std_msgs.msg import Header
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import ColorRGBA, Header
+from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import Marker, MarkerArray
 
 from formopt_ros.core.estimator import StepPlan
+from formopt_ros.core.model import ellipse_points
 from formopt_ros.wire.messages import KIND_CODES, POSE_INDEX
 
 
@@ -108,6 +113,80 @@ def status(time: Time, frame_id: str, follower_id: str, step: int, strategy: str
 def description(time: Time, run_id: str, node: str, text: str) -> RunDescription:
     """The latched run description (``text``: formopt_ros.wire.description JSON)."""
     return RunDescription(header=header(time, ''), run_id=run_id, node=node, description=text)
+
+
+def clock(nanoseconds: int) -> Clock:
+    """rosgraph_msgs/Clock of a simulated time in ns."""
+    return Clock(clock=stamp(nanoseconds))
+
+
+def transform(time: Time, parent: str, child: str,
+              pose: Sequence[float] | np.ndarray) -> TransformStamped:
+    """parent -> child as a planar pose (x m, y m, yaw rad) of child in parent."""
+    msg = TransformStamped(header=header(time, parent), child_frame_id=child)
+    msg.transform.translation.x = float(pose[0])
+    msg.transform.translation.y = float(pose[1])
+    _set_yaw(msg.transform.rotation, float(pose[2]))
+    return msg
+
+
+def tf_message(transforms: Sequence[TransformStamped]) -> TFMessage:
+    """A /tf (or /tf_static) message."""
+    return TFMessage(transforms=list(transforms))
+
+
+#: RGBA per marker (exact in float32, so recorded markers compare equal).
+_COLOURS = {'slot': (0.5, 0.5, 0.5, 1.0), 'disc': (0.5, 0.5, 0.5, 0.75),
+            'waypoint': (0.125, 0.375, 0.875, 1.0), 'ellipse': (0.875, 0.25, 0.125, 1.0)}
+
+
+def _marker(time: Time, frame: str, namespace: str, kind: str, marker_type: int,
+            scale: float) -> Marker:
+    marker = Marker(header=header(time, frame), ns=f'{namespace}/{kind}', id=0,
+                    type=marker_type, action=Marker.ADD)
+    marker.pose.orientation.w = 1.0
+    marker.scale.x = marker.scale.y = marker.scale.z = float(scale)
+    marker.color = ColorRGBA(r=_COLOURS[kind][0], g=_COLOURS[kind][1], b=_COLOURS[kind][2],
+                             a=_COLOURS[kind][3])
+    return marker
+
+
+def _line(marker: Marker, points: np.ndarray) -> Marker:
+    marker.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in points]
+    return marker
+
+
+def markers(time: Time, frame: str, namespace: str, p_o: np.ndarray, r: float,
+            waypoint: np.ndarray | None, x: np.ndarray, P: np.ndarray) -> MarkerArray:
+    """The follower's slot, feasible disc, chosen waypoint and 3-sigma position ellipse of the
+    estimate, all in the leader frame ``frame`` (namespaces '<follower>/slot', ...)."""
+    size = 0.05 * r
+    slot = _marker(time, frame, namespace, 'slot', Marker.SPHERE, 2 * size)
+    slot.pose.position.x, slot.pose.position.y = float(p_o[0]), float(p_o[1])
+    circle = p_o + r * np.stack([np.cos(np.linspace(0, 2 * np.pi, 65)),
+                                 np.sin(np.linspace(0, 2 * np.pi, 65))], axis=1)
+    disc = _line(_marker(time, frame, namespace, 'disc', Marker.LINE_STRIP, 0.2 * size), circle)
+    ellipse = _line(_marker(time, frame, namespace, 'ellipse', Marker.LINE_STRIP, 0.2 * size),
+                    ellipse_points(x[:2], P[:2, :2], 3.0, 64))
+    out = [slot, disc, ellipse]
+    if waypoint is not None:
+        chosen = _marker(time, frame, namespace, 'waypoint', Marker.SPHERE, 2 * size)
+        chosen.pose.position.x, chosen.pose.position.y = float(waypoint[0]), float(waypoint[1])
+        out.append(chosen)
+    return MarkerArray(markers=out)
+
+
+#: Diagnostic levels by name.
+LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
+          'ERROR': DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
+
+
+def diagnostic(name: str, hardware_id: str, level: str, message: str,
+               values: dict[str, object]) -> DiagnosticStatus:
+    """One diagnostic_msgs/DiagnosticStatus; values become key/value strings."""
+    return DiagnosticStatus(level=LEVELS[level], name=name, message=message,
+                            hardware_id=hardware_id,
+                            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
 
 
 def message_class(type_name: str, topic: str = '') -> type:

@@ -1,5 +1,5 @@
 """Node parameters: one spec per parameter (default, unit, range, read-only), declared and
-validated the same way in every node; the scenario and strategy parameters shared by nodes."""
+validated the same way in every node, and the documented config files generated from them."""
 from __future__ import annotations
 
 import difflib
@@ -14,10 +14,6 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from formopt_ros.core.model import MEASUREMENT_KINDS
-from formopt_ros.core.scenario import LeaderPath, Scenario
-from formopt_ros.core.strategies import STRATEGIES, make_strategy
-from formopt_ros.wire.description import MODES
 
 #: Parameters rclpy declares itself; never reported as unknown.
 ROS_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
@@ -127,15 +123,18 @@ def _override_value(node: Node, name: str) -> Any:
     return None if override is None else override.value
 
 
-def declare(node: Node, specs: list[Param]) -> dict[str, Any]:
+def declare(node: Node, specs: list[Param],
+            defaults: dict[str, Any] | None = None) -> dict[str, Any]:
     """Declare every parameter with its descriptor and return the validated values.
 
     A parameter the node does not have is refused (ParameterError) when it is close to one it
     has (a typo such as 'stratgy'), and logged as a warning otherwise (a shared ``/**``
     parameters file may carry other nodes' parameters). Values of the wrong type or outside
     their range are refused; integers are accepted for float parameters. Mutable parameters
-    are validated again when set at run time (:func:`validate_on_set`).
+    are validated again when set at run time (:func:`validate_on_set`). ``defaults`` replace
+    the specs' defaults (a formation file's values), so ``ros2 param get`` shows what runs.
     """
+    defaults = defaults or {}
     known = {spec.name for spec in specs} | ROS_PARAMETERS
     for name in sorted(set(node._parameter_overrides) - known):
         close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.8)
@@ -152,8 +151,9 @@ def declare(node: Node, specs: list[Param]) -> dict[str, Any]:
             node._parameter_overrides[spec.name] = Parameter(spec.name, value=float(override))
         elif override is not None:
             spec.check(override)            # our message before rclpy's type exception
+        default = defaults.get(spec.name, spec.default)
         try:
-            node.declare_parameter(spec.name, spec.default, spec.descriptor())
+            node.declare_parameter(spec.name, default, spec.descriptor())
         except Exception as error:           # rclpy rejects out-of-range or mistyped overrides
             raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got "
                                  f'{override!r} ({type(error).__name__})') from None
@@ -214,83 +214,3 @@ def config_yaml(node: str, summary: str, specs: list[Param]) -> str:
                                subsequent_indent='    # ', break_on_hyphens=False)
         lines.append(f'    {spec.name}: {_yaml_value(spec.default)}')
     return '\n'.join(lines) + '\n'
-
-
-# --- parameters shared by several nodes ----------------------------------------------------
-FOLLOWER_ID = Param('follower_id', '', "id of the follower (frames, message filter); '' means "
-                    "the last part of the node namespace ('follower' at the root)")
-LEADER_ID = Param('leader_id', 'leader', "id of the leader: its namespace and frame; followers "
-                  'subscribe to /<leader_id>/odom')
-MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
-             'realtime: timers at 1/dt', choices=MODES)
-DT = Param('dt', 0.05, 'sub-step length, s', 1e-3, 10.0)
-MEASUREMENT = Param('measurement', 'range', 'the follower sensor', choices=MEASUREMENT_KINDS)
-SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)', 0, 2**31 - 1)
-TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)', 0, 2**31 - 1)
-SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', 0.0, 100.0)
-SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s', 0.0,
-                    100.0)
-RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', 1e-9, 1e3)
-BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', 1e-9, 3.2)
-SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
-             '[0.0] means the paper default for the measurement kind', -1e6, 1e6)
-DEVIATION = Param('deviation_fraction', 0.1, 'allowed deviation r as a fraction of |p_o|',
-                  1e-6, 0.999)
-V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', -100.0, 100.0)
-OMEGA_LEADER = Param('omega_leader', 0.0, 'leader yaw rate, rad/s (0: straight, else an arc)',
-                     -100.0, 100.0)
-SUMMARY_PATH = Param('summary_path', '', 'write a JSON summary of the node here when it ends, '
-                     'also on SIGINT/SIGTERM (empty: none)')
-LEADER_PARAMS = [V_LEADER, OMEGA_LEADER]
-SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, RANGE_SIGMA, BEARING_SIGMA, SLOT,
-                   DEVIATION] + LEADER_PARAMS
-
-
-def leader_path_from(values: dict[str, Any]) -> LeaderPath:
-    """The leader path described by the leader parameters."""
-    return LeaderPath.constant(values['v_leader'], values['omega_leader'])
-
-
-def scenario_from(values: dict[str, Any]) -> Scenario:
-    """The Scenario described by the shared parameters (paper defaults otherwise)."""
-    kind = values['measurement']
-    slot = values['formation_slot']
-    if list(slot) != [0.0] and len(slot) != 2:
-        raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
-                             f'{slot!r}')
-    p_o = Scenario.paper(kind).p_o if list(slot) == [0.0] else (float(slot[0]), float(slot[1]))
-    try:
-        return Scenario.paper(
-            kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
-            sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
-            leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
-            sigma_omega=values['sigma_omega'])
-    except ValueError as error:
-        raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
-
-
-def strategy_params() -> list[Param]:
-    """The 'strategy' parameter and every strategy option as '<strategy>_<option>'."""
-    params = [Param('strategy', 'ram', 'motion strategy', choices=tuple(STRATEGIES),
-                    read_only=False)]
-    for name, cls in STRATEGIES.items():
-        for option, spec in cls.OPTIONS.items():
-            default = spec.default
-            bounded = not isinstance(default, bool)
-            params.append(Param(f'{name}_{option}', default, f'{name}: {spec.description}',
-                                spec.low if bounded else None, spec.high if bounded else None,
-                                read_only=False))
-    return params
-
-
-def strategy_options(name: str, values: dict[str, Any]) -> dict[str, Any]:
-    """Options of strategy ``name`` from the '<strategy>_<option>' parameter values."""
-    return {option: values[f'{name}_{option}'] for option in STRATEGIES[name].OPTIONS}
-
-
-def check_strategy(name: str, values: dict[str, Any]) -> None:
-    """ParameterError when the strategy cannot be built with these option values."""
-    try:
-        make_strategy(name, **strategy_options(name, values))
-    except ValueError as error:
-        raise ParameterError(str(error)) from None

@@ -9,36 +9,41 @@ from rclpy.qos import (
 
 from formopt_ros.bag import qos as bag_qos
 
-#: Depth of streaming topics.
+#: Depth of streaming topics. Volatile, so no late subscriber ever receives this history; it
+#: is what a reliable writer keeps for a reader that has not acknowledged yet (a recorder
+#: lagging behind a lockstep run at hundreds of steps a second): a reader more than this many
+#: messages behind would lose the oldest (KEEP_LAST overwrites), so it is generous.
 STREAM_DEPTH = 1000
 
-#: Streaming topics: reliable (lockstep must not drop a message) and transient local, so that
-#: a subscriber that matches late (the recorder, when discovery takes seconds) still receives
-#: the history; volatile subscriptions (the nodes' own) are compatible with it.
+#: Streaming topics: reliable (lockstep must not drop a message), volatile (a late subscriber
+#: such as ``ros2 topic echo`` gets live messages only). Nothing is published before the
+#: expected subscribers (and recorders) are matched (ros/gate.py).
 STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                     reliability=ReliabilityPolicy.RELIABLE,
-                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
-#: What the nodes subscribe with: reliable, volatile.
-SUBSCRIBED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
+                    durability=DurabilityPolicy.VOLATILE)
+#: The nodes subscribe with the same profile.
+SUBSCRIBED = STREAM
 #: The run description: one message that every late subscriber (and every bag) must still get.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-#: /clock as rosgraph publishes it (best effort would lose lockstep ticks: reliable, depth 10).
-CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+#: /clock: reliable (rclpy's time source subscribes best effort, which is compatible).
+CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                    reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.VOLATILE)
-#: /tf and /diagnostics: tf2's and diagnostic_updater's defaults.
-TF = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+#: /tf, /tf_static and /diagnostics: tf2's and diagnostic_updater's defaults.
+TF = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
                 reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+TF_STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 
 PROFILES = {'stream': STREAM, 'latched': LATCHED, 'clock': CLOCK, 'tf': TF,
-            'diagnostics': DIAGNOSTICS, 'default': qos_profile_system_default}
+            'tf_static': TF_STATIC, 'diagnostics': DIAGNOSTICS,
+            'default': qos_profile_system_default}
 
 
 def profile(kind: str) -> QoSProfile:
@@ -91,3 +96,10 @@ def replay_profile(offers: list[bag_qos.Qos]) -> QoSProfile:
     latched = bool(offers) and all(q.durability == bag_qos.QosDurability.TRANSIENT_LOCAL
                                    for q in offers)
     return adapted(reliable, latched, 1 if latched else STREAM_DEPTH)
+
+
+def describe(profile: QoSProfile) -> str:
+    """'reliable, volatile, keep last 100' (for README tables and --help)."""
+    return (f'{profile.reliability.name.lower().replace("_", " ")}, '
+            f'{profile.durability.name.lower().replace("_", " ")}, '
+            f'keep last {profile.depth}')

@@ -6,8 +6,13 @@ Naming: every robot runs in the namespace of its id. The leader's nodes publish 
 ``/diagnostics`` are the global ROS conventions.
 
 QoS kinds: 'stream' (reliable, volatile, modest depth: a late subscriber gets live messages
-only), 'latched' (reliable, transient local, depth 1: the run description, which a late
-subscriber must still get), 'tf', 'clock' and 'diagnostics' (the ROS defaults of those topics).
+only), 'latched' (reliable, transient local, depth 1: the run descriptions, which a late
+subscriber must still get), 'tf', 'tf_static', 'clock' and 'diagnostics' (the ROS conventions
+of those topics).
+
+``listeners`` name the formation nodes that subscribe to a topic (per follower for leader
+topics): a publisher waits until it has matched them (and the recorders) before a run starts,
+so that nothing is published before it can be received.
 
 This module imports nothing from ROS: nodes, the recorder, the offline analysis and the scripts
 (``python -m formopt_ros.wire.topics``) all read the same table.
@@ -42,29 +47,49 @@ class Topic:
     publisher: str
     qos: str
     description: str
+    listeners: tuple[str, ...] = ()
 
 
 LEADER_TOPICS = (
     Topic('leader_odom', 'odom', 'nav_msgs/msg/Odometry', 'leader_sim', 'stream',
-          "the leader's odometry per sub-step (pose in 'odom', twist in the leader frame)"),
+          "the leader's odometry per sub-step (pose in 'odom', twist in the leader frame)",
+          ('follower_sim', 'estimator_planner')),
+    Topic('leader_description', 'description', 'formopt_interfaces/msg/RunDescription',
+          'leader_sim', 'latched', "the leader's description (path, dt, followers, run id)"),
 )
 FOLLOWER_TOPICS = (
     Topic('follower_odom', 'odom', 'nav_msgs/msg/Odometry', 'follower_sim', 'stream',
-          "the follower's odometry per sub-step: commanded velocities, noise variances"),
+          "the follower's odometry per sub-step: commanded velocities, noise variances",
+          ('estimator_planner',)),
     Topic('measurement', 'measurement', 'formopt_interfaces/msg/Measurement', 'follower_sim',
-          'stream', 'one range or bearing measurement per step'),
+          'stream', 'one range or bearing measurement per step', ('estimator_planner',)),
     Topic('truth', 'truth', 'geometry_msgs/msg/PoseStamped', 'follower_sim', 'stream',
-          'the true follower pose in the leader frame (evaluation only)'),
+          'the true follower pose in the leader frame (evaluation only)',
+          ('estimator_planner',)),
     Topic('estimate', 'estimate', 'geometry_msgs/msg/PoseWithCovarianceStamped',
           'estimator_planner', 'stream', 'the EKF estimate of the pose in the leader frame'),
     Topic('waypoint', 'waypoint', 'formopt_interfaces/msg/Waypoint', 'estimator_planner',
-          'stream', 'the next position and the commands that reach it'),
+          'stream', 'the next position (leader frame) and the commands that reach it',
+          ('leader_sim', 'follower_sim')),
     Topic('status', 'status', 'formopt_interfaces/msg/PlannerStatus', 'estimator_planner',
-          'stream', 'progress, cost and input counters after each step'),
+          'stream', 'progress, cost and input counters after each step and every second'),
+    Topic('markers', 'markers', 'visualization_msgs/msg/MarkerArray', 'estimator_planner',
+          'stream', 'slot, feasible disc, chosen waypoint and 3-sigma ellipse (leader frame)'),
     Topic('description', 'description', 'formopt_interfaces/msg/RunDescription',
           'estimator_planner', 'latched', 'the run description (scenario, strategy, seed)'),
 )
-BY_KEY = {t.key: t for t in LEADER_TOPICS + FOLLOWER_TOPICS}
+GLOBAL_TOPICS = (
+    Topic('tf', '/tf', 'tf2_msgs/msg/TFMessage', 'every node', 'tf',
+          'odom -> leader, leader -> <follower>/estimate and <follower>/truth, '
+          '<follower>/odom -> <follower>'),
+    Topic('tf_static', '/tf_static', 'tf2_msgs/msg/TFMessage', 'follower_sim', 'tf_static',
+          "odom -> <follower>/odom: where each follower's odometry frame starts"),
+    Topic('clock', '/clock', 'rosgraph_msgs/msg/Clock', 'leader_sim', 'clock',
+          'lockstep simulated time (use_sim_time:=true makes node clocks follow it)'),
+    Topic('diagnostics', '/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray',
+          'estimator_planner', 'diagnostics', 'OK / WARN / ERROR of every estimator, 1 Hz'),
+)
+BY_KEY = {t.key: t for t in LEADER_TOPICS + FOLLOWER_TOPICS + GLOBAL_TOPICS}
 
 
 def resolve(namespace: str, topic: Topic) -> str:
@@ -85,11 +110,14 @@ def follower_topic(key: str, follower: str = DEFAULT_FOLLOWER) -> str:
 
 
 def formation_topics(leader: str = DEFAULT_LEADER,
-                     followers: tuple[str, ...] = (DEFAULT_FOLLOWER,)) -> dict[str, str]:
-    """Absolute name -> message type of every topic of a formation (what a bag records)."""
-    out = {resolve(leader, t): t.type for t in LEADER_TOPICS}
+                     followers: tuple[str, ...] = (DEFAULT_FOLLOWER,),
+                     prefix: str = '') -> dict[str, str]:
+    """Absolute name -> message type of every topic of a formation (what a bag records); robot
+    namespaces under ``prefix`` (e.g. '/run7'), the global topics as they are."""
+    out = {resolve(f'{prefix}/{leader}', t): t.type for t in LEADER_TOPICS}
     for follower in followers:
-        out.update({resolve(follower, t): t.type for t in FOLLOWER_TOPICS})
+        out.update({resolve(f'{prefix}/{follower}', t): t.type for t in FOLLOWER_TOPICS})
+    out.update({t.name: t.type for t in GLOBAL_TOPICS})
     return out
 
 
@@ -109,9 +137,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--leader', default=DEFAULT_LEADER, help='leader id (default leader)')
     parser.add_argument('--followers', nargs='+', default=[DEFAULT_FOLLOWER],
                         help='follower ids (default follower)')
+    parser.add_argument('--prefix', default='', help="formation namespace prefix, e.g. /run7")
     parser.add_argument('--json', action='store_true', help='print {name: type} as JSON')
     args = parser.parse_args(argv)
-    topics = formation_topics(args.leader, tuple(args.followers))
+    topics = formation_topics(args.leader, tuple(args.followers), args.prefix)
     if args.json:
         print(json.dumps(topics, indent=2))
     else:

@@ -21,12 +21,13 @@ from typing import Any
 
 import rclpy
 from formopt_interfaces.msg import PlannerStatus
-from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from formopt_ros.ros import qos
+from formopt_ros.ros.conversions import message_class
 from formopt_ros.wire.messages import estimate_values
+from formopt_ros.wire.topics import formation_topics
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPTS = REPO / 'scripts'
@@ -34,6 +35,8 @@ SCRIPTS = REPO / 'scripts'
 DISCOVERY_TIMEOUT = 30.0
 #: The formation prefix of this test session.
 PREFIX = f'/t{os.getpid()}'
+#: Formation nodes wait for the test's probe as they would for a recorder.
+WITH_PROBE = {'recorders': 1}
 #: Robot namespace of each node class (the default ids).
 ROBOT = {'leader_sim': 'leader', 'follower_sim': 'follower', 'estimator_planner': 'follower'}
 
@@ -99,61 +102,112 @@ def tap(publisher: Any, sink: list[Any]) -> None:
 
 
 class Probe(Node):
-    """Test subscriber: every estimate (x, P) and status message of one follower, in order."""
+    """Test subscriber of every topic of the formation, like a recorder (the nodes are started
+    with recorders:=1 and wait for it): every estimate (x, P) and status of each follower in
+    order, and a count of every other topic's messages.
+    """
 
-    def __init__(self, robot: str = 'follower') -> None:
+    def __init__(self, followers: tuple[str, ...] = ('follower',)) -> None:
         super().__init__('test_probe')
         self.estimates: list[tuple[Any, Any]] = []
         self.statuses: list[PlannerStatus] = []
-        self.create_subscription(PoseWithCovarianceStamped, topic(robot, 'estimate'),
-                                 lambda msg: self.estimates.append(estimate_values(msg)),
-                                 qos.SUBSCRIBED)
-        self.create_subscription(PlannerStatus, topic(robot, 'status'), self.statuses.append,
-                                 qos.SUBSCRIBED)
+        self.by_follower: dict[str, dict[str, list[Any]]] = {
+            f: {'estimates': [], 'statuses': []} for f in followers}
+        self.counts: dict[str, int] = {}
+        for name, type_name in formation_topics('leader', followers, PREFIX).items():
+            if name.endswith('/description') or name == '/tf_static':
+                continue                             # latched: not part of the start gate
+            cls = message_class(type_name)
+            self.counts[name] = 0
+            self.create_subscription(cls, name, lambda msg, n=name: self._on(n, msg),
+                                     qos.SUBSCRIBED)
+
+    def _on(self, name: str, msg: Any) -> None:
+        self.counts[name] += 1
+        robot, _, kind = name[len(PREFIX) + 1:].rpartition('/')
+        if kind == 'estimate':
+            self.by_follower[robot]['estimates'].append(estimate_values(msg))
+            if robot == next(iter(self.by_follower)):
+                self.estimates.append(estimate_values(msg))
+        elif kind == 'status':
+            self.by_follower[robot]['statuses'].append(msg)
+            if robot == next(iter(self.by_follower)):
+                self.statuses.append(msg)
+
+    def step_statuses(self, follower: str | None = None) -> list[PlannerStatus]:
+        """The statuses published after steps (the periodic ones while stalled left out)."""
+        statuses = self.by_follower[follower or next(iter(self.by_follower))]['statuses']
+        out: list[PlannerStatus] = []
+        for status in statuses:
+            if status.step > 0 and (not out or status.step > out[-1].step):
+                out.append(status)
+        return out
+
+
+def node_args(node: str, robot: str, params: dict[str, Any]) -> list[str]:
+    """Node-local ROS arguments: the robot's namespace under PREFIX and the parameters the node
+    declares (a formation node also waits for the probe: recorders:=1 unless given)."""
+    import importlib
+    declared = {spec.name for spec in importlib.import_module(
+        f'formopt_ros.ros.nodes.{node}').PARAMS} | {'use_sim_time'}
+    values = {k: v for k, v in {**WITH_PROBE, **params}.items() if k in declared}
+    return ['--ros-args', '-r', f'__ns:={namespace(robot)}', *parameter_args(values)]
 
 
 class Formation:
-    """leader_sim, follower_sim (optional), estimator_planner and a Probe in this process.
+    """leader_sim, per follower a follower_sim (optional) and an estimator_planner, and a Probe,
+    all in this process on one executor, each node with its own arguments.
+
+    Args:
+        params: parameters for every node (each gets those it declares).
+        followers: follower ids (their namespaces under PREFIX).
+        follower: create the follower_sim nodes (False: the test starts them elsewhere).
+        per_follower: id -> extra parameters of that follower's nodes.
 
     ``published`` holds a copy of every message the nodes published, per topic.
     """
 
-    def __init__(self, follower: bool = True) -> None:
+    def __init__(self, params: dict[str, Any], followers: tuple[str, ...] = ('follower',),
+                 follower: bool = True,
+                 per_follower: dict[str, dict[str, Any]] | None = None) -> None:
         from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
         from formopt_ros.ros.nodes.follower_sim import FollowerSim
         from formopt_ros.ros.nodes.leader_sim import LeaderSim
+        per_follower = per_follower or {}
         self.executor = SingleThreadedExecutor()
-        self.probe = Probe()
-        self.leader = LeaderSim()
-        self.follower = FollowerSim() if follower else None
-        self.estimator = EstimatorPlannerNode()
-        self.nodes = [n for n in (self.probe, self.leader, self.follower, self.estimator) if n]
+        self.probe = Probe(followers)
+        leader_params = params if 'formation_file' in params else {
+            'followers': list(followers), **params}
+        self.leader = LeaderSim(node_args('leader_sim', 'leader', leader_params))
+        self.followers = {f: FollowerSim(node_args('follower_sim', f, {
+            **params, **per_follower.get(f, {})})) for f in followers} if follower else {}
+        self.estimators = {f: EstimatorPlannerNode(node_args('estimator_planner', f, {
+            **params, **per_follower.get(f, {})})) for f in followers}
+        self.follower = next(iter(self.followers.values()), None)
+        self.estimator = next(iter(self.estimators.values()))
+        self.nodes = [self.probe, self.leader, *self.followers.values(),
+                      *self.estimators.values()]
         for node in self.nodes:
             self.executor.add_node(node)
-        self.publishers = [self.leader.odom_pub, self.estimator.estimate_pub,
-                           self.estimator.waypoint_pub, self.estimator.status_pub]
-        if self.follower is not None:
-            self.publishers += [self.follower.odom_pub, self.follower.meas_pub,
-                                self.follower.truth_pub]
+        formation = set(formation_topics('leader', followers, PREFIX))
+        sims = [self.leader, *self.followers.values(), *self.estimators.values()]
+        self.publishers = [pub for node in sims for pub in node.publishers
+                           if pub.topic_name in formation]
         self.published: dict[str, list[Any]] = {}
+        latched = {self.leader.description_pub: self.leader.description_message}
+        for estimator in self.estimators.values():
+            latched[estimator.description_pub] = estimator.description_message
+        for sim in self.followers.values():
+            latched[sim.tf_static_pub] = sim.tf_static_message
         for publisher in self.publishers:
-            tap(publisher, self.published.setdefault(publisher.topic_name, []))
-        self.published[self.estimator.description_pub.topic_name] = [
-            self.estimator.description_message]
+            sink = self.published.setdefault(publisher.topic_name, [])
+            if publisher in latched:
+                sink.append(latched[publisher])
+            tap(publisher, sink)
 
     def total(self) -> int:
         """Messages published so far, all topics."""
         return sum(len(v) for v in self.published.values())
-
-    def matched(self, subscriber_node: str) -> bool:
-        """True when the node ``subscriber_node`` subscribes to every topic of the formation
-        and every publisher has matched every subscriber the graph shows."""
-        for pub in self.publishers:
-            infos = self.leader.get_subscriptions_info_by_topic(pub.topic_name)
-            if not any(info.node_name == subscriber_node for info in infos) or \
-                    pub.get_subscription_count() < len(infos):
-                return False
-        return True
 
     def spin_until(self, condition: Callable[[], bool], timeout: float,
                    step: Callable[[], None] | None = None) -> bool:
@@ -161,10 +215,14 @@ class Formation:
         return spin_until(self.executor, condition, timeout, step)
 
     def run(self, timeout: float, step: Callable[[], None] | None = None) -> bool:
-        """Spin until the estimator finished and the probe has its last status."""
+        """Spin until every estimator finished and the probe has its last step status."""
         def done() -> bool:
-            return self.estimator.finished and \
-                len(self.probe.statuses) >= self.estimator.session.step
+            for follower, estimator in self.estimators.items():
+                statuses = self.probe.step_statuses(follower)
+                if not (estimator.finished and statuses
+                        and statuses[-1].step >= estimator.session.step):
+                    return False
+            return True
         return self.spin_until(done, timeout, step)
 
     def destroy(self) -> None:
@@ -183,6 +241,8 @@ class NodeProcess:
     def __init__(self, node: str, params: dict[str, Any] | None = None,
                  robot: str | None = None, extra: list[str] | None = None) -> None:
         self.node = node
+        if node in ROBOT:
+            params = {**WITH_PROBE, **(params or {})}
         robot = ROBOT.get(node) if robot is None else robot
         remap = ['-r', f'__ns:={namespace(robot)}'] if robot else ['-r', f'__ns:={PREFIX}']
         self.process = subprocess.Popen(
@@ -252,6 +312,6 @@ class NodeProcess:
             self.process.wait(timeout=10.0)
 
 
-def init(params: dict[str, Any], extra: list[str] | None = None) -> None:
-    """rclpy.init with the parameters (every node) and this session's namespaces."""
-    rclpy.init(args=['--ros-args', *parameter_args(params), *remap_args(), *(extra or [])])
+def init(extra: list[str] | None = None) -> None:
+    """rclpy.init for this process (the formation nodes get their arguments one by one)."""
+    rclpy.init(args=['--ros-args', *(extra or [])] if extra else None)

@@ -13,6 +13,9 @@ DOMAIN_IDS = range(10, 40)
 HERE = Path(__file__).resolve().parent
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+#: Participants announce every 0.25 s, as with scripts/*.sh (config/fastdds_discovery.xml).
+os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(
+    Path(__file__).resolve().parents[2] / 'config' / 'fastdds_discovery.xml'))
 
 try:
     import rclpy
@@ -58,7 +61,7 @@ def ros_domain(request: pytest.FixtureRequest) -> Iterator[int]:
 
 @pytest.fixture
 def ros_init() -> Iterator[Callable[..., None]]:
-    """init(params, extra=None): rclpy.init for every node of this process; shut down after."""
+    """init(extra=None): rclpy.init for this process (global ROS arguments); shut down after."""
     yield ros.init
     rclpy.try_shutdown()
 
@@ -80,12 +83,13 @@ def node_process() -> Iterator[Callable[..., 'ros.NodeProcess']]:
 
 @pytest.fixture
 def formation(ros_init: Callable[..., None]) -> Iterator[Callable[..., 'ros.Formation']]:
-    """make(params, follower=True) -> Formation after rclpy.init(params); destroyed after."""
+    """make(params, **options) -> a Formation (see harness.ros.Formation); destroyed after."""
     made: list[ros.Formation] = []
 
-    def make(params: dict[str, Any], follower: bool = True) -> ros.Formation:
-        ros_init(params)
-        made.append(ros.Formation(follower))
+    def make(params: dict[str, Any], **options: Any) -> ros.Formation:
+        if not made:
+            ros_init()
+        made.append(ros.Formation(params, **options))
         return made[-1]
     yield make
     for item in made:

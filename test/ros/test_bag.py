@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from harness.ros import PREFIX, params_file, remap_args, spin_until, tap
+from harness.ros import PREFIX, Formation, node_args, parameter_args, spin_until, tap
 from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message
@@ -26,14 +26,6 @@ from formopt_ros.wire.topics import formation_topics
 SEED, STEPS, KIND, STRATEGY = 3, 40, 'bearing', 'ram'
 DEADLINE = 60.0                     # s, for every spin-until-condition loop
 INPUTS = ['leader/odom', 'follower/odom', 'follower/measurement', 'follower/truth']
-
-
-def ros_args(path: Path, sections: dict[str, dict]) -> list[str]:
-    """rclpy.init arguments: this session's namespaces and a parameters file."""
-    return ['--ros-args', *remap_args({'leader_sim': 'leader', 'follower_sim': 'follower',
-                                       'estimator_planner': 'follower'}),
-            '-r', f'recorder:__ns:={PREFIX}', '-r', f'replay:__ns:={PREFIX}',
-            '--params-file', str(params_file(path, sections))]
 
 
 def spin(executor: SingleThreadedExecutor, condition) -> None:
@@ -53,40 +45,27 @@ class Recording:
 
 @pytest.fixture(scope='module')
 def recording(tmp_path_factory) -> Recording:
-    """40 lockstep steps (bearing, RAM, seed 3) recorded in-process, on one executor."""
-    from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
-    from formopt_ros.ros.nodes.follower_sim import FollowerSim
-    from formopt_ros.ros.nodes.leader_sim import LeaderSim
+    """40 lockstep steps (bearing, RAM, seed 3) recorded in-process, on one executor; the nodes
+    wait for the recorder and the test probe (recorders:=2) before the run starts."""
     from formopt_ros.ros.nodes.recorder import Recorder
     folder = tmp_path_factory.mktemp('recording')
     path = folder / 'run.mcap'
-    rclpy.init(args=ros_args(folder / 'params.json', {
-        '*': {'measurement': KIND, 'seed': SEED, 'strategy': STRATEGY},
-        'estimator_planner': {'steps': STEPS, 'peers': 100},      # held until all matched
-        'recorder': {'output_path': str(path), 'flush_period': 0.1}}))
+    rclpy.init()
     try:
-        leader, follower, estimator, recorder = (LeaderSim(), FollowerSim(),
-                                                 EstimatorPlannerNode(), Recorder())
-        published: dict[str, list] = {}
-        for pub in (leader.odom_pub, follower.odom_pub, follower.meas_pub, follower.truth_pub,
-                    estimator.estimate_pub, estimator.waypoint_pub, estimator.status_pub):
-            tap(pub, published.setdefault(pub.topic_name, []))
-        published[estimator.description_pub.topic_name] = [estimator.description_message]
-        executor = SingleThreadedExecutor()
-        for node in (leader, follower, estimator, recorder):
-            executor.add_node(node)
-        spin(executor, lambda: all(s.get_publisher_count() >= 1
-                                   for s in recorder.subscriptions)
-             and estimator.waypoint_pub.get_subscription_count() >= 3)
-        estimator.params['peers'] = 3                 # leader, follower and the recorder
-        spin(executor, lambda: estimator.finished)
-        total = sum(len(v) for v in published.values())
-        spin(executor, lambda: sum(recorder.counts.values()) >= total)
+        formation = Formation({'measurement': KIND, 'seed': SEED, 'strategy': STRATEGY,
+                               'recorders': 2, 'steps': STEPS})
+        recorder = Recorder(['--ros-args', '-r', f'__ns:={PREFIX}', '-p',
+                             f'output_path:={path}', '-p', 'flush_period:=0.1'])
+        formation.executor.add_node(recorder)
+        spin(formation.executor, lambda: formation.estimator.finished)
+        total = formation.total()
+        spin(formation.executor, lambda: sum(recorder.counts.values()) >= total)
         recorder.close()
-        result = Recording(path, published, estimator.summary(), dict(recorder.counts))
-        for node in (leader, follower, estimator, recorder):
-            executor.remove_node(node)
-            node.destroy_node()
+        result = Recording(path, formation.published, formation.estimator.summary(),
+                           dict(recorder.counts))
+        formation.executor.remove_node(recorder)
+        recorder.destroy_node()
+        formation.destroy()
     finally:
         rclpy.try_shutdown()
     return result
@@ -97,14 +76,19 @@ def test_zero_loss(recording: Recording) -> None:
     counts = bags.read_bag(recording.path).counts()
     assert counts == {name: len(msgs) for name, msgs in recording.published.items()}
     assert counts == recording.recorder_counts
-    assert set(counts) == {PREFIX + name for name in formation_topics()}
+    assert set(counts) == {name if name.startswith(('/tf', '/clock', '/diag')) else PREFIX + name
+                           for name in formation_topics()}
     assert recording.summary['steps'] == STEPS
     published = recording.summary['message_counts']['published']
     received = recording.summary['message_counts']['received']
-    counts = {name[len(PREFIX) + 1:]: n for name, n in counts.items()}
-    assert counts['follower/description'] == 1
+    counts = {name[len(PREFIX) + 1:] if name.startswith(PREFIX) else name: n
+              for name, n in counts.items()}
+    assert counts['follower/description'] == counts['leader/description'] == 1
+    assert counts['/clock'] == 2 * STEPS and counts['/tf_static'] == 1
+    assert counts['/tf'] == 2 * STEPS + 3 * STEPS + STEPS      # leader, follower, estimator
     assert counts['follower/estimate'] == published['estimate'] == STEPS
-    assert counts['follower/status'] == published['status'] == STEPS
+    # a status after every step, plus the periodic ones (one when the run starts)
+    assert counts['follower/status'] == published['status'] >= STEPS
     assert counts['follower/waypoint'] == published['waypoint']
     assert counts['leader/odom'] == received['leader_odom'] == 2 * STEPS
     assert counts['follower/measurement'] == received['measurement'] == STEPS
@@ -121,7 +105,10 @@ def test_mcap_reader_with_rclpy_deserialization(recording: Recording) -> None:
             assert channel.message_encoding == 'cdr' and schema.encoding == 'ros2msg'
             assert schema.data.decode() == message_definition(schema.name)
             assert channel.metadata['topic_type_hash'].startswith('RIHS01_')
-            assert 'reliability: reliable' in channel.metadata['offered_qos_profiles']
+            offered = channel.metadata['offered_qos_profiles']
+            assert 'reliability: reliable' in offered
+            latched = channel.topic.endswith(('/description', '/tf_static'))
+            assert ('durability: transient_local' in offered) == latched, channel.topic
         decoded: dict[str, list] = {}
         last_log_time = 0
         for schema, channel, message in reader.iter_messages(log_time_order=False):
@@ -129,7 +116,10 @@ def test_mcap_reader_with_rclpy_deserialization(recording: Recording) -> None:
             decoded.setdefault(channel.topic, []).append(msg)
             assert message.log_time >= last_log_time
             last_log_time = message.log_time
-            assert message.publish_time == header_ns(msg)
+            if hasattr(msg, 'header'):          # headerless: publish_time = log_time
+                assert message.publish_time == header_ns(msg)
+            else:
+                assert message.publish_time == message.log_time
     assert decoded.keys() == recording.published.keys()
     for topic, msgs in recording.published.items():
         assert decoded[topic] == msgs, topic
@@ -141,8 +131,14 @@ def same_values(published, decoded, where: str = '') -> None:
         a, b = getattr(published, name), getattr(decoded, name)
         if hasattr(a, 'get_fields_and_field_types'):
             same_values(a, b, f'{where}.{name}')
+        elif isinstance(a, list) and a and hasattr(a[0], 'get_fields_and_field_types'):
+            assert len(a) == len(b), f'{where}.{name}: {len(a)} != {len(b)} items'
+            for i, (x, y) in enumerate(zip(a, b)):
+                same_values(x, y, f'{where}.{name}[{i}]')
         elif isinstance(a, (str, int, float, bool)):
             assert a == b, f'{where}.{name}: {a!r} != {b!r}'
+        elif isinstance(a, bytes) and len(a) == 1:     # ROS 'byte': rclpy bytes, rosbags int
+            assert a[0] == b, f'{where}.{name}: {a!r} != {b!r}'
         else:
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where + name)
 
@@ -225,16 +221,16 @@ def test_replay_into_live_estimator(recording: Recording, tmp_path: Path,
     """Republished inputs drive a fresh estimator_planner to the recorded estimates (1e-9)."""
     from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
     from formopt_ros.ros.nodes.replay import Replay
-    rclpy.init(args=ros_args(tmp_path / 'params.json', {
-        '*': {'measurement': KIND, 'seed': SEED, 'strategy': STRATEGY},
-        'estimator_planner': {'steps': STEPS, 'peers': 0},
-        'replay': {'bag_path': str(recording.path), 'topics': INPUTS,
-                   'wait_subscribers': 1, **timing}}))
+    rclpy.init()
     try:
-        estimator = EstimatorPlannerNode()
+        estimator = EstimatorPlannerNode(node_args('estimator_planner', 'follower', {
+            'measurement': KIND, 'seed': SEED, 'strategy': STRATEGY, 'steps': STEPS,
+            'recorders': 0, 'wait_for_peers': False}))
         estimates: list = []
         tap(estimator.estimate_pub, estimates)
-        replay = Replay()
+        replay = Replay(cli_args=['--ros-args', '-r', f'__ns:={PREFIX}', *parameter_args({
+            'bag_path': str(recording.path), 'topics': INPUTS, 'wait_subscribers': 1,
+            **timing})])
         executor = SingleThreadedExecutor()
         executor.add_node(estimator)
         executor.add_node(replay)

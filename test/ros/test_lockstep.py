@@ -32,10 +32,11 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
         np.testing.assert_allclose(x, ref.estimate[k], rtol=0, atol=TOL, err_msg=f'step {k + 1}')
         np.testing.assert_allclose(P, ref.covariance[k], rtol=0, atol=TOL,
                                    err_msg=f'step {k + 1}')
-    assert [s.step for s in run.probe.statuses] == list(range(1, STEPS + 1))
-    assert [s.weighted_trace for s in run.probe.statuses] == pytest.approx(
+    statuses = run.probe.step_statuses()
+    assert [s.step for s in statuses] == list(range(1, STEPS + 1))
+    assert [s.weighted_trace for s in statuses] == pytest.approx(
         ref.weighted_trace.tolist(), abs=TOL)
-    last = run.probe.statuses[-1]
+    last = statuses[-1]
     assert (last.accepted_measurements, last.rejected_measurements,
             last.rejected_odometry) == (STEPS, 0, 0)
     assert summary['mean_nees'] == pytest.approx(float(np.mean(ref.nees)), rel=1e-9)

@@ -22,7 +22,7 @@ def test_realtime_runs_and_estimates(formation) -> None:
     assert elapsed >= 0.9 * STEPS * SUBSTEPS * DT
     est, follower = run.estimator, run.follower
     assert est.session.step == STEPS
-    statuses = run.probe.statuses
+    statuses = run.probe.step_statuses()
     assert [s.step for s in statuses] == list(range(1, STEPS + 1))
     assert [s.accepted_measurements for s in statuses] == list(range(1, STEPS + 1))
     assert all(s.rejected_measurements == 0 and s.rejected_odometry == 0 for s in statuses)

@@ -23,11 +23,15 @@ def test_topic_table_names() -> None:
     assert topics.follower_topic('estimate', 'f2') == '/f2/estimate'
     assert topics.resolve('/run7/f1', topics.BY_KEY['waypoint']) == '/run7/f1/waypoint'
     names = topics.formation_topics('leader', ('f1', 'f2'))
-    assert len(names) == 1 + 2 * len(topics.FOLLOWER_TOPICS)
+    assert len(names) == (len(topics.LEADER_TOPICS) + 2 * len(topics.FOLLOWER_TOPICS)
+                          + len(topics.GLOBAL_TOPICS))
+    assert '/tf' in names
+    assert '/run7/f1/odom' in topics.formation_topics('leader', ('f1',), '/run7')
     assert names['/f2/description'] == 'formopt_interfaces/msg/RunDescription'
     assert topics.split_follower_topic('/run7/f1/status') == ('/run7/f1', 'status')
     assert topics.split_follower_topic('/chatter') is None
-    assert all(t.qos in ('stream', 'latched') for t in topics.BY_KEY.values())
+    assert {t.qos for t in topics.BY_KEY.values()} == {
+        'stream', 'latched', 'tf', 'tf_static', 'clock', 'diagnostics'}
 
 
 def test_run_description_round_trip_and_errors() -> None:

@@ -1,41 +1,53 @@
 """estimator_planner: one follower's EKF and motion strategy; publishes estimate and waypoint."""
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any
 
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from formopt_interfaces.msg import Measurement, PlannerStatus, RunDescription, Waypoint
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
+from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import MarkerArray
 
 from formopt_ros.core.estimator import EstimatorSession, StepOutcome, StepPlan
 from formopt_ros.core.protocol import Timebase
 from formopt_ros.core.simulation import trial_streams
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
-from formopt_ros.ros.naming import peer_topic, robot_id
-from formopt_ros.ros.params import (
-    FOLLOWER_ID, LEADER_ID, MODE, SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, Param,
-    ParameterError, check_strategy, declare, scenario_from, strategy_options, strategy_params)
-from formopt_ros.ros.runtime import Throttle, node_main, write_summary
+from formopt_ros.ros.gate import PublisherGate
+from formopt_ros.ros.naming import peer_topic
+from formopt_ros.ros.nodes.follower_sim import frames
+from formopt_ros.ros.params import Param, ParameterError, declare, validate_on_set
+from formopt_ros.ros.run_config import (
+    FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID, SCENARIO_PARAMS, SEED,
+    SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults, strategy_options,
+    strategy_params)
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
-from formopt_ros.wire.topics import DEFAULT_FOLLOWER, BY_KEY
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
 
-PARAMS = [FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + strategy_params() + [
-    Param('steps', 0, 'measurement steps to run, then exit 0 (0: run until stopped)', 0,
-          10**9),
-    Param('peers', 2, 'waypoint subscribers (leader_sim, follower_sim, a recorder) to wait '
-          'for before the first waypoint', 0, 100),
-    Param('resend_timeout', 1.0, 'lockstep: resend the last waypoint after this long without '
-          'progress (a peer restarted), s', 0.01, 3600.0),
-    SUMMARY_PATH,
-    Param('run_id', '', 'identity of the run, published in the run description'),
-]
-SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in, estimate, "
-           'waypoint, status and the run description out.')
+PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
+    strategy_params() + [
+        Param('steps', 0, 'measurement steps to run, then exit 0 (0: run until stopped)', 0,
+              10**9),
+        Param('resend_timeout', 1.0, 'lockstep: resend the last waypoint after this long '
+              'without progress (a peer restarted), s', 0.01, 3600.0, read_only=False),
+        Param('status_period', 1.0, 'publish the status and /diagnostics at least this often, '
+              'also while no step completes, s', 0.05, 60.0, read_only=False),
+        RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH]
+SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in; estimate, "
+           'waypoint, status, markers, leader -> <follower>/estimate on /tf, /diagnostics and '
+           'the run description out.')
+#: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
+#: steps a second, a 3D view needs a few frames.
+MARKER_PERIOD = 0.1
 
 
 class EstimatorPlannerNode(Node):
@@ -47,40 +59,55 @@ class EstimatorPlannerNode(Node):
     waypoint of step k + 1 is published. The arithmetic equals :func:`run_trial`.
     realtime: each measurement is processed on arrival with the follower odometry received
     since the last one, each paired with the latest leader odometry.
-    Bad inputs are refused with a throttled warning and counted in the status.
+    Bad inputs are refused with a throttled warning and counted in the status. The run starts
+    (waypoint 1) once every publisher has matched its subscribers (leader_sim and follower_sim
+    on the waypoint, plus the recorders).
     """
 
-    def __init__(self) -> None:
-        super().__init__('estimator_planner', namespace=DEFAULT_FOLLOWER)
-        self.params = p = declare(self, PARAMS)
-        self.follower_id = p['follower_id'] or robot_id(self, DEFAULT_FOLLOWER)
-        self.leader_id = p['leader_id']
-        self.scenario = scenario_from(p)
-        check_strategy(p['strategy'], p)
-        options = strategy_options(p['strategy'], p)
-        strategy = make_strategy(p['strategy'], **options)
-        _, planner_rng = trial_streams(p['seed'], p['trial'])
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """The node; ``cli_args`` are node-local ROS arguments (several in one process)."""
+        super().__init__('estimator_planner', namespace=DEFAULT_FOLLOWER, cli_args=cli_args)
+        self.params = p = declare(self, PARAMS, formation_defaults(self, 'follower'))
+        self.run = follower_run(self, p, strategy_owned=True)
+        self.follower_id, self.leader_id = self.run.follower_id, self.run.leader_id
+        self.scenario = self.run.spec.scenario
+        self.frames = frames(self.follower_id)
+        strategy = make_strategy(self.run.spec.strategy, **self.run.spec.options)
+        _, planner_rng = trial_streams(self.run.spec.seed, self.run.trial)
         self.lockstep = p['mode'] == 'lockstep'
         self.timebase = Timebase.from_dt(self.scenario.dt)
         self.session = EstimatorSession.create(self.scenario, strategy, planner_rng,
                                                self.lockstep, p['steps'])
-        self.description = Description(self.follower_id, self.scenario, p['strategy'],
-                                       dict(strategy.settings), p['seed'], p['trial'],
-                                       p['mode'], p['steps'], p['run_id'], self.leader_id)
+        self.description = Description(self.follower_id, self.scenario, self.run.spec.strategy,
+                                       dict(strategy.settings), self.run.spec.seed,
+                                       self.run.trial, p['mode'], p['steps'], p['run_id'],
+                                       self.leader_id)
         self.started = False
         self.finished = False
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
+        self.last_status = 0.0
+        self.last_markers = -math.inf
+        self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
-        self.published = {key: 0 for key in ('estimate', 'waypoint', 'status')}
+        self.published = {key: 0 for key in ('estimate', 'waypoint', 'status', 'markers', 'tf',
+                                             'diagnostics')}
         self.throttle = Throttle(self)
-        self.estimate_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                  BY_KEY['estimate'].name, qos.STREAM)
-        self.waypoint_pub = self.create_publisher(Waypoint, BY_KEY['waypoint'].name, qos.STREAM)
-        self.status_pub = self.create_publisher(PlannerStatus, BY_KEY['status'].name,
-                                                qos.STREAM)
+        self.gate = PublisherGate(self, p['recorders'], int(p['wait_for_peers']))
+        stream = qos.STREAM
+        self.estimate_pub = self.gate.add(self.create_publisher(
+            PoseWithCovarianceStamped, BY_KEY['estimate'].name, stream), 'estimate')
+        self.waypoint_pub = self.gate.add(self.create_publisher(
+            Waypoint, BY_KEY['waypoint'].name, stream), 'waypoint')
+        self.status_pub = self.gate.add(self.create_publisher(
+            PlannerStatus, BY_KEY['status'].name, stream), 'status')
+        self.markers_pub = self.gate.add(self.create_publisher(
+            MarkerArray, BY_KEY['markers'].name, stream), 'markers')
+        self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
+        self.diagnostics_pub = self.gate.add(self.create_publisher(
+            DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS), 'diagnostics')
         self.description_pub = self.create_publisher(RunDescription,
                                                      BY_KEY['description'].name, qos.LATCHED)
         self.description_message = conversions.description(
@@ -96,9 +123,29 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.create_subscription(Measurement, BY_KEY['measurement'].name, self.on_measurement,
                                  qos.SUBSCRIBED)
-        self.create_timer(0.05, self.on_timer)
-        self.get_logger().info(f"estimator_planner ready ({p['mode']}, {p['measurement']}, "
-                               f"strategy {p['strategy']}, follower {self.follower_id})")
+        validate_on_set(self, PARAMS, self.on_set)
+        steady_timer(self, 0.05, self.on_timer)
+        self.get_logger().info(f"estimator_planner ready ({p['mode']}, "
+                               f'{self.scenario.measurement}, strategy '
+                               f'{self.run.spec.strategy}, follower {self.follower_id})')
+
+    # --- run-time parameter changes ----------------------------------------------------------
+    def on_set(self, change: dict[str, Any]) -> str | None:
+        """Accept a new strategy or strategy option (validated, applied from the next step) and
+        the timing parameters; refuse anything that does not build a strategy."""
+        values = {**self.params, **change}
+        if any(name == 'strategy' or name.startswith(f"{values['strategy']}_")
+               for name in change):
+            try:
+                strategy = make_strategy(values['strategy'],
+                                         **strategy_options(values['strategy'], values))
+            except ValueError as error:
+                return str(error)
+            self.session.estimator.strategy = strategy
+            self.get_logger().info(f'strategy now {strategy!r} (from step '
+                                   f'{self.session.step + 2})')
+        self.params.update(change)
+        return None
 
     # --- inputs ----------------------------------------------------------------------------
     def _now_ns(self) -> int | None:
@@ -148,18 +195,33 @@ class EstimatorPlannerNode(Node):
         stamp = self._stamp(outcome.stamp_ns)
         self.estimate_pub.publish(conversions.estimate(stamp, self.leader_id, outcome.x,
                                                        outcome.P))
+        self.tf_pub.publish(conversions.tf_message([conversions.transform(
+            stamp, self.leader_id, self.frames['estimate'], outcome.x)]))
         self.published['estimate'] += 1
+        self.published['tf'] += 1
         self.last_progress = time.monotonic()
         self.last_plan = outcome.plan
         if outcome.plan is not None:
             self._send(outcome.plan)
+        self._publish_status(stamp, outcome.step, outcome.weighted_trace)
+        if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
+            self.last_markers = time.monotonic()
+            self.markers_pub.publish(conversions.markers(
+                stamp, self.leader_id, self.follower_id, self.scenario.slot, self.scenario.r,
+                None if outcome.plan is None else outcome.plan.solution.p, outcome.x,
+                outcome.P))
+            self.published['markers'] += 1
+
+    def _publish_status(self, stamp: Any, step: int, weighted_trace: float) -> None:
         self.status_pub.publish(conversions.status(
-            stamp, '', self.follower_id, outcome.step, self.description.strategy,
-            self.scenario.measurement, outcome.weighted_trace, outcome.plan,
+            stamp, '', self.follower_id, step, self.session.estimator.strategy.name,
+            self.scenario.measurement, weighted_trace, self.last_plan,
             self.session.counters.as_dict()))
         self.published['status'] += 1
+        self.last_status = time.monotonic()
 
     def _send(self, plan: StepPlan) -> None:
+        self.solve_times.append(plan.solution.solve_time_s)
         self.last_waypoint = conversions.waypoint(
             self._stamp(self.timebase.waypoint_stamp(plan.step)), self.leader_id,
             self.follower_id, plan, self.scenario.slot, self.scenario.r, self.scenario.dt)
@@ -167,22 +229,54 @@ class EstimatorPlannerNode(Node):
         self.published['waypoint'] += 1
 
     def on_timer(self) -> None:
-        """Start the run once the peers listen; resend a waypoint that got no answer."""
-        if self.finished:
-            return
-        if not self.started:
-            if self.waypoint_pub.get_subscription_count() >= self.params['peers']:
+        """Start the run once the publishers are matched; resend a waypoint that got no
+        answer; publish the status and diagnostics while no step completes."""
+        now = time.monotonic()
+        if not self.finished and not self.started:
+            if self.gate.ready():
                 self.started = True
                 self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
-                self.last_progress = time.monotonic()
-            return
-        if self.lockstep and self.last_waypoint is not None and \
-                time.monotonic() - self.last_progress > self.params['resend_timeout']:
+                self.last_progress = now
+        elif not self.finished and self.lockstep and self.last_waypoint is not None and \
+                now - self.last_progress > self.params['resend_timeout']:
             self.throttle.warn('resend', f'no progress on step {self.session.step + 1}: '
                                          'resending its waypoint')
             self.waypoint_pub.publish(self.last_waypoint)
-            self.last_progress = time.monotonic()
+            self.published['waypoint'] += 1
+            self.last_progress = now
+        if self.gate.open and now - self.last_status >= self.params['status_period']:
+            self._publish_status(self.get_clock().now().to_msg(), self.session.step,
+                                 self.session.estimator.weighted_trace())
+            self.diagnostics_pub.publish(DiagnosticArray(
+                header=conversions.header(self.get_clock().now().to_msg(), ''),
+                status=[self.diagnostic()]))
+            self.published['diagnostics'] += 1
+
+    def diagnostic(self) -> Any:
+        """OK while steps complete; WARN when inputs were refused, the run stalls or waits for
+        subscribers; ERROR when the estimate is not finite."""
+        estimator, counters = self.session.estimator, self.session.counters
+        stalled = time.monotonic() - self.last_progress
+        level, message = 'OK', f'step {self.session.step}'
+        if not (np.all(np.isfinite(estimator.x)) and np.all(np.isfinite(estimator.P))):
+            level, message = 'ERROR', 'the estimate is not finite'
+        elif not self.gate.open:
+            level, message = 'WARN', 'waiting for subscribers: ' + ', '.join(self.gate.missing())
+        elif self.started and not self.finished and stalled > 2 * self.params['status_period']:
+            level, message = 'WARN', f'no progress for {stalled:.1f} s at step ' \
+                                     f'{self.session.step}'
+        elif counters.rejected_measurements or counters.rejected_odometry:
+            level, message = 'WARN', f'inputs refused, last: {self.session.last_reason}'
+        solve = self.solve_times[-1] if self.solve_times else 0.0
+        return conversions.diagnostic(
+            self.get_fully_qualified_name(), self.follower_id, level, message, {
+                'step': self.session.step, 'strategy': estimator.strategy.name,
+                'mode': self.params['mode'], 'weighted_trace_m2': estimator.weighted_trace(),
+                'solve_time_ms': 1e3 * solve,
+                'mean_solve_time_ms': 1e3 * float(np.mean(self.solve_times))
+                if self.solve_times else 0.0,
+                **counters.as_dict(), 'seconds_since_progress': round(stalled, 3)})
 
     # --- end of run --------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
@@ -192,10 +286,10 @@ class EstimatorPlannerNode(Node):
         return {
             'steps': self.session.step,
             'follower_id': self.follower_id,
-            'strategy': self.description.strategy,
+            'strategy': estimator.strategy.name,
             'measurement': self.scenario.measurement,
             'mode': self.params['mode'],
-            'seed': self.params['seed'],
+            'seed': self.run.spec.seed,
             'final_estimate': estimator.x.tolist(),
             'final_covariance': estimator.P.tolist(),
             'final_truth': None if truth is None else truth.tolist(),

@@ -1,103 +1,163 @@
-"""leader_sim: the leader robot; publishes its odometry per sub-step (lockstep or real time)."""
+"""leader_sim: the leader robot; drives its path and publishes its odometry, /tf and /clock."""
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
+from typing import Any
 
-from formopt_interfaces.msg import Waypoint
+from formopt_interfaces.msg import RunDescription, Waypoint
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.model import integrate_unicycle
 from formopt_ros.core.protocol import Timebase, step_substeps
 from formopt_ros.ros import conversions, qos
-from formopt_ros.ros.naming import peer_topic, robot_id
-from formopt_ros.ros.params import (
-    DT, LEADER_PARAMS, MODE, SUMMARY_PATH, Param, declare, leader_path_from)
-from formopt_ros.ros.runtime import Throttle, node_main, write_summary
+from formopt_ros.ros.gate import PublisherGate
+from formopt_ros.ros.naming import peer_topic
+from formopt_ros.ros.params import declare
+from formopt_ros.ros.run_config import (
+    DT, FOLLOWERS, FORMATION_FILE, MODE, PATH_PARAMS, RECORDERS, RUN_ID, SUMMARY_PATH,
+    WAIT_FOR_PEERS, formation_defaults, leader_run)
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
+from formopt_ros.wire.description import LeaderDescription
 from formopt_ros.wire.messages import waypoint_problem
-from formopt_ros.wire.topics import DEFAULT_FOLLOWER, DEFAULT_LEADER, BY_KEY
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER
 
-PARAMS = [Param('follower_id', DEFAULT_FOLLOWER, 'id of the follower whose waypoints drive the '
-                'lockstep clock (its namespace)'),
-          MODE, DT] + LEADER_PARAMS + [SUMMARY_PATH]
-SUMMARY = ("The leader robot: drives its path and publishes its odometry per sub-step "
-           "(lockstep: when the follower's waypoint for the step is in; realtime: at 1/dt).")
+PARAMS = [FORMATION_FILE, FOLLOWERS, MODE, DT] + PATH_PARAMS + [
+    RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH]
+SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub-step, '
+           "odom -> leader on /tf and, in lockstep, /clock (lockstep: a step once every "
+           "follower's waypoint for it is in; realtime: at 1/dt).")
+#: The fixed frame of the leader's odometry (the world of the formation).
+ODOM_FRAME = 'odom'
 
 
 class LeaderSim(Node):
-    """Drives the leader along its path and publishes nav_msgs/Odometry.
+    """Drives the leader along its path and publishes nav_msgs/Odometry and /tf.
 
-    lockstep: each new Waypoint of step k makes it publish the odometry of that step's sub-steps
-    (stamped on the integer-ns timebase); a repeated waypoint republishes the cached ones.
-    realtime: one odometry per timer tick at 1/dt, stamped with the node clock.
+    lockstep: step k is served (the odometry of its sub-steps, stamped on the integer-ns
+    timebase, with /clock advanced to each stamp) once every follower has sent its waypoint
+    of step k; a repeated waypoint of the served step republishes the cached odometry (a
+    follower restarted). realtime: one odometry per timer tick at 1/dt, stamped with the node
+    clock. Nothing is published before the publishers have matched their subscribers.
     """
 
-    def __init__(self) -> None:
-        super().__init__('leader_sim', namespace=DEFAULT_LEADER)
-        self.params = p = declare(self, PARAMS)
-        self.leader_id = robot_id(self, DEFAULT_LEADER)
-        self.path = leader_path_from(p)
-        self.timebase = Timebase.from_dt(p['dt'])
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """The node; ``cli_args`` are node-local ROS arguments (several in one process)."""
+        super().__init__('leader_sim', namespace=DEFAULT_LEADER, cli_args=cli_args)
+        self.params = p = declare(self, PARAMS, formation_defaults(self, 'leader'))
+        self.run = leader_run(self, p)
+        self.leader_id = self.run.leader_id
+        self.lockstep = p['mode'] == 'lockstep'
+        self.timebase = Timebase.from_dt(self.run.dt)
         self.pose = (0.0, 0.0, 0.0)        # x, y, yaw in the fixed 'odom' frame
         self.substep = 0
         self.served_step = 0
-        self.cache: list[Odometry] = []
-        self.published = 0
+        self.requested = {follower: 0 for follower in self.run.followers}
+        self.cache: list[tuple[int, Odometry, tuple[float, float, float]]] = []
+        self.published = {'odometry': 0, 'clock': 0, 'tf': 0}
         self.throttle = Throttle(self)
-        self.odom_pub = self.create_publisher(Odometry, BY_KEY['leader_odom'].name, qos.STREAM)
-        # Subscribed in both modes: the estimator counts the leader among the waypoint
-        # subscribers (peers) it waits for before the first waypoint.
-        self.create_subscription(Waypoint, peer_topic(self, p['follower_id'], 'waypoint'),
-                                 self.on_waypoint, qos.SUBSCRIBED)
-        if p['mode'] == 'realtime':
-            self.create_timer(p['dt'], self.on_tick)
-        self.get_logger().info(f"leader_sim ready ({p['mode']}, {self.path.kind}, "
-                               f'v_L={self.path.speed} m/s)')
+        self.gate = PublisherGate(self, p['recorders'],
+                                  len(self.run.followers) if p['wait_for_peers'] else 0)
+        self.odom_pub = self.gate.add(self.create_publisher(
+            Odometry, BY_KEY['leader_odom'].name, qos.STREAM), 'leader_odom')
+        self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
+        self.clock_pub = self.gate.add(self.create_publisher(Clock, '/clock', qos.CLOCK),
+                                       'clock') if self.lockstep else None
+        self.description = LeaderDescription(self.leader_id, self.run.path, self.run.dt,
+                                             self.run.followers, p['mode'], p['run_id'])
+        self.description_pub = self.create_publisher(
+            RunDescription, BY_KEY['leader_description'].name, qos.LATCHED)
+        self.description_message = conversions.description(
+            self.get_clock().now().to_msg(), p['run_id'], self.get_fully_qualified_name(),
+            self.description.to_json())
+        self.description_pub.publish(self.description_message)
+        # Subscribed in both modes: the estimators count the leader among the waypoint
+        # subscribers they wait for before the first waypoint.
+        for follower in self.run.followers:
+            self.create_subscription(Waypoint, peer_topic(self, follower, 'waypoint'),
+                                     self._waypoint_callback(follower), qos.SUBSCRIBED)
+        if self.lockstep:
+            steady_timer(self, 0.05, self.serve)
+        else:
+            self.create_timer(self.run.dt, self.on_tick)
+        self.get_logger().info(
+            f"leader_sim ready ({p['mode']}, {self.run.path.kind} path at "
+            f"{self.run.path.speed} m/s, followers {', '.join(self.run.followers)})")
 
-    def _advance(self, stamp: object) -> Odometry:
-        v, omega = self.path.velocity(self.substep, self.params['dt'])
-        self.pose = integrate_unicycle(self.pose, v, omega, self.params['dt'])
+    def _advance(self, stamp_ns: int | None) -> Odometry:
+        """Drive one sub-step; its odometry (node clock stamp when stamp_ns is None)."""
+        v, omega = self.run.path.velocity(self.substep, self.run.dt)
+        self.pose = integrate_unicycle(self.pose, v, omega, self.run.dt)
         self.substep += 1
-        return conversions.odometry(stamp, 'odom', self.leader_id, self.pose, v, omega)
+        time = conversions.stamp(stamp_ns) if stamp_ns is not None else \
+            self.get_clock().now().to_msg()
+        return conversions.odometry(time, ODOM_FRAME, self.leader_id, self.pose, v, omega)
 
-    def _publish(self, msg: Odometry) -> None:
-        self.odom_pub.publish(msg)
-        self.published += 1
+    def _publish(self, stamp_ns: int | None, odom: Odometry,
+                 pose: tuple[float, float, float]) -> None:
+        if self.clock_pub is not None and stamp_ns is not None:
+            self.clock_pub.publish(conversions.clock(stamp_ns))
+            self.published['clock'] += 1
+        self.odom_pub.publish(odom)
+        self.tf_pub.publish(conversions.tf_message([conversions.transform(
+            odom.header.stamp, ODOM_FRAME, self.leader_id, pose)]))
+        self.published['odometry'] += 1
+        self.published['tf'] += 1
 
-    def on_waypoint(self, msg: Waypoint) -> None:
-        """Lockstep: serve the sub-steps of the waypoint's step once; repeat on duplicates."""
-        if self.params['mode'] != 'lockstep':
+    def _waypoint_callback(self, follower: str) -> Callable[[Waypoint], None]:
+        def callback(msg: Waypoint) -> None:
+            self.on_waypoint(follower, msg)
+        return callback
+
+    def on_waypoint(self, follower: str, msg: Waypoint) -> None:
+        """Lockstep: note the step the follower asks for; a repeat of the served step gets the
+        cached odometry again."""
+        if not self.lockstep:
             return                                   # realtime: the timer drives the leader
-        problem = waypoint_problem(msg, self.params['follower_id'])
+        problem = waypoint_problem(msg, follower)
         if problem is not None:
-            self.throttle.warn('waypoint', f'ignoring waypoint: {problem}')
+            self.throttle.warn('waypoint', f'ignoring waypoint on {follower}: {problem}')
             return
-        if msg.step <= self.served_step:
-            if msg.step == self.served_step:
-                for odom in self.cache:
-                    self._publish(odom)
+        if msg.step == self.served_step and msg.step <= self.requested[follower]:
+            for entry in self.cache:
+                self._publish(*entry)
             return
-        substeps = step_substeps(msg.step)
-        self.substep = substeps[0]                   # also after a restart mid-run
-        self.cache = [self._advance(conversions.stamp(self.timebase.substep_end(n)))
-                      for n in substeps]
-        self.served_step = msg.step
-        for odom in self.cache:
-            self._publish(odom)
+        self.requested[follower] = max(self.requested[follower], int(msg.step))
+        self.serve()
+
+    def serve(self) -> None:
+        """Lockstep: serve the next step once every follower asked for it (and the gate is
+        open)."""
+        step = self.served_step + 1
+        if min(self.requested.values()) < step or not self.gate.ready():
+            return
+        substeps = step_substeps(step)
+        self.substep = substeps[0]
+        self.cache = []
+        for n in substeps:
+            stamp = self.timebase.substep_end(n)
+            self.cache.append((stamp, self._advance(stamp), self.pose))
+        self.served_step = step
+        for entry in self.cache:
+            self._publish(*entry)
 
     def on_tick(self) -> None:
-        """Realtime: one sub-step per tick."""
-        self._publish(self._advance(self.get_clock().now().to_msg()))
+        """Realtime: one sub-step per tick, once the publishers are matched."""
+        if self.gate.ready():
+            odom = self._advance(None)
+            self._publish(None, odom, self.pose)
 
-    def summary(self) -> dict[str, object]:
-        """What the leader did: steps served, odometry published, its final pose."""
+    def summary(self) -> dict[str, Any]:
+        """What the leader did: steps served, messages published, its final pose."""
         return {'leader_id': self.leader_id, 'served_steps': self.served_step,
-                'substeps': self.substep, 'published_odometry': self.published,
+                'substeps': self.substep, 'published': dict(self.published),
                 'final_pose': list(self.pose)}
 
     def close(self) -> None:
-        """Log the totals and write the summary on shutdown."""
-        self.get_logger().info(f'leader_sim published {self.published} odometry messages')
+        """Write the summary on shutdown."""
         write_summary(self.params['summary_path'], self.summary())
 
 

@@ -14,17 +14,21 @@ from formopt_ros.bag.qos import qos_yaml
 from formopt_ros.ros import qos
 from formopt_ros.ros.conversions import message_class
 from formopt_ros.ros.params import Param, ParameterError, declare
+from formopt_ros.ros.run_config import FOLLOWERS, FORMATION_FILE
 from formopt_ros.ros.runtime import Throttle, node_main
-from formopt_ros.wire.topics import formation_topics
+from formopt_ros.wire.formation import load_formation
+from formopt_ros.wire.topics import DEFAULT_LEADER, GLOBAL_TOPICS, formation_topics
 
-#: The formation topics of the default run, relative to the recorder's namespace (the
-#: formation prefix), and their types.
-KNOWN_TOPICS = {name.lstrip('/'): type_name for name, type_name in formation_topics().items()}
 PARAMS = [
     Param('output_path', '', 'the .mcap file to write (required; an existing file is refused)'),
-    Param('topics', list(KNOWN_TOPICS), 'topics to record; relative names resolve in the '
-          'node namespace (a formation prefix); types of topics outside the formation table '
-          'are looked up in the ROS graph'),
+    FORMATION_FILE,
+    Param('leader_id', DEFAULT_LEADER, 'the leader whose formation is recorded (without a '
+          'formation file)'),
+    FOLLOWERS,
+    Param('topics', [''], "topics to record; [''] means every topic of the formation (robot "
+          'topics under this node\'s namespace, the formation prefix, plus /tf, /tf_static, '
+          '/clock, /diagnostics); relative names resolve in the node namespace; types of '
+          'topics outside the formation table are looked up in the ROS graph'),
     Param('counts_path', '', 'on close, write the per-topic message counts here as JSON '
           '(empty: none)'),
     Param('flush_period', 1.0, 'close the current chunk and flush it to disk this often, s '
@@ -48,8 +52,9 @@ class Recorder(Node):
     finalizes the file.
     """
 
-    def __init__(self) -> None:
-        super().__init__('recorder')
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """The node; ``cli_args`` are node-local ROS arguments."""
+        super().__init__('recorder', cli_args=cli_args)
         self.params = declare(self, PARAMS)
         p = self.params
         if not p['output_path']:
@@ -62,10 +67,18 @@ class Recorder(Node):
         self.pending: list[str] = []          # resolved names whose type is still unknown
         self.sources: list[tuple] = []        # (subscription, topic, type)
         self.closed = False
-        known = {self.resolve_topic_name(name): type_name
-                 for name, type_name in KNOWN_TOPICS.items()}
+        leader, followers = p['leader_id'], tuple(p['followers'])
+        if p['formation_file']:
+            try:
+                formation = load_formation(p['formation_file'])
+            except ValueError as error:
+                raise ParameterError(f"parameter 'formation_file': {error}") from None
+            leader, followers = formation.leader_id, tuple(f.id for f in formation.followers)
+        global_names = {t.name for t in GLOBAL_TOPICS}
+        known = {self.resolve_topic_name(name if name in global_names else name.lstrip('/')):
+                 type_name for name, type_name in formation_topics(leader, followers).items()}
         wanted = []
-        for name in p['topics']:
+        for name in (list(known) if list(p['topics']) == [''] else p['topics']):
             try:
                 wanted.append(self.resolve_topic_name(name))
             except Exception as error:      # rclpy's invalid-name exceptions
@@ -83,13 +96,20 @@ class Recorder(Node):
             raise ParameterError(f"parameter 'output_path': {error}") from None
         for topic in dict.fromkeys(wanted):
             if topic in known:
-                self._subscribe(topic, known[topic], qos.STREAM)  # late match still gets history
+                self._subscribe(topic, known[topic], self._profile(topic))
             else:
                 self.pending.append(topic)
         if self.pending:
             self.create_timer(p['discovery_period'], self.on_discovery)
         self.create_timer(p['flush_period'], self.on_flush)
         self.get_logger().info(f"recording {len(wanted)} topics to {p['output_path']}")
+
+    @staticmethod
+    def _profile(topic: str) -> QoSProfile:
+        """The subscription QoS of a formation topic: transient local for the latched
+        descriptions and /tf_static (so they are recorded whenever they were published)."""
+        name = topic.rpartition('/')[2]
+        return qos.adapted(True, name in ('description', 'tf_static'))
 
     def _subscribe(self, topic: str, type_name: str, profile: QoSProfile) -> None:
         cls = message_class(type_name, topic)

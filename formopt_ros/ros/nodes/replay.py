@@ -48,8 +48,9 @@ class Replay(Node):
     QoS. When all are sent and acknowledged (or ``wait_timeout`` passed) the node finishes.
     """
 
-    def __init__(self, preloaded: bags.Bag | None = None) -> None:
-        super().__init__('replay')
+    def __init__(self, preloaded: bags.Bag | None = None,
+                 cli_args: list[str] | None = None) -> None:
+        super().__init__('replay', cli_args=cli_args)
         self.params = declare(self, PARAMS)
         p = self.params
         if not p['bag_path']:

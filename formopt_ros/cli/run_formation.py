@@ -1,0 +1,368 @@
+"""run_formation: one formation run as separate node processes (leader_sim, a follower_sim and an
+estimator_planner per follower, the MCAP recorder), started through scripts/<node>.sh the way a
+ROS user starts them; waits for the estimators, stops the rest, checks the recording and writes
+OUT/summary.json. scripts/run_formation.sh is its shell front end."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from formopt_ros.cli.common import ArgumentParser, fail, integer, number
+from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario, check_id
+from formopt_ros.core.strategies import STRATEGIES
+from formopt_ros.wire.formation import load_formation
+from formopt_ros.wire.topics import BY_KEY, resolve
+
+PROG = 'run_formation.sh'
+SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
+#: Output files a run writes into OUT (an OUT that has any of them is refused).
+OUTPUTS = ('run.mcap', 'summary.json', 'recorder_counts.json')
+
+
+@dataclass
+class Process:
+    """One node process: its command, log file and (after the run) exit code and summary."""
+
+    name: str
+    process: subprocess.Popen[bytes]
+    log: Path
+    summary_path: Path | None = None
+    code: int | None = None
+
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.process.poll() is None
+
+    def summary(self) -> dict[str, Any] | None:
+        """The node's JSON summary (None when it wrote none)."""
+        if self.summary_path is None or not self.summary_path.is_file():
+            return None
+        return dict(json.loads(self.summary_path.read_text()))
+
+    def tail(self, lines: int = 5) -> str:
+        """The last lines of its log."""
+        text = self.log.read_text(errors='replace').splitlines() if self.log.exists() else []
+        return '\n'.join(text[-lines:])
+
+
+@dataclass
+class Launcher:
+    """Starts node processes through scripts/<node>.sh with a namespace and -p parameters."""
+
+    out: Path
+    processes: list[Process] = field(default_factory=list)
+
+    def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
+              summary: bool = True) -> Process:
+        """Start ``node`` as process ``name`` (log OUT/<name>.log, summary OUT/<name>.json)."""
+        summary_path = self.out / f'{name}.json' if summary else None
+        if summary_path is not None:
+            params = {**params, 'summary_path': str(summary_path)}
+        args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
+        for key, value in params.items():
+            args += ['-p', f'{key}:={format_value(value)}']
+        log = self.out / f'{name}.log'
+        with open(log, 'wb') as stream:
+            process = subprocess.Popen(args, stdout=stream, stderr=subprocess.STDOUT,
+                                       start_new_session=True)
+        self.processes.append(Process(name, process, log, summary_path))
+        return self.processes[-1]
+
+    def stop(self, processes: list[Process], grace: float = 10.0) -> None:
+        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later."""
+        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            running = [p for p in processes if p.alive()]
+            if not running:
+                break
+            for item in running:
+                try:
+                    os.killpg(item.process.pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + wait
+            while any(p.alive() for p in running) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        for item in processes:
+            item.code = item.process.wait()
+
+
+def format_value(value: Any) -> str:
+    """A -p value: lists as YAML flow, bools lower case."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(format_value(v) for v in value) + ']'
+    return str(value) if str(value) else "''"
+
+
+def build_parser() -> ArgumentParser:
+    """The command-line interface."""
+    parser = ArgumentParser(prog=PROG, description=__doc__)
+    parser.add_argument('--formation', type=Path, metavar='FILE',
+                        help='a formation file (config/formation_fig4.yaml documents it); '
+                             'without it one follower runs, set by the flags below')
+    parser.add_argument('--measurement', choices=('range', 'bearing'),
+                        help="single follower: its sensor (default range)")
+    parser.add_argument('--strategy', choices=tuple(STRATEGIES),
+                        help='single follower: its strategy (default ram)')
+    parser.add_argument('--seed', type=integer(0, 2**31 - 1),
+                        help='single follower: seed of its random streams (default 0)')
+    parser.add_argument('--steps', type=integer(1, 10**9), default=100,
+                        help='measurement steps (default 100)')
+    parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep',
+                        help='lockstep: deterministic, equals the pure simulation; realtime: '
+                             'timers at 1/dt (default lockstep)')
+    parser.add_argument('--out', type=Path, required=True,
+                        help='output folder: <node>.log, <node>.json summaries, run.mcap, '
+                             'summary.json (a folder holding an earlier run is refused)')
+    parser.add_argument('--prefix', default='',
+                        help='formation namespace prefix, e.g. /run7: two runs with different '
+                             'prefixes share a ROS domain without seeing each other')
+    parser.add_argument('--run-id', default='', help='identity of the run (default: none)')
+    parser.add_argument('--domain-id', type=integer(0, 232),
+                        help='ROS_DOMAIN_ID of the run (default: $ROS_DOMAIN_ID, else 0)')
+    parser.add_argument('--no-record', action='store_true', help='do not record run.mcap')
+    parser.add_argument('--timeout', type=number(0.0, math.inf, low_open=True), default=600.0,
+                        help='give up after this long, s (default 600)')
+    parser.add_argument('-p', dest='extra', action='append', default=[], metavar='NAME:=VALUE',
+                        help='extra parameter for the simulator and estimator nodes '
+                             '(single follower only), e.g. -p dt:=0.02 (repeatable)')
+    return parser
+
+
+def formation_of(args: Any) -> tuple[Formation, Path | None]:
+    """The formation to run and its file (None for the single-follower flags)."""
+    flags = [name for name in ('measurement', 'strategy', 'seed') if getattr(args, name)
+             is not None]
+    if args.formation is not None:
+        if flags or args.extra:
+            fail(PROG, f"--{(flags or ['p'])[0]} cannot be combined with --formation (set it "
+                       'in the formation file)')
+        try:
+            return load_formation(args.formation), args.formation.resolve()
+        except ValueError as error:
+            fail(PROG, f'--formation: {error}')
+    kind = args.measurement or 'range'
+    spec = FollowerSpec('follower', Scenario.paper(kind), args.strategy or 'ram', {},
+                        args.seed or 0)
+    for item in args.extra:
+        if ':=' not in item:
+            fail(PROG, f'-p must be NAME:=VALUE, got {item!r}')
+    return Formation('leader', (spec,)), None
+
+
+def prepare_out(out: Path) -> Path:
+    """Create OUT; refuse one that holds an earlier run's outputs (nothing is overwritten)."""
+    if out.exists() and not out.is_dir():
+        fail(PROG, f'--out {out}: exists and is not a folder')
+    earlier = [name for name in OUTPUTS if (out / name).exists()]
+    if earlier:
+        fail(PROG, f'--out {out}: holds an earlier run ({", ".join(earlier)}); choose a new '
+                   'folder (nothing is overwritten)')
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / '.write-test'
+        probe.write_text('')
+        probe.unlink()
+    except OSError as error:
+        fail(PROG, f'--out {out}: cannot write there: {error.strerror}')
+    return out.resolve()
+
+
+def expected_counts(prefix: str, leader: dict[str, Any] | None,
+                    followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]]
+                    ) -> dict[str, int]:
+    """Messages per topic the nodes say they published (their summaries)."""
+    out: dict[str, int] = {'/tf': 0, '/diagnostics': 0}
+    leader_ns = f"{prefix}/{leader['leader_id']}" if leader else ''
+    if leader:
+        out[resolve(leader_ns, BY_KEY['leader_odom'])] = leader['published']['odometry']
+        out[resolve(leader_ns, BY_KEY['leader_description'])] = 1
+        out['/clock'] = leader['published']['clock']
+        out['/tf'] += leader['published']['tf']
+    for follower_id, (sim, estimator) in followers.items():
+        ns = f'{prefix}/{follower_id}'
+        if sim:
+            for key, name in (('follower_odom', 'odometry'), ('measurement', 'measurement'),
+                              ('truth', 'truth')):
+                out[resolve(ns, BY_KEY[key])] = sim['published'][name]
+            out['/tf'] += sim['published']['tf']
+            out['/tf_static'] = out.get('/tf_static', 0) + 1
+        if estimator:
+            published = estimator['message_counts']['published']
+            for key in ('estimate', 'waypoint', 'status', 'markers'):
+                out[resolve(ns, BY_KEY[key])] = published[key]
+            out[resolve(ns, BY_KEY['description'])] = 1
+            out['/tf'] += published['tf']
+            out['/diagnostics'] += published['diagnostics']
+    if out.get('/clock') == 0:
+        del out['/clock']
+    return {k: v for k, v in out.items() if v or k in ('/tf',)}
+
+
+def run(args: Any) -> int:
+    """The whole run; returns the exit code."""
+    formation, formation_file = formation_of(args)
+    try:
+        check_id('--run-id', args.run_id) if args.run_id else None
+    except ValueError as error:
+        fail(PROG, str(error))
+    prefix = args.prefix.rstrip('/')
+    if prefix and not all(part and check_id_ok(part) for part in prefix.lstrip('/').split('/')):
+        fail(PROG, f'--prefix must look like /name or /name/name, got {args.prefix!r}')
+    out = prepare_out(args.out)
+    if args.domain_id is not None:
+        os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    launcher = Launcher(out)
+    record = not args.no_record
+    common: dict[str, Any] = {'mode': args.mode, 'run_id': args.run_id,
+                              'recorders': 1 if record else 0,
+                              'use_sim_time': args.mode == 'lockstep'}
+    extra = dict(item.split(':=', 1) for item in args.extra)
+    source = {'formation_file': str(formation_file)} if formation_file else {}
+    started = time.monotonic()
+    recorder = None
+    if record:
+        recorder = launcher.start('recorder', 'recorder', prefix, {
+            'output_path': str(out / 'run.mcap'), 'counts_path': str(out / 'recorder_counts.json'),
+            'leader_id': formation.leader_id,
+            'followers': [f.id for f in formation.followers]}, summary=False)
+    leader = launcher.start('leader_sim', 'leader_sim', f'{prefix}/{formation.leader_id}', {
+        **common, **source, **({} if formation_file else {
+            'followers': [f.id for f in formation.followers], **leader_extra(extra)})})
+    nodes = {}
+    for follower in formation.followers:
+        ns = f'{prefix}/{follower.id}'
+        params = {**common, **source}
+        if not formation_file:
+            spec = follower
+            params.update({'measurement': spec.scenario.measurement, 'seed': spec.seed,
+                           **extra})
+        sim = launcher.start(f'{follower.id}.follower_sim', 'follower_sim', ns,
+                             {k: v for k, v in params.items() if k != 'strategy'})
+        estimator_params = dict(params, steps=args.steps)
+        if not formation_file:
+            estimator_params['strategy'] = follower.strategy
+        estimator = launcher.start(f'{follower.id}.estimator_planner', 'estimator_planner',
+                                   ns, estimator_params)
+        nodes[follower.id] = (sim, estimator)
+    print(f'{PROG}: started {len(launcher.processes)} processes '
+          f'(ROS_DOMAIN_ID={os.environ.get("ROS_DOMAIN_ID", "0")}, {args.mode}, '
+          f'{len(formation.followers)} follower(s), {args.steps} steps); logs in {out}')
+    estimators = [e for _, e in nodes.values()]
+    others = [leader] + [s for s, _ in nodes.values()]
+    failure = ''
+    try:
+        while any(e.alive() for e in estimators):
+            dead = [p for p in others + ([recorder] if recorder else []) if not p.alive()]
+            if dead:
+                failure = f'{dead[0].name} exited before the run finished:\n{dead[0].tail()}'
+                break
+            if time.monotonic() - started > args.timeout:
+                failure = f'timeout after {args.timeout:g} s'
+                break
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        failure = 'interrupted'
+    wall = time.monotonic() - started
+    # the formation first, the recorder last, so that it keeps their last messages
+    launcher.stop(estimators + others)
+    if recorder is not None:
+        launcher.stop([recorder])
+    return write_summary(args, formation, out, launcher, leader, nodes, recorder, failure,
+                         wall, prefix)
+
+
+def check_id_ok(part: str) -> bool:
+    """True for a namespace part that is a valid id."""
+    try:
+        check_id('prefix', part)
+        return True
+    except ValueError:
+        return False
+
+
+#: Leader parameters among the single-follower -p extras.
+_LEADER_KEYS = {'dt', 'path', 'v_leader', 'omega_leader', 'amplitude', 'period',
+                'segment_durations', 'segment_speeds', 'segment_yaw_rates', 'repeat_segments'}
+
+
+def leader_extra(extra: dict[str, str]) -> dict[str, str]:
+    """The -p extras that concern the leader."""
+    return {k: v for k, v in extra.items() if k in _LEADER_KEYS}
+
+
+def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher,
+                  leader: Process, nodes: dict[str, tuple[Process, Process]],
+                  recorder: Process | None, failure: str, wall: float, prefix: str) -> int:
+    """Collect the node summaries, check the recording, write OUT/summary.json."""
+    codes = {p.name: p.code for p in launcher.processes}
+    followers = {}
+    for follower_id, (sim, estimator) in nodes.items():
+        result = estimator.summary()
+        if result is None:
+            failure = failure or f'{estimator.name} wrote no summary:\n{estimator.tail()}'
+            continue
+        if result['steps'] != args.steps:
+            failure = failure or (f"{follower_id}: the estimator processed {result['steps']} of "
+                                  f'{args.steps} steps')
+        followers[follower_id] = result
+    bad = {name: code for name, code in codes.items() if code not in (0, None)}
+    if bad and not failure:
+        name = next(iter(bad))
+        failure = f'{name} exited with code {bad[name]}'
+    recording = None
+    if recorder is not None:
+        counts_file = out / 'recorder_counts.json'
+        recorded = json.loads(counts_file.read_text())['counts'] if counts_file.exists() else {}
+        expected = expected_counts(prefix, leader.summary(), {
+            f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()})
+        missing = {topic: n - recorded.get(topic, 0) for topic, n in expected.items()
+                   if recorded.get(topic, 0) < n}
+        complete = bool(recorded) and not missing
+        recording = {'path': str(out / 'run.mcap'), 'counts': recorded, 'expected': expected,
+                     'complete': complete, 'missing': missing}
+        if not complete and not failure:
+            failure = f'the recording misses messages: {missing or "no counts"}'
+    steps = min((r['steps'] for r in followers.values()), default=0)
+    summary: dict[str, Any] = {
+        'ok': not failure, 'failure': failure or None, 'mode': args.mode, 'steps': steps,
+        'steps_requested': args.steps, 'wall_time_s': wall,
+        'steps_per_s': steps / wall if wall > 0 else None,
+        'formation': formation.to_dict(), 'followers': followers, 'exit_codes': codes,
+        'recording': recording}
+    if len(followers) == 1:                   # the single follower's results at the top too
+        summary.update({k: v for k, v in next(iter(followers.values())).items()
+                        if k not in summary})
+    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    if failure:
+        print(f'{PROG}: error: {failure}', file=sys.stderr)
+        return 1
+    traces = ', '.join(f"{f} {r['final_weighted_trace']:.6g}" for f, r in followers.items())
+    print(f'{PROG}: {steps} steps, final tr(W P W) m^2: {traces}; {wall:.2f} s wall '
+          f'({steps / wall:.1f} steps/s); {out / "summary.json"}')
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of scripts/run_formation.sh; SIGTERM stops the run like Ctrl-C (exit 1)."""
+    args = build_parser().parse_args(argv)
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+    return run(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

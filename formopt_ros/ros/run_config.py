@@ -1,0 +1,271 @@
+"""What a node runs: the parameters every formation node shares, and its leader or follower
+configuration, from a formation file or from its own parameters (never both)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.node import Node
+
+from formopt_ros.core.model import MEASUREMENT_KINDS
+from formopt_ros.core.scenario import (
+    PATH_KINDS, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
+from formopt_ros.core.strategies import STRATEGIES
+from formopt_ros.ros.naming import robot_id
+from formopt_ros.ros.params import Param, ParameterError
+from formopt_ros.wire.description import MODES
+from formopt_ros.wire.formation import load_formation
+from formopt_ros.wire.topics import DEFAULT_FOLLOWER, DEFAULT_LEADER
+
+FORMATION_FILE = Param('formation_file', '', 'a formation YAML file (config/formation_fig4.yaml '
+                       'documents it); when set, the scenario, leader path, strategy and seed '
+                       'come from it and setting them here is refused')
+FOLLOWER_ID = Param('follower_id', '', "id of the follower (frames, message filter); '' means "
+                    "the last part of the node namespace ('follower' at the root)")
+LEADER_ID = Param('leader_id', DEFAULT_LEADER, 'id of the leader: its namespace (beside this '
+                  "node's) and frame")
+MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
+             'realtime: timers at 1/dt', choices=MODES)
+DT = Param('dt', 0.05, 'sub-step length, s', 1e-3, 10.0)
+MEASUREMENT = Param('measurement', 'range', 'the follower sensor', choices=MEASUREMENT_KINDS)
+SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)', 0, 2**31 - 1)
+TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)', 0, 2**31 - 1)
+SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', 0.0, 100.0)
+SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s', 0.0,
+                    100.0)
+RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', 1e-6, 1e3)
+BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', 1e-6, 3.2)
+SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
+             '[0.0] means the paper default for the measurement kind', -1e4, 1e4)
+DEVIATION = Param('deviation_fraction', 0.1, 'allowed deviation r as a fraction of |p_o|',
+                  1e-6, 0.999)
+PATH = Param('path', 'straight', "the leader's path: straight (v_leader), arc (v_leader, "
+             'omega_leader), s-curve (v_leader, yaw rate amplitude * sin(2 pi t / period)) or '
+             'segments (the segment_* lists)', choices=PATH_KINDS)
+V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', -100.0, 100.0)
+OMEGA_LEADER = Param('omega_leader', 0.0, "leader yaw rate of an arc, rad/s (with path "
+                     "'straight', a value other than 0 makes it an arc)", -100.0, 100.0)
+AMPLITUDE = Param('amplitude', 0.0, 'peak yaw rate of an s-curve, rad/s', -100.0, 100.0)
+PERIOD = Param('period', 10.0, 'period of an s-curve, s', 1e-3, 1e6)
+SEGMENT_DURATIONS = Param('segment_durations', [1.0], 'segments: duration of each, s', 1e-3,
+                          1e6)
+SEGMENT_SPEEDS = Param('segment_speeds', [1.0], 'segments: forward speed of each, m/s', -100.0,
+                       100.0)
+SEGMENT_YAW_RATES = Param('segment_yaw_rates', [0.0], 'segments: yaw rate of each, rad/s',
+                          -100.0, 100.0)
+REPEAT = Param('repeat_segments', False, 'segments: repeat the list instead of holding the '
+               'last segment')
+RUN_ID = Param('run_id', '', 'identity of the run: messages of another run are refused; '
+               "'' accepts any")
+RECORDERS = Param('recorders', 0, 'recorders (or other subscribers of every topic) each '
+                  'publisher waits for before the first message of the run', 0, 100)
+WAIT_FOR_PEERS = Param('wait_for_peers', True, "before the first message, also wait for the "
+                       "formation nodes that listen to each topic (false: only for the "
+                       "recorders, e.g. an estimator driven by a replayed bag)")
+SUMMARY_PATH = Param('summary_path', '', 'write a JSON summary of the node here when it ends, '
+                     'also on SIGINT/SIGTERM (empty: none)')
+FOLLOWERS = Param('followers', [DEFAULT_FOLLOWER], 'ids of the followers the leader serves: '
+                  'lockstep advances when each has sent its waypoint for the next step')
+PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATIONS,
+               SEGMENT_SPEEDS, SEGMENT_YAW_RATES, REPEAT]
+INITIAL_COVARIANCE = Param(
+    'initial_covariance', [0.1, 0.1, 4e-4], 'diagonal of P_1|1 [x m^2, y m^2, phi rad^2]; the '
+    'truth starts at N([p_o, 0], P_1|1)', 1e-12, 1e6)
+SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, RANGE_SIGMA, BEARING_SIGMA, SLOT,
+                   DEVIATION, INITIAL_COVARIANCE] + PATH_PARAMS
+
+
+def strategy_params() -> list[Param]:
+    """The 'strategy' parameter and every strategy option as '<strategy>_<option>'."""
+    params = [Param('strategy', 'ram', 'motion strategy', choices=tuple(STRATEGIES),
+                    read_only=False)]
+    for name, cls in STRATEGIES.items():
+        for option, spec in cls.OPTIONS.items():
+            bounded = not isinstance(spec.default, bool)
+            params.append(Param(f'{name}_{option}', spec.default, f'{name}: {spec.description}',
+                                spec.low if bounded else None, spec.high if bounded else None,
+                                read_only=False))
+    return params
+
+
+def strategy_options(name: str, values: dict[str, Any]) -> dict[str, Any]:
+    """Options of strategy ``name`` from the '<strategy>_<option>' parameter values."""
+    return {option: values[f'{name}_{option}'] for option in STRATEGIES[name].OPTIONS}
+
+
+def leader_path_from(values: dict[str, Any]) -> LeaderPath:
+    """The leader path described by the path parameters."""
+    kind = values['path']
+    try:
+        if kind in ('straight', 'arc'):
+            return LeaderPath.constant(values['v_leader'], values['omega_leader']) \
+                if kind == 'straight' else LeaderPath('arc', values['v_leader'],
+                                                      values['omega_leader'])
+        if kind == 's-curve':
+            return LeaderPath('s-curve', values['v_leader'], amplitude=values['amplitude'],
+                              period=values['period'])
+        lists = [values[n] for n in ('segment_durations', 'segment_speeds',
+                                     'segment_yaw_rates')]
+        if len({len(v) for v in lists}) != 1:
+            raise ParameterError('parameters segment_durations, segment_speeds and '
+                                 'segment_yaw_rates must have the same length, got '
+                                 f'{[len(v) for v in lists]}')
+        return LeaderPath('segments', segments=tuple(Segment(*t) for t in zip(*lists)),
+                          repeat=values['repeat_segments'])
+    except ValueError as error:
+        raise ParameterError(f'the leader path parameters are inconsistent: {error}') from None
+
+
+def scenario_from(values: dict[str, Any]) -> Scenario:
+    """The Scenario described by the scenario parameters (paper defaults otherwise)."""
+    kind = values['measurement']
+    slot = values['formation_slot']
+    if list(slot) != [0.0] and len(slot) != 2:
+        raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
+                             f'{slot!r}')
+    p_o = Scenario.paper(kind).p_o if list(slot) == [0.0] else (float(slot[0]), float(slot[1]))
+    if len(values['initial_covariance']) != 3:
+        raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] variances, "
+                             f"got {values['initial_covariance']!r}")
+    try:
+        return Scenario.paper(
+            kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
+            sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
+            leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
+            sigma_omega=values['sigma_omega'],
+            initial_covariance=tuple(values['initial_covariance']))
+    except ValueError as error:
+        raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
+
+
+def _path_values(path: LeaderPath) -> dict[str, Any]:
+    """The path parameters that describe ``path``."""
+    return {'path': path.kind, 'v_leader': path.speed, 'omega_leader': path.yaw_rate,
+            'amplitude': path.amplitude, 'period': path.period,
+            'segment_durations': [s.duration for s in path.segments] or [1.0],
+            'segment_speeds': [s.speed for s in path.segments] or [1.0],
+            'segment_yaw_rates': [s.yaw_rate for s in path.segments] or [0.0],
+            'repeat_segments': path.repeat}
+
+
+def follower_values(spec: FollowerSpec, trial: int, leader_id: str) -> dict[str, Any]:
+    """The parameters of a follower node that describe ``spec`` (inverse of follower_run)."""
+    scenario = spec.scenario
+    kind = scenario.measurement
+    values = {'measurement': kind, 'dt': scenario.dt, 'sigma_v': scenario.sigma_v,
+              'sigma_omega': scenario.sigma_omega,
+              'range_sigma': scenario.sigma if kind == 'range' else RANGE_SIGMA.default,
+              'bearing_sigma': scenario.sigma if kind == 'bearing' else BEARING_SIGMA.default,
+              'formation_slot': list(scenario.p_o),
+              'deviation_fraction': scenario.r / scenario.d_o,
+              'initial_covariance': list(scenario.initial_covariance), 'seed': spec.seed,
+              'trial': trial, 'leader_id': leader_id, 'strategy': spec.strategy,
+              **_path_values(scenario.leader)}
+    values.update({f'{spec.strategy}_{k}': v for k, v in spec.options.items()})
+    return values
+
+
+def formation_defaults(node: Node, role: str) -> dict[str, Any]:
+    """Parameter defaults from the file named by the node's ``formation_file`` override.
+
+    Args:
+        role: 'leader' or 'follower' (follower_sim and estimator_planner).
+
+    Returns:
+        {} without a formation file; else the values that describe this robot in the file.
+
+    Raises:
+        ParameterError: the file does not load, has no such robot, or a parameter it decides is
+            also set on the node.
+    """
+    override = node._parameter_overrides.get('formation_file')
+    path = override.value if override is not None else ''
+    if not path:
+        return {}
+    try:
+        formation = load_formation(path)
+    except ValueError as error:
+        raise ParameterError(f"parameter 'formation_file': {error}") from None
+    if role == 'leader':
+        values = {'dt': formation.dt, 'followers': [f.id for f in formation.followers],
+                  **_path_values(formation.leader)}
+        leader_id = robot_id(node, DEFAULT_LEADER)
+        if formation.leader_id != leader_id:
+            raise ParameterError(f"parameter 'formation_file': its leader is "
+                                 f'{formation.leader_id!r}, but this node runs in the namespace '
+                                 f'of {leader_id!r} (start it with -r '
+                                 f'__ns:=/{formation.leader_id})')
+    else:
+        follower_override = node._parameter_overrides.get('follower_id')
+        follower_id = (follower_override.value if follower_override is not None else '') \
+            or robot_id(node, DEFAULT_FOLLOWER)
+        try:
+            spec = formation.follower(follower_id)
+        except ValueError as error:
+            raise ParameterError(f"parameter 'formation_file': {error}") from None
+        values = follower_values(spec, formation.trial, formation.leader_id)
+    conflicts = sorted(set(values) & set(node._parameter_overrides))
+    if conflicts:
+        raise ParameterError(f"parameter '{conflicts[0]}' conflicts with parameter "
+                             f"'formation_file': the file {path} sets it")
+    return values
+
+
+@dataclass(frozen=True)
+class FollowerRun:
+    """A follower node's configuration."""
+
+    follower_id: str
+    leader_id: str
+    spec: FollowerSpec
+    trial: int
+
+
+def follower_run(node: Node, values: dict[str, Any], strategy_owned: bool) -> FollowerRun:
+    """The follower configuration of a follower_sim or estimator_planner from its (declared,
+    effective) parameters.
+
+    Args:
+        strategy_owned: the node has the strategy parameters (estimator_planner).
+    """
+    follower_id = values['follower_id'] or robot_id(node, DEFAULT_FOLLOWER)
+    strategy, options = 'ram', {}
+    if strategy_owned:
+        strategy = values['strategy']
+        options = strategy_options(strategy, values)
+    try:
+        spec = FollowerSpec(follower_id, scenario_from(values), strategy, options,
+                            values['seed'])
+    except ValueError as error:
+        raise ParameterError(str(error)) from None
+    return FollowerRun(follower_id, values['leader_id'], spec, values['trial'])
+
+
+@dataclass(frozen=True)
+class LeaderRun:
+    """The leader node's configuration."""
+
+    leader_id: str
+    path: LeaderPath
+    dt: float
+    followers: tuple[str, ...]
+
+
+def leader_run(node: Node, values: dict[str, Any]) -> LeaderRun:
+    """The leader_sim configuration: its path, dt and the followers it serves."""
+    followers = tuple(values['followers'])
+    if not followers or len(set(followers)) != len(followers):
+        raise ParameterError(f"parameter 'followers' must list distinct follower ids, got "
+                             f'{list(followers)!r}')
+    for follower in followers:
+        try:
+            check_id('follower id', follower)
+        except ValueError as error:
+            raise ParameterError(f"parameter 'followers': {error}") from None
+    return LeaderRun(robot_id(node, DEFAULT_LEADER), leader_path_from(values), values['dt'],
+                     followers)
+
+
+__all__ = ['FollowerRun', 'LeaderRun', 'follower_run', 'follower_values', 'formation_defaults',
+           'leader_run']

@@ -1,0 +1,26 @@
+"""Formation files (YAML): one leader, its path, and the followers with sensor, slot, allowed
+deviation, noise and strategy; see config/formation_fig4.yaml for every key documented."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from formopt_ros.core.scenario import Formation
+
+
+def load_formation(path: str | Path) -> Formation:
+    """The formation of a YAML file; ValueError with the file name and what is wrong."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f'{path}: no such formation file') from None
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f'{path}: cannot read the formation: {error}') from None
+    if not isinstance(data, dict) or 'formation' not in data:
+        raise ValueError(f"{path}: a formation file has one top-level key 'formation'")
+    try:
+        return Formation.from_dict(data['formation'] or {})
+    except ValueError as error:
+        raise ValueError(f'{path}: {error}') from None
