@@ -18,8 +18,12 @@ COLOURS = {'mtf': 'tab:gray', 'crm': 'tab:orange', 'mme': 'tab:purple', 'gbs': '
            'ram': 'tab:blue', 'rq': 'tab:red'}
 
 
+#: Colours of other curves (followers by id), stable per name.
+_PALETTE = ('tab:cyan', 'tab:brown', 'tab:pink', 'tab:olive', 'darkblue', 'darkred')
+
+
 def _colour(name: str) -> str:
-    return COLOURS.get(name, 'black')
+    return COLOURS.get(name, _PALETTE[sum(map(ord, name)) % len(_PALETTE)])
 
 
 def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, title: str,
@@ -105,7 +109,7 @@ def trajectory_figure(panels: dict[str, dict[str, Any]], path: Path, title: str,
         path: PNG file to write.
         every: draw an ellipse and a disc every ``every`` steps.
     """
-    fig, axes = plt.subplots(len(panels), 1, figsize=(9, 2.8 * len(panels)), squeeze=False)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 3.6 * len(panels)), squeeze=False)
     for ax, (name, panel) in zip(axes[:, 0], panels.items()):
         leader = np.asarray(panel['leader'], dtype=float)
         ax.plot(leader[:, 0], leader[:, 1], 'k.-', markersize=3, linewidth=0.8, label='leader')
@@ -133,7 +137,7 @@ def trajectory_figure(panels: dict[str, dict[str, Any]], path: Path, title: str,
         ax.set_ylabel('y [m]')
         ax.set_title(f'{title}: {name}', fontsize=9)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc='upper right', fontsize=7, ncol=2)
+        ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
     axes[-1, 0].set_xlabel('x [m] (fixed frame)')
     return _save(fig, path)
 

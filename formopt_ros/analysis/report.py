@@ -94,85 +94,112 @@ def load_run(recording: Recording, follower: FollowerRecording) -> Run:
                scenario.dt, statuses[-1])
 
 
-def make_report(recording: Recording, out: Path, trajectory_steps: int = 100,
+def make_report(recording: Recording, out: Path, trajectory_steps: int = 40,
                 follower_id: str | None = None) -> dict[str, Any]:
-    """Write trajectory.png, weighted_trace.png, nees.png, summary.json and summary.md."""
+    """Write trajectory.png (the paper's Fig. 4 for a formation: the leader and every follower,
+    3-sigma ellipses and feasible discs), weighted_trace.png, nees.png, summary.json and
+    summary.md (one row per follower)."""
     bag = recording.bag
-    follower = recording.follower(follower_id)
-    run = load_run(recording, follower)
+    followers = [recording.follower(follower_id)] if follower_id else \
+        sorted(recording.followers.values(), key=_vertical_order)
+    runs = {f.follower_id: load_run(recording, f) for f in followers}
     out.mkdir(parents=True, exist_ok=True)
-    n = len(run.steps)
+    n = min(len(run.steps) for run in runs.values())
     shown = slice(0, min(n, trajectory_steps))
-    has_truth = bool(np.any(np.isfinite(run.truth[:, 0])))
-    has_way = bool(np.any(np.isfinite(run.waypoints[:, 0])))
-    panel = {'leader': run.leader[shown], 'followers': [{
-        'label': follower.follower_id, 'strategy': run.strategy,
-        'estimate': run.estimate[shown], 'covariance': run.covariance[shown],
-        'truth': run.truth[shown] if has_truth else None,
-        'waypoints': run.waypoints[shown] if has_way else None, 'p_o': run.p_o, 'r': run.r}]}
-    figures = [trajectory_figure(
-        {run.strategy.upper(): panel}, out / 'trajectory.png',
-        f'{bag.path.name}: {run.measurement}, first {len(run.steps[shown])} steps',
-        every=max(3, len(run.steps[shown]) // 30))]
-    figures.append(trace_figure(run.time, {run.strategy: run.weighted_trace},
-                                out / 'weighted_trace.png',
-                                f'{bag.path.name}: weighted trace ({run.measurement})'))
-    valid = np.isfinite(run.nees)
-    if np.any(valid):
-        figures.append(nees_figure(run.time[valid], {run.strategy: run.nees[valid]},
+    first = next(iter(runs.values()))
+    panel: dict[str, Any] = {'leader': first.leader[shown], 'followers': []}
+    for follower_id_, run in runs.items():
+        has_truth = bool(np.any(np.isfinite(run.truth[:, 0])))
+        has_way = bool(np.any(np.isfinite(run.waypoints[:, 0])))
+        panel['followers'].append({
+            'label': f'{follower_id_} ({run.measurement}, {run.strategy})',
+            'strategy': run.strategy if len(runs) == 1 else follower_id_,
+            'estimate': run.estimate[shown], 'covariance': run.covariance[shown],
+            'truth': run.truth[shown] if has_truth else None,
+            'waypoints': run.waypoints[shown] if has_way else None, 'p_o': run.p_o,
+            'r': run.r})
+    title = f'{bag.path.name}: first {len(first.steps[shown])} steps'
+    figures = [trajectory_figure({'formation' if len(runs) > 1 else first.strategy.upper():
+                                  panel}, out / 'trajectory.png', title,
+                                 every=max(3, len(first.steps[shown]) // 30))]
+    figures.append(trace_figure(first.time[:n], {f: r.weighted_trace[:n]
+                                                 for f, r in runs.items()},
+                                out / 'weighted_trace.png', f'{bag.path.name}: weighted trace',
+                                zoom=()))
+    valid = {f: np.isfinite(r.nees) for f, r in runs.items()}
+    if any(np.any(v) for v in valid.values()):
+        figures.append(nees_figure(first.time[:n], {f: np.where(valid[f], r.nees, np.nan)[:n]
+                                                    for f, r in runs.items()},
                                    nees_band(1), out / 'nees.png',
                                    f'{bag.path.name}: NEES (one run)'))
-    window = steady_window(n)
-    status = run.last_status
-    counts = bag.counts()
     times = [r.log_time for r in bag.messages]
-    summary = {
+    rows = {f: _follower_summary(recording, runs[f], next(x for x in followers
+                                                          if x.follower_id == f))
+            for f in runs}
+    summary: dict[str, Any] = {
         'bag': str(bag.path),
+        'duration_s': (max(times) - min(times)) * 1e-9 if times else 0.0,
+        'nees_band_95': list(nees_band(1)),
+        'followers': rows,
+        'message_counts': bag.counts(),
+        'figures': [p.name for p in figures],
+    }
+    if len(rows) == 1:                     # the single follower's row at the top level too
+        summary.update(next(iter(rows.values())))
+    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    (out / 'summary.md').write_text(_markdown(summary))
+    return summary
+
+
+def _vertical_order(follower: FollowerRecording) -> float:
+    """Followers top to bottom as Fig. 4 shows them: by decreasing slot y."""
+    return -float(follower.description.scenario.p_o[1])
+
+
+def _follower_summary(recording: Recording, run: Run,
+                      follower: FollowerRecording) -> dict[str, Any]:
+    n = len(run.steps)
+    window = steady_window(n)
+    valid = np.isfinite(run.nees)
+    status = run.last_status
+    return {
         'follower_id': follower.follower_id,
         'description': 'reconstructed from the messages' if follower.legacy else 'recorded',
         'steps': int(status.step),
         'estimates': n,
         'strategy': run.strategy,
         'measurement': run.measurement,
+        'slot_m': [float(v) for v in run.p_o],
+        'r_m': run.r,
         'dt_s': run.dt,
-        'duration_s': (max(times) - min(times)) * 1e-9 if times else 0.0,
         'steady_weighted_trace': float(np.nanmean(run.weighted_trace[-window:])),
         'steady_window_steps': window,
         'final_weighted_trace': float(run.weighted_trace[-1]),
         'mean_nees': float(np.mean(run.nees[valid])) if np.any(valid) else None,
         'nees_steps': int(np.sum(valid)),
-        'nees_band_95': list(nees_band(1)),
         'rejected_measurements': int(status.rejected_measurements),
         'rejected_odometry': int(status.rejected_odometry),
         'accepted_measurements': int(status.accepted_measurements),
-        'message_counts': counts,
-        'figures': [p.name for p in figures],
     }
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
-    (out / 'summary.md').write_text(_markdown(summary))
-    return summary
 
 
-def _markdown(s: dict) -> str:
-    nees = 'n/a (no truth recorded)' if s['mean_nees'] is None else (
-        f"{s['mean_nees']:.3f} over {s['nees_steps']} steps (95% band for one run "
-        f"{s['nees_band_95'][0]:.3f} to {s['nees_band_95'][1]:.3f})")
-    lines = [
-        f"# Formation run: {Path(s['bag']).name}", '',
-        '| quantity | value |', '|---|---|',
-        f"| steps | {s['steps']} |",
-        f"| strategy | {s['strategy']} |",
-        f"| measurement | {s['measurement']} |",
-        f"| sub-step dt | {s['dt_s']} s |",
-        f"| recorded duration | {s['duration_s']:.3f} s |",
-        f"| steady tr(W P W) (last {s['steady_window_steps']} steps) | "
-        f"{s['steady_weighted_trace']:.6g} m^2 |",
-        f"| final tr(W P W) | {s['final_weighted_trace']:.6g} m^2 |",
-        f'| mean NEES | {nees} |',
-        f"| rejected measurements / odometry (last status) | {s['rejected_measurements']} / "
-        f"{s['rejected_odometry']} |",
-        f"| accepted measurements | {s['accepted_measurements']} |", '',
-        '## Messages per topic', '', '| topic | messages |', '|---|---|']
+def _markdown(s: dict[str, Any]) -> str:
+    lo, hi = s['nees_band_95']
+    lines = [f"# Formation run: {Path(s['bag']).name}", '',
+             f"Recorded duration {s['duration_s']:.3f} s. Steady value: mean tr(W P W) over the "
+             f'last steps (column); NEES of one run, 95 % band {lo:.3f} to {hi:.3f}.', '',
+             '| follower | sensor | strategy | slot [m] | r [m] | steps | steady tr(W P W) '
+             '[m^2] | final tr(W P W) [m^2] | mean NEES | refused meas. / odom. |',
+             '|---|---|---|---|---|---|---|---|---|---|']
+    for f, row in s['followers'].items():
+        nees = 'n/a' if row['mean_nees'] is None else f"{row['mean_nees']:.3f}"
+        lines.append(
+            f"| {f} | {row['measurement']} | {row['strategy']} | "
+            f"[{row['slot_m'][0]:g}, {row['slot_m'][1]:g}] | {row['r_m']:.4g} | "
+            f"{row['steps']} | {row['steady_weighted_trace']:.6g} (last "
+            f"{row['steady_window_steps']}) | {row['final_weighted_trace']:.6g} | {nees} | "
+            f"{row['rejected_measurements']} / {row['rejected_odometry']} |")
+    lines += ['', '## Messages per topic', '', '| topic | messages |', '|---|---|']
     lines += [f'| {topic} | {count} |' for topic, count in sorted(s['message_counts'].items())]
     lines += ['', '## Figures', ''] + [f'![{name}]({name})' for name in s['figures']]
     return '\n'.join(lines) + '\n'

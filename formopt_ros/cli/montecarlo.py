@@ -14,6 +14,7 @@ import numpy as np
 from formopt_ros.cli.common import ArgumentParser, fail, integer, new_folder, number
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.scenario import LeaderPath
 from formopt_ros.core.simulation import leader_poses
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
@@ -49,6 +50,18 @@ def build_parser() -> ArgumentParser:
                         help=f'GBS grid spacing as a fraction of r, in [{MIN_GBS_CELL}, 1] '
                              f"(default: {STUDY_OPTIONS['gbs']['cell']}; the library default "
                              'is 0.005)')
+    paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
+    paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
+                       default='straight', help='straight, arc (--yaw-rate) or s-curve '
+                       '(--amplitude, --period)')
+    paths.add_argument('--speed', type=number(-100.0, 100.0), default=1.0,
+                       help='leader speed, m/s (default 1)')
+    paths.add_argument('--yaw-rate', type=number(-100.0, 100.0), default=0.5,
+                       help='arc: yaw rate, rad/s (default 0.5)')
+    paths.add_argument('--amplitude', type=number(-100.0, 100.0), default=0.5,
+                       help='s-curve: peak yaw rate, rad/s (default 0.5)')
+    paths.add_argument('--period', type=number(1e-3, 1e6), default=10.0,
+                       help='s-curve: period, s (default 10)')
     parser.add_argument('--out', type=new_folder, default=Path('runs/montecarlo'),
                         help='output folder, new or empty; results go to OUT/<measurement>/ '
                              '(default: runs/montecarlo)')
@@ -118,12 +131,23 @@ def _figures(result: StudyResult, out: Path, time_s: np.ndarray, mean_trace: dic
                                   f'{kind}-only, trial 0, first {n} steps')
 
 
+def describe_path(path: dict[str, Any]) -> str:
+    """'straight at 1 m/s', 'arc at 1 m/s, 0.5 rad/s', ..."""
+    text = f"{path['kind']} at {path['speed']:g} m/s"
+    if path['kind'] == 'arc':
+        text += f", {path['yaw_rate']:g} rad/s"
+    elif path['kind'] == 's-curve':
+        text += f", {path['amplitude']:g} rad/s peak, period {path['period']:g} s"
+    return text
+
+
 def report_markdown(summary: dict[str, Any]) -> str:
     """A short Markdown report with the summary table."""
     lo, hi = summary['nees_band']
     lines = [f"# Monte Carlo, {summary['measurement']}-only",
              '',
              f"{summary['trials']} trials x {summary['steps']} steps, seed {summary['seed']}, "
+             f"leader {describe_path(summary['leader'])}, "
              f"GBS cell {summary['gbs_cell']} r. Steady value: mean over the last "
              f"{summary['steady_window']} steps. NEES band (95 %, 3 dof, trial mean): "
              f'[{lo:.3f}, {hi:.3f}].',
@@ -139,6 +163,15 @@ def report_markdown(summary: dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def leader_path(args: Any) -> LeaderPath:
+    """The leader path of the command line."""
+    if args.leader_path == 'arc':
+        return LeaderPath('arc', args.speed, args.yaw_rate)
+    if args.leader_path == 's-curve':
+        return LeaderPath('s-curve', args.speed, amplitude=args.amplitude, period=args.period)
+    return LeaderPath('straight', args.speed)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = build_parser()
@@ -149,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     for kind in kinds:
         try:
             config = StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
-                                 {'gbs': {'cell': args.gbs_cell}})
+                                 {'gbs': {'cell': args.gbs_cell}}, leader_path(args))
         except ValueError as error:
             fail(parser.prog, f'--strategies: {error}')
         bar = _progress(args.trials * len(strategies), kind)

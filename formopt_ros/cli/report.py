@@ -17,8 +17,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--out', type=new_folder, required=True,
                         help='output folder (new, or empty)')
     parser.add_argument('--follower', help='which follower (default: the only one)')
-    parser.add_argument('--trajectory-steps', type=integer(1), default=100,
-                        help='steps drawn in the trajectory figure (default: first 100)')
+    parser.add_argument('--trajectory-steps', type=integer(1), default=40,
+                        help='steps drawn in the trajectory figure (default: first 40)')
     return parser
 
 
@@ -30,11 +30,12 @@ def main(argv: list[str] | None = None) -> int:
                               args.trajectory_steps, args.follower)
     except BagError as error:
         fail('formopt-report', str(error))
-    nees = 'n/a' if summary['mean_nees'] is None else f"{summary['mean_nees']:.3f}"
-    print(f"{args.bag}: {summary['steps']} steps, {summary['strategy']}, "
-          f"{summary['measurement']}; steady tr(W P W) {summary['steady_weighted_trace']:.6g} "
-          f"m^2; mean NEES {nees}; wrote {', '.join(summary['figures'])}, summary.json, "
-          f'summary.md to {args.out}')
+    for follower, row in summary['followers'].items():
+        nees = 'n/a' if row['mean_nees'] is None else f"{row['mean_nees']:.3f}"
+        print(f"{args.bag} {follower}: {row['steps']} steps, {row['strategy']}, "
+              f"{row['measurement']}; steady tr(W P W) {row['steady_weighted_trace']:.6g} m^2; "
+              f'mean NEES {nees}')
+    print(f"wrote {', '.join(summary['figures'])}, summary.json, summary.md to {args.out}")
     return 0
 
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
 
@@ -32,6 +32,7 @@ class StudyConfig:
     Attributes:
         options: strategy name -> options (validated here); strategies not listed use
             :data:`STUDY_OPTIONS`, then the library defaults.
+        leader: the leader's path (the paper: straight at 1 m/s).
     """
 
     measurement: str
@@ -40,6 +41,7 @@ class StudyConfig:
     seed: int = 0
     strategies: tuple[str, ...] = METHODS
     options: dict[str, dict[str, object]] = field(default_factory=dict)
+    leader: LeaderPath = field(default_factory=LeaderPath)
 
     def __post_init__(self) -> None:
         unknown = [s for s in self.strategies if s not in METHODS]
@@ -54,6 +56,10 @@ class StudyConfig:
         for name, values in merged.items():
             make_strategy(name, **values)           # ValueError naming a bad option
         object.__setattr__(self, 'options', merged)
+
+    def scenario(self) -> Scenario:
+        """The Sec. V scenario of the measurement kind with this study's leader path."""
+        return Scenario.paper(self.measurement, leader=self.leader)
 
     def strategy_options(self, strategy: str) -> dict[str, object]:
         """Options of ``strategy`` in this study."""
@@ -85,7 +91,7 @@ class StudyResult:
 
 def _task(args: tuple[StudyConfig, str, int]) -> tuple[str, int, TrialResult]:
     config, strategy, trial = args
-    scenario = Scenario.paper(config.measurement)
+    scenario = config.scenario()
     return strategy, trial, run_trial(scenario, strategy, config.seed, trial, config.steps,
                                       config.strategy_options(strategy))
 
@@ -100,7 +106,7 @@ def run_study(config: StudyConfig, jobs: int | None = None,
         progress: called with 1 after each finished task.
     """
     jobs = jobs or os.cpu_count() or 1
-    scenario = Scenario.paper(config.measurement)
+    scenario = config.scenario()
     shape = (config.trials, config.steps)
     result = StudyResult(config, scenario, {
         s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape))
@@ -163,6 +169,7 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'decision_time_s': float(record.decision_time.mean()),
         }
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
-            'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],
+            'seed': config.seed, 'leader': config.leader.to_dict(),
+            'gbs_cell': config.settings('gbs')['cell'],
             'options': {name: config.settings(name) for name in strategies},
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies}

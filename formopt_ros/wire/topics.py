@@ -36,7 +36,7 @@ class Topic:
         key: short name used in code and counts.
         name: name relative to the publisher's namespace, or absolute ('/tf').
         type: ROS message type 'pkg/msg/Name'.
-        publisher: the node that publishes it.
+        publishers: the nodes that publish it.
         qos: QoS kind ('stream', 'latched', 'tf', 'clock', 'diagnostics').
         description: what it carries.
     """
@@ -44,50 +44,51 @@ class Topic:
     key: str
     name: str
     type: str
-    publisher: str
+    publishers: tuple[str, ...]
     qos: str
     description: str
     listeners: tuple[str, ...] = ()
 
 
 LEADER_TOPICS = (
-    Topic('leader_odom', 'odom', 'nav_msgs/msg/Odometry', 'leader_sim', 'stream',
+    Topic('leader_odom', 'odom', 'nav_msgs/msg/Odometry', ('leader_sim',), 'stream',
           "the leader's odometry per sub-step (pose in 'odom', twist in the leader frame)",
           ('follower_sim', 'estimator_planner')),
     Topic('leader_description', 'description', 'formopt_interfaces/msg/RunDescription',
-          'leader_sim', 'latched', "the leader's description (path, dt, followers, run id)"),
+          ('leader_sim',), 'latched', "the leader's description (path, dt, followers, run id)"),
 )
 FOLLOWER_TOPICS = (
-    Topic('follower_odom', 'odom', 'nav_msgs/msg/Odometry', 'follower_sim', 'stream',
+    Topic('follower_odom', 'odom', 'nav_msgs/msg/Odometry', ('follower_sim',), 'stream',
           "the follower's odometry per sub-step: commanded velocities, noise variances",
           ('estimator_planner',)),
-    Topic('measurement', 'measurement', 'formopt_interfaces/msg/Measurement', 'follower_sim',
+    Topic('measurement', 'measurement', 'formopt_interfaces/msg/Measurement', ('follower_sim',),
           'stream', 'one range or bearing measurement per step', ('estimator_planner',)),
-    Topic('truth', 'truth', 'geometry_msgs/msg/PoseStamped', 'follower_sim', 'stream',
+    Topic('truth', 'truth', 'geometry_msgs/msg/PoseStamped', ('follower_sim',), 'stream',
           'the true follower pose in the leader frame (evaluation only)',
           ('estimator_planner',)),
     Topic('estimate', 'estimate', 'geometry_msgs/msg/PoseWithCovarianceStamped',
-          'estimator_planner', 'stream', 'the EKF estimate of the pose in the leader frame'),
-    Topic('waypoint', 'waypoint', 'formopt_interfaces/msg/Waypoint', 'estimator_planner',
+          ('estimator_planner',), 'stream', 'the EKF estimate of the pose in the leader frame'),
+    Topic('waypoint', 'waypoint', 'formopt_interfaces/msg/Waypoint', ('estimator_planner',),
           'stream', 'the next position (leader frame) and the commands that reach it',
           ('leader_sim', 'follower_sim')),
-    Topic('status', 'status', 'formopt_interfaces/msg/PlannerStatus', 'estimator_planner',
+    Topic('status', 'status', 'formopt_interfaces/msg/PlannerStatus', ('estimator_planner',),
           'stream', 'progress, cost and input counters after each step and every second'),
-    Topic('markers', 'markers', 'visualization_msgs/msg/MarkerArray', 'estimator_planner',
+    Topic('markers', 'markers', 'visualization_msgs/msg/MarkerArray', ('estimator_planner',),
           'stream', 'slot, feasible disc, chosen waypoint and 3-sigma ellipse (leader frame)'),
     Topic('description', 'description', 'formopt_interfaces/msg/RunDescription',
-          'estimator_planner', 'latched', 'the run description (scenario, strategy, seed)'),
+          ('estimator_planner',), 'latched', 'the run description (scenario, strategy, seed)'),
 )
 GLOBAL_TOPICS = (
-    Topic('tf', '/tf', 'tf2_msgs/msg/TFMessage', 'every node', 'tf',
+    Topic('tf', '/tf', 'tf2_msgs/msg/TFMessage',
+          ('leader_sim', 'follower_sim', 'estimator_planner'), 'tf',
           'odom -> leader, leader -> <follower>/estimate and <follower>/truth, '
           '<follower>/odom -> <follower>'),
-    Topic('tf_static', '/tf_static', 'tf2_msgs/msg/TFMessage', 'follower_sim', 'tf_static',
+    Topic('tf_static', '/tf_static', 'tf2_msgs/msg/TFMessage', ('follower_sim',), 'tf_static',
           "odom -> <follower>/odom: where each follower's odometry frame starts"),
-    Topic('clock', '/clock', 'rosgraph_msgs/msg/Clock', 'leader_sim', 'clock',
+    Topic('clock', '/clock', 'rosgraph_msgs/msg/Clock', ('leader_sim',), 'clock',
           'lockstep simulated time (use_sim_time:=true makes node clocks follow it)'),
     Topic('diagnostics', '/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray',
-          'estimator_planner', 'diagnostics', 'OK / WARN / ERROR of every estimator, 1 Hz'),
+          ('estimator_planner',), 'diagnostics', 'OK / WARN / ERROR of every estimator, 1 Hz'),
 )
 BY_KEY = {t.key: t for t in LEADER_TOPICS + FOLLOWER_TOPICS + GLOBAL_TOPICS}
 

@@ -267,7 +267,7 @@ def test_report(recording: Recording, tmp_path: Path) -> None:
         recording.summary['final_weighted_trace'], abs=1e-12)
     assert summary['rejected_measurements'] == summary['rejected_odometry'] == 0
     assert summary['description'] == 'recorded'
-    assert '| steps | 40 |' in (out / 'summary.md').read_text()
+    assert '| follower | bearing | ram | [-1, 2] |' in (out / 'summary.md').read_text()
 
 
 # --- bad bags ------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,19 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     from rosbags.highlevel import AnyReader
     with AnyReader([out / 'run.mcap']) as reader:
         assert sum(1 for _ in reader.messages()) == sum(counts.values())
+    # formopt-report draws the paper's Fig. 4 and a row per follower, top to bottom
+    report = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.report',
+                             str(out / 'run.mcap'), '--out', str(out / 'report')],
+                            capture_output=True, text=True, timeout=120)
+    assert report.returncode == 0, report.stderr
+    rows = json.loads((out / 'report' / 'summary.json').read_text())['followers']
+    assert list(rows) == ['bearing', 'range']
+    for follower, ref in reference.items():
+        assert rows[follower]['steps'] == STEPS and rows[follower]['description'] == 'recorded'
+        assert rows[follower]['final_weighted_trace'] == pytest.approx(
+            ref.weighted_trace[-1], abs=TOL)
+        assert rows[follower]['mean_nees'] == pytest.approx(float(np.mean(ref.nees)), rel=1e-9)
+    assert (out / 'report' / 'trajectory.png').stat().st_size > 20_000
 
 
 @pytest.mark.parametrize('args,text', [

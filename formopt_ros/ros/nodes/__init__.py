@@ -1,7 +1,9 @@
 """The nodes: leader_sim, follower_sim, estimator_planner, recorder, replay.
 
 ``python -m formopt_ros.ros.nodes --write-configs DIR`` writes every node's documented
-parameters file (the repository's config/ is generated this way and checked by the tests).
+parameters file, ``--readme`` prints README's node reference (topics with types and QoS,
+parameters, frames); the repository's config/ and README are generated this way and checked
+by the tests.
 """
 from __future__ import annotations
 
@@ -22,14 +24,68 @@ def config_text(node: str) -> str:
     return config_yaml(node, module.SUMMARY, module.PARAMS)
 
 
+#: The formation nodes of the README reference, with their robot namespace.
+FORMATION_NODES = {'leader_sim': '/<leader>', 'follower_sim': '/<follower>',
+                   'estimator_planner': '/<follower>'}
+#: Frames: (frame, parent, published by, meaning).
+FRAMES = (
+    ('odom', '-', 'leader_sim', "the fixed frame: the leader's odometry starts at its origin"),
+    ('<leader>', 'odom', 'leader_sim (/tf)', "the leader's body; the frame of every estimate, "
+     'truth, waypoint and marker'),
+    ('<follower>/estimate', '<leader>', 'estimator_planner (/tf)',
+     'the estimated follower pose (the EKF state)'),
+    ('<follower>/truth', '<leader>', 'follower_sim (/tf)', 'the true follower pose'),
+    ('<follower>/odom', 'odom', 'follower_sim (/tf_static)',
+     "where the follower's odometry started (its true start pose)"),
+    ('<follower>', '<follower>/odom', 'follower_sim (/tf)',
+     "the follower's body by dead reckoning of its (noisy) odometry"),
+)
+
+
+def readme_text() -> str:
+    """README's node reference: per node, its topics (name, type, QoS) and parameters; then the
+    frames."""
+    from formopt_ros.ros import qos
+    from formopt_ros.wire.topics import BY_KEY
+    lines = []
+    for node, robot in FORMATION_NODES.items():
+        module = importlib.import_module(NODES[node])
+        lines += [f'#### {node} (namespace `{robot}`)', '', module.SUMMARY, '',
+                  '| direction | topic | type | QoS |', '|---|---|---|---|']
+        for topic in BY_KEY.values():
+            owner = '/<leader>' if topic.key.startswith('leader') else '/<follower>'
+            name = topic.name if topic.name.startswith('/') else f'{owner}/{topic.name}'
+            profile = qos.describe(qos.profile(topic.qos))
+            if node in topic.publishers:
+                lines.append(f'| publishes | `{name}` | `{topic.type}` | {profile} |')
+            if node in topic.listeners:
+                lines.append(f'| subscribes | `{name}` | `{topic.type}` | {profile} |')
+        lines += ['', '| parameter | default | accepts | |', '|---|---|---|---|']
+        for spec in module.PARAMS:
+            mutable = 'read-only' if spec.read_only else '**settable at run time**'
+            lines.append(f'| `{spec.name}` | `{spec.default!r}` | {spec.expected()} | '
+                         f'{mutable} |')
+        lines.append('')
+    lines += ['#### Frames (REP-103/105 style: x forward, y left, yaw counter-clockwise)', '',
+              '| frame | parent | published by | meaning |', '|---|---|---|---|']
+    lines += [f'| `{f}` | `{p}` | {who} | {what} |' for f, p, who, what in FRAMES]
+    return '\n'.join(lines) + '\n'
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Write (or print) the nodes' parameter files."""
+    """Write the nodes' parameter files, or print README's node reference."""
     parser = argparse.ArgumentParser(prog='python -m formopt_ros.ros.nodes',
                                      description='Write the documented parameters file of '
-                                                 'every node.')
-    parser.add_argument('--write-configs', type=Path, metavar='DIR', required=True,
-                        help='folder to write <node>.yaml into (existing files are replaced)')
+                                                 'every node, or print the node reference.')
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument('--write-configs', type=Path, metavar='DIR',
+                       help='folder to write <node>.yaml into (existing files are replaced)')
+    group.add_argument('--readme', action='store_true',
+                       help="print README's node reference (Markdown)")
     args = parser.parse_args(argv)
+    if args.readme:
+        print(readme_text(), end='')
+        return 0
     args.write_configs.mkdir(parents=True, exist_ok=True)
     for node in NODES:
         (args.write_configs / f'{node}.yaml').write_text(config_text(node))
