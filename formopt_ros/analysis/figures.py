@@ -13,7 +13,7 @@ from matplotlib.patches import Circle, Ellipse  # noqa: E402
 
 #: One colour per strategy, stable across figures.
 COLOURS = {'mtf': 'tab:gray', 'crm': 'tab:orange', 'mme': 'tab:purple', 'gbs': 'tab:green',
-           'ram': 'tab:blue', 'rq': 'tab:red'}
+           'ram': 'tab:blue', 'rq': 'tab:red', 'periodic': 'tab:cyan'}
 
 
 def _colour(name: str) -> str:
@@ -21,7 +21,7 @@ def _colour(name: str) -> str:
 
 
 def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, title: str,
-                 zoom: tuple[str, ...] = ('ram', 'rq', 'gbs')) -> Path:
+                 zoom: tuple[str, ...] = ('ram', 'rq', 'gbs', 'periodic')) -> Path:
     """Mean tr(W P W) over time per strategy, log scale, with a zoomed inset of ``zoom``.
 
     Args:
