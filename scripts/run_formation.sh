@@ -12,7 +12,7 @@ estimator has processed --steps measurement steps, stop the others with SIGINT a
 DIR/summary.json (final estimate and truth, tr(W P W), message counts, wall time, steps/s).
 
   --measurement range|bearing   the follower's sensor (default range)
-  --strategy NAME               mtf, crm, mme, gbs, ram or rq (default ram)
+  --strategy NAME               mtf, crm, mme, gbs, ram, rq or periodic (default ram)
   --steps N                     measurement steps, N >= 1 (default 100)
   --seed S                      seed of the random streams, S >= 0 (default 0)
   --mode lockstep|realtime      lockstep: deterministic, equals the pure simulation;
