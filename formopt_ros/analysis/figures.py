@@ -50,7 +50,7 @@ def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, ti
         inset.set_title('zoom: ' + ', '.join(n.upper() for n in shown), fontsize=8)
         inset.tick_params(labelsize=7)
         inset.grid(True, alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def nees_figure(time: np.ndarray, nees: dict[str, np.ndarray], band: tuple[float, float],
@@ -67,7 +67,7 @@ def nees_figure(time: np.ndarray, nees: dict[str, np.ndarray], band: tuple[float
     ax.set_title(title)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(loc='upper right', ncol=3, fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def covariance_ellipse(centre: np.ndarray, covariance: np.ndarray, sigmas: float = 3.0,
@@ -135,10 +135,11 @@ def trajectory_figure(panels: dict[str, dict[str, Any]], path: Path, title: str,
         ax.grid(True, alpha=0.3)
         ax.legend(loc='upper right', fontsize=7, ncol=2)
     axes[-1, 0].set_xlabel('x [m] (fixed frame)')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
+def save_figure(fig: plt.Figure, path: Path) -> Path:
+    """Lay out ``fig``, write it to the PNG ``path`` (folders created), close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()

@@ -276,3 +276,22 @@ def test_plan_context_default_is_greedy() -> None:
     problem = replace_problem(Scenario.paper('bearing'), P)
     for step in range(1, 30):
         assert strategy.plan(problem, PlanContext(step=step)).details['mode'] == 'greedy'
+
+
+def test_command_prints_cycle_and_timings(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """formopt-periodic prints the cycle, the design time and the decision times."""
+    from formopt_ros.cli.periodic import main
+    assert main(['--measurement', 'range', '--period', '2', '--repeats', '1', '--trials', '1',
+                 '--steps', '30']) == 0
+    out = capsys.readouterr().out
+    assert 'offline design: median' in out and 'cycle at [' in out
+    assert 'online decision over 1 x 30 steps' in out
+
+
+def test_docs_figure(tmp_path) -> None:
+    """The docs figure (short runs, cycles of 2) is written and not empty."""
+    pytest.importorskip('matplotlib')
+    from formopt_ros.analysis.periodic import periodic_figure
+    path = periodic_figure([Scenario.paper('range'), Scenario.paper('bearing')],
+                           tmp_path / 'figure.png', steps=80, period=2)
+    assert path.stat().st_size > 10_000

@@ -451,3 +451,8 @@ def cached_design(conditions: SteadyConditions, period: int) -> tuple[PatternDes
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = design_pattern(conditions, period)
     return _CACHE[key], True
+
+
+def clear_cache() -> None:
+    """Forget every cached design (benchmarks time cold designs)."""
+    _CACHE.clear()
