@@ -1,6 +1,7 @@
 """formopt-montecarlo: reproduce the paper's Sec. V study (Figs. 4-6) with every strategy."""
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
@@ -52,14 +53,7 @@ def build_parser() -> ArgumentParser:
                         help=f'GBS grid spacing as a fraction of r, in [{MIN_GBS_CELL}, 1] '
                              f"(default: {STUDY_OPTIONS['gbs']['cell']}; the library default "
                              'is 0.005)')
-    parser.add_argument('--r-fraction', type=number(0.0, 0.999, low_open=True), default=None,
-                        help='allowed deviation r as a fraction of |p_o|, in (0, 0.999] '
-                             '(default: the paper, 0.1)')
-    parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
-                        help="factor on the paper's range / bearing noise std 0.1 m / 0.02 rad "
-                             '(default: 1)')
-    parser.add_argument('--leader-speed', type=number(-100.0, 100.0), default=None,
-                        help='leader speed, m/s, straight (default: the paper, 1)')
+    add_scenario_options(parser)
     parser.add_argument('--out', type=new_folder, default=Path('runs/montecarlo'),
                         help='output folder, new or empty; results go to OUT/<measurement>/ '
                              '(default: runs/montecarlo)')
@@ -164,17 +158,29 @@ def report_markdown(summary: dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def scenario_overrides(kind: str, r_fraction: float | None, sigma_scale: float | None,
-                       leader_speed: float | None) -> dict[str, Any]:
-    """Overrides of the paper's scenario of ``kind`` for the study (empty: the paper's)."""
+def add_scenario_options(parser: ArgumentParser) -> None:
+    """--r-fraction, --sigma-scale, --leader-speed: variants of the paper's scenario."""
+    parser.add_argument('--r-fraction', type=number(0.0, 0.999, low_open=True), default=None,
+                        help='allowed deviation r as a fraction of |p_o|, in (0, 0.999] '
+                             '(default: the paper, 0.1)')
+    parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
+                        help="factor on the paper's range / bearing noise std 0.1 m / 0.02 rad "
+                             '(default: 1)')
+    parser.add_argument('--leader-speed', type=number(-100.0, 100.0), default=None,
+                        help='leader speed, m/s, straight (default: the paper, 1)')
+
+
+def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Overrides of the paper's scenario of ``kind`` from the options of
+    :func:`add_scenario_options` (empty: the paper's)."""
     paper = Scenario.paper(kind)
     overrides: dict[str, Any] = {}
-    if r_fraction is not None:
-        overrides['r'] = r_fraction * paper.d_o
-    if sigma_scale is not None:
-        overrides['sigma'] = sigma_scale * paper.sigma
-    if leader_speed is not None:
-        overrides['leader'] = LeaderPath.constant(leader_speed)
+    if args.r_fraction is not None:
+        overrides['r'] = args.r_fraction * paper.d_o
+    if args.sigma_scale is not None:
+        overrides['sigma'] = args.sigma_scale * paper.sigma
+    if args.leader_speed is not None:
+        overrides['leader'] = LeaderPath.constant(args.leader_speed)
     return overrides
 
 
@@ -207,8 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             config = StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
                                  {'gbs': {'cell': args.gbs_cell}},
-                                 scenario_overrides(kind, args.r_fraction, args.sigma_scale,
-                                                    args.leader_speed))
+                                 scenario_overrides(kind, args))
         except ValueError as error:
             fail(parser.prog, str(error))
         bar = _progress(args.trials * len(strategies), kind)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, integer, new_file, number
-from formopt_ros.cli.montecarlo import scenario_overrides
+from formopt_ros.cli.common import ArgumentParser, integer, new_file
+from formopt_ros.cli.montecarlo import add_scenario_options, scenario_overrides
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import run_trial
@@ -33,12 +33,7 @@ def build_parser() -> ArgumentParser:
                         help='follower sensor (default: both)')
     parser.add_argument('--period', type=integer(2, 6), default=default_period,
                         help=f'points in the cycle (default: {default_period})')
-    parser.add_argument('--r-fraction', type=number(0.0, 0.999, low_open=True), default=None,
-                        help='r as a fraction of |p_o| (default: the paper, 0.1)')
-    parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
-                        help="factor on the paper's measurement noise (default: 1)")
-    parser.add_argument('--leader-speed', type=number(-100.0, 100.0), default=None,
-                        help='leader speed, m/s (default: 1)')
+    add_scenario_options(parser)
     parser.add_argument('--repeats', type=integer(1, 1000), default=3,
                         help='cold designs timed; the median is printed (default: 3)')
     parser.add_argument('--trials', type=integer(0, 10_000), default=3,
@@ -89,8 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
     for kind in kinds:
-        scenario = Scenario.paper(kind, **scenario_overrides(
-            kind, args.r_fraction, args.sigma_scale, args.leader_speed))
+        scenario = Scenario.paper(kind, **scenario_overrides(kind, args))
         report(scenario, args.period, args.repeats, args.trials, args.steps)
     if args.figure:
         from formopt_ros.analysis.periodic import periodic_figure
