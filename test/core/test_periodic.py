@@ -202,6 +202,21 @@ def test_noise_change_mid_run_replans_and_stays_feasible(kind: str) -> None:
 
 
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
+def test_leader_speed_change_replans(kind: str) -> None:
+    """The leader slows from 1 to 0.6 m/s at 20 s: the first decision that expects the new
+    speed re-plans (greedy at once), and every point stays inside the disc."""
+    scenario = Scenario.paper(kind, leader=LeaderPath(
+        kind='segments', segments=(Segment(20.0, 1.0), Segment(1000.0, 0.6))))
+    records = drive(lambda k: scenario, 300, {'period': 2})
+    assert_feasible(records)
+    replans = [s.details['replans'] for s, _, _ in records]
+    first = replans.index(1) + 1
+    assert scenario.leader.velocity(step_substeps(first - 1)[-1], scenario.dt)[0] == 0.6
+    assert scenario.leader.velocity(step_substeps(first - 2)[-1], scenario.dt)[0] == 1.0
+    assert records[first - 1][0].details['mode'] == 'greedy' and replans[-1] == 1
+
+
+@pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_falls_back_to_greedy_while_the_leader_turns(kind: str) -> None:
     """The leader turns from 20 s to 26 s (steps 201-260): every decision the strategy makes
     while it expects a turn is RQ's exact optimum (same point to 1e-12 m), flagged 'leader
