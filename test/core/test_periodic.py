@@ -310,3 +310,14 @@ def test_docs_figure(tmp_path) -> None:
     path = periodic_figure([Scenario.paper('range'), Scenario.paper('bearing')],
                            tmp_path / 'figure.png', steps=80, period=2)
     assert path.stat().st_size > 10_000
+
+
+def test_any_change_of_the_disc_replans() -> None:
+    """r grows by one part in 10^5 (far below replan_tolerance) while on the cycle: the
+    strategy re-plans rather than keep points of the old disc, and stays feasible."""
+    base = Scenario.paper('bearing')
+    wider = replace(base, r=base.r * (1 + 1e-5))
+    records = drive(lambda k: base if k < 150 else wider, 200, {'period': 2})
+    assert_feasible(records)
+    assert records[148][0].details['mode'] == 'pattern'
+    assert records[149][0].details['replans'] == 1

@@ -17,10 +17,11 @@ transient, and it may take hundreds of steps to pay. So this strategy
    ``tolerance`` (lost measurements, a disturbance) it returns to 2.
 
 When the leader turns (or the expected leader motion is not constant over the step) it plays
-greedy; when the conditions change by more than ``replan_tolerance`` it designs again (or takes
-the cached design) and starts over at 2. Every point is either RQ's (feasible) or on the
-boundary circle. ``Solution.details`` says which mode chose the point and counts re-plans,
-returns to greedy and turning fallbacks.
+greedy; when the slot or r change, or a noise level, the leader speed or dt by more than
+``replan_tolerance``, it designs again (or takes the cached design) and starts over at 2.
+Every point is either RQ's (feasible) or on the boundary circle of the problem's own disc.
+``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
+greedy, turning fallbacks and switch tests.
 """
 from __future__ import annotations
 
@@ -68,8 +69,9 @@ class PeriodicPattern(Strategy):
         'horizon': OptionSpec(500, 'longest look-ahead of that test, steps', 10, 100000),
         'tolerance': OptionSpec(0.25, 'relative excess of tr(W P W) over its prediction that '
                                 'sends the follower back to greedy', 0.01, 100.0),
-        'replan_tolerance': OptionSpec(1e-3, 'relative change of a condition (noise, speed, '
-                                       'dt, slot, r) that makes a new design', 0.0, 1.0),
+        'replan_tolerance': OptionSpec(1e-3, 'relative change of a noise level, the leader '
+                                       'speed or dt that makes a new design (any change of '
+                                       'the slot or r does)', 0.0, 1.0),
     }
 
     def __init__(self, **options: object) -> None:
@@ -110,8 +112,9 @@ class PeriodicPattern(Strategy):
             return self._greedy(problem, 'transient', designed)
         self.phase = (self.phase + 1) % self.design.period
         point = self.design.points[self.phase].copy()
-        if not problem.feasible(point):     # cannot happen: the design's disc is this one
-            raise AssertionError(f'cycle point {point} outside the disc')
+        if not problem.feasible(point):     # the design's disc is the problem's: never seen
+            self.mode = GREEDY
+            return self._greedy(problem, 'cycle point outside the disc', designed)
         return make_solution(problem, point, self.name, True,
                              details=self._details(PATTERN, 'cycle', designed))
 

@@ -101,13 +101,13 @@ class SteadyConditions:
         return ((self.v_l, self.omega_l),) * SUBSTEPS
 
     def close_to(self, other: SteadyConditions, tolerance: float) -> bool:
-        """True when every constant of ``other`` is within ``tolerance`` (relative) of this."""
-        if self.measurement != other.measurement:
+        """True when ``other`` has the same sensor, slot and disc (exactly: a cycle must stay
+        in the disc) and noise levels, leader velocity and dt within ``tolerance`` (relative)."""
+        if (self.measurement, self.p_o, self.r) != (other.measurement, other.p_o, other.r):
             return False
-        mine = (*self.p_o, self.r, self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v,
-                self.sigma_omega)
-        theirs = (*other.p_o, other.r, other.sigma, other.v_l, other.omega_l, other.dt,
-                  other.sigma_v, other.sigma_omega)
+        mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega)
+        theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
+                  other.sigma_omega)
         return all(abs(a - b) <= tolerance * max(abs(a), abs(b)) for a, b in zip(mine, theirs))
 
     def boundary_points(self, angles: np.ndarray) -> np.ndarray:
