@@ -39,6 +39,7 @@ setup(
             'formopt-bench-ros = formopt_ros.cli.bench_ros:main',
             'formopt-report = formopt_ros.cli.report:main',
             'formopt-bag = formopt_ros.cli.bag:main',
+            'formopt-periodic = formopt_ros.cli.periodic:main',
         ],
     },
 )

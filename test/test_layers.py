@@ -28,7 +28,7 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
 }
 #: Modules that must import without any ROS package loaded.
 ROS_FREE = ['core', 'wire', 'bag', 'analysis', 'cli.montecarlo', 'cli.bench', 'cli.report',
-            'cli.bag', 'cli.replay', 'cli.bench_ros']
+            'cli.bag', 'cli.replay', 'cli.bench_ros', 'cli.periodic']
 ROS_PACKAGES = ('rclpy', 'rosidl_runtime_py', 'rpyutils', 'std_msgs', 'geometry_msgs',
                 'nav_msgs', 'formopt_interfaces', 'builtin_interfaces', 'rcl_interfaces',
                 'tf2_msgs', 'rosgraph_msgs', 'visualization_msgs', 'diagnostic_msgs')

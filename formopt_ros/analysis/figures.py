@@ -15,7 +15,7 @@ from formopt_ros.core.model import covariance_ellipse  # noqa: E402
 
 #: One colour per strategy, stable across figures.
 COLOURS = {'mtf': 'tab:gray', 'crm': 'tab:orange', 'mme': 'tab:purple', 'gbs': 'tab:green',
-           'ram': 'tab:blue', 'rq': 'tab:red'}
+           'ram': 'tab:blue', 'rq': 'tab:red', 'periodic': 'tab:cyan'}
 
 
 #: Colours of other curves (followers by id), stable per name.
@@ -27,7 +27,7 @@ def _colour(name: str) -> str:
 
 
 def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, title: str,
-                 zoom: tuple[str, ...] = ('ram', 'rq', 'gbs')) -> Path:
+                 zoom: tuple[str, ...] = ('ram', 'rq', 'gbs', 'periodic')) -> Path:
     """Mean tr(W P W) over time per strategy, log scale, with a zoomed inset of ``zoom``.
 
     Args:
@@ -56,7 +56,7 @@ def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, ti
         inset.set_title('zoom: ' + ', '.join(n.upper() for n in shown), fontsize=8)
         inset.tick_params(labelsize=7)
         inset.grid(True, alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def nees_figure(time: np.ndarray, nees: dict[str, np.ndarray], band: tuple[float, float],
@@ -73,7 +73,7 @@ def nees_figure(time: np.ndarray, nees: dict[str, np.ndarray], band: tuple[float
     ax.set_title(title)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(loc='upper right', ncol=3, fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def ellipse_patch(centre: np.ndarray, covariance: np.ndarray, sigmas: float = 3.0,
@@ -139,10 +139,11 @@ def trajectory_figure(panels: dict[str, dict[str, Any]], path: Path, title: str,
         ax.grid(True, alpha=0.3)
         ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
     axes[-1, 0].set_xlabel('x [m] (fixed frame)')
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
+def save_figure(fig: plt.Figure, path: Path) -> Path:
+    """Lay out ``fig``, write it to the PNG ``path`` (folders created), close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()

@@ -1,6 +1,7 @@
 """formopt-montecarlo: reproduce the paper's Sec. V study (Figs. 4-6) with every strategy."""
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
@@ -14,9 +15,11 @@ import numpy as np
 from formopt_ros.cli.common import ArgumentParser, fail, integer, new_folder, number
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
-from formopt_ros.core.scenario import LeaderPath
+from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
+from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
+from formopt_ros.core.strategies.periodic_design import SteadyConditions, design_pattern
 from formopt_ros.core.study import (
     METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_study, summarize)
 
@@ -41,7 +44,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of all random numbers; trial i uses (seed, i) (default: 0)')
     parser.add_argument('--strategies', default=','.join(METHODS),
-                        help=f'comma list among {",".join(METHODS)} (default: all six)')
+                        help=f'comma list among {",".join(METHODS)} (default: all)')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='worker processes; results do not depend on it (default: all '
                              'cores)')
@@ -50,18 +53,7 @@ def build_parser() -> ArgumentParser:
                         help=f'GBS grid spacing as a fraction of r, in [{MIN_GBS_CELL}, 1] '
                              f"(default: {STUDY_OPTIONS['gbs']['cell']}; the library default "
                              'is 0.005)')
-    paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
-    paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
-                       default='straight', help='straight, arc (--yaw-rate) or s-curve '
-                       '(--amplitude, --period)')
-    paths.add_argument('--speed', type=number(-100.0, 100.0), default=1.0,
-                       help='leader speed, m/s (default 1)')
-    paths.add_argument('--yaw-rate', type=number(-100.0, 100.0), default=0.5,
-                       help='arc: yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--amplitude', type=number(-100.0, 100.0), default=0.5,
-                       help='s-curve: peak yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--period', type=number(1e-3, 1e6), default=10.0,
-                       help='s-curve: period, s (default 10)')
+    add_scenario_options(parser)
     parser.add_argument('--out', type=new_folder, default=Path('runs/montecarlo'),
                         help='output folder, new or empty; results go to OUT/<measurement>/ '
                              '(default: runs/montecarlo)')
@@ -114,7 +106,9 @@ def _figures(result: StudyResult, out: Path, time_s: np.ndarray, mean_trace: dic
                          f'{kind}-only: mean weighted trace over {config.trials} trials')
     figures.nees_figure(time_s, mean_nees, nees_band(config.trials), out / 'nees.png',
                         f'{kind}-only: trial-averaged NEES ({config.trials} trials)')
-    shown = [n for n in ('ram', 'gbs', 'mme', 'rq') if n in result.records][:3]
+    shown = [n for n in ('ram', 'gbs', 'mme', 'rq', 'periodic') if n in result.records][:3]
+    if 'periodic' in result.records and 'periodic' not in shown:
+        shown.append('periodic')
     n = min(config.steps, 40)
     leader = leader_poses(scenario, n)
     panels = {}
@@ -144,32 +138,98 @@ def describe_path(path: dict[str, Any]) -> str:
 def report_markdown(summary: dict[str, Any]) -> str:
     """A short Markdown report with the summary table."""
     lo, hi = summary['nees_band']
+    scenario = summary['scenario']
     lines = [f"# Monte Carlo, {summary['measurement']}-only",
              '',
              f"{summary['trials']} trials x {summary['steps']} steps, seed {summary['seed']}, "
-             f"leader {describe_path(summary['leader'])}, "
-             f"GBS cell {summary['gbs_cell']} r. Steady value: mean over the last "
-             f"{summary['steady_window']} steps. NEES band (95 %, 3 dof, trial mean): "
+             f"GBS cell {summary['gbs_cell']} r. Slot {scenario['p_o']} m, r = "
+             f"{scenario['r']:.4g} m, sigma = {scenario['sigma']:.4g}, leader "
+             f"{describe_path(scenario['leader'])}. Steady "
+             f"value: mean over the last {summary['steady_window']} steps; mean: over all "
+             f'steps; vs RAM: relative difference. NEES band (95 %, 3 dof, trial mean): '
              f'[{lo:.3f}, {hi:.3f}].',
              '',
-             '| strategy | steady tr(W P W) [m^2] | std over trials | mean NEES | '
-             'steps in NEES band | decision time [ms] |',
-             '|---|---|---|---|---|---|']
+             '| strategy | steady tr(W P W) [m^2] | vs RAM | std over trials | mean tr(W P W) '
+             '[m^2] | vs RAM | mean NEES | steps in NEES band | decision time mean / median '
+             '[ms] |',
+             '|---|---|---|---|---|---|---|---|---|']
+    ram = summary['strategies'].get('ram')
+
+    def versus(row: dict[str, float], key: str) -> str:
+        return f'{100 * (row[key] / ram[key] - 1):+.1f} %' if ram else '-'
+
     for name, row in summary['strategies'].items():
         lines.append(f"| {name.upper()} | {row['steady_trace']:.6g} | "
-                     f"{row['steady_trace_std']:.3g} | {row['nees_mean']:.3f} | "
-                     f"{100 * row['nees_in_band']:.1f} % | "
-                     f"{1e3 * row['decision_time_s']:.3f} |")
+                     f"{versus(row, 'steady_trace')} | {row['steady_trace_std']:.3g} | "
+                     f"{row['mean_trace']:.6g} | {versus(row, 'mean_trace')} | "
+                     f"{row['nees_mean']:.3f} | {100 * row['nees_in_band']:.1f} % | "
+                     f"{1e3 * row['decision_time_s']:.3f} / "
+                     f"{1e3 * row['decision_time_median_s']:.3f} |")
     return '\n'.join(lines) + '\n'
 
 
-def leader_path(args: Any) -> LeaderPath:
+def add_scenario_options(parser: ArgumentParser) -> None:
+    """--r-fraction, --sigma-scale and the leader path: variants of the paper's scenario."""
+    parser.add_argument('--r-fraction', type=number(0.0, 0.999, low_open=True), default=None,
+                        help='allowed deviation r as a fraction of |p_o|, in (0, 0.999] '
+                             '(default: the paper, 0.1)')
+    parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
+                        help="factor on the paper's range / bearing noise std 0.1 m / 0.02 rad "
+                             '(default: 1)')
+    paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
+    paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
+                       default='straight', help='straight, arc (--yaw-rate) or s-curve '
+                       '(--amplitude, --period)')
+    paths.add_argument('--speed', type=number(-100.0, 100.0), default=1.0,
+                       help='leader speed, m/s (default 1)')
+    paths.add_argument('--yaw-rate', type=number(-100.0, 100.0), default=0.5,
+                       help='arc: yaw rate, rad/s (default 0.5)')
+    paths.add_argument('--amplitude', type=number(-100.0, 100.0), default=0.5,
+                       help='s-curve: peak yaw rate, rad/s (default 0.5)')
+    paths.add_argument('--period', type=number(1e-3, 1e6), default=10.0,
+                       help='s-curve: period, s (default 10)')
+
+
+def leader_path(args: argparse.Namespace) -> LeaderPath:
     """The leader path of the command line."""
     if args.leader_path == 'arc':
         return LeaderPath('arc', args.speed, args.yaw_rate)
     if args.leader_path == 's-curve':
         return LeaderPath('s-curve', args.speed, amplitude=args.amplitude, period=args.period)
     return LeaderPath('straight', args.speed)
+
+
+def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Overrides of the paper's scenario of ``kind`` from the options of
+    :func:`add_scenario_options` (empty: the paper's)."""
+    paper = Scenario.paper(kind)
+    overrides: dict[str, Any] = {}
+    if args.r_fraction is not None:
+        overrides['r'] = args.r_fraction * paper.d_o
+    if args.sigma_scale is not None:
+        overrides['sigma'] = args.sigma_scale * paper.sigma
+    path = leader_path(args)
+    if path != paper.leader:
+        overrides['leader'] = path
+    return overrides
+
+
+def describe_periodic_design(scenario: Scenario, options: dict[str, object]) -> str:
+    """One line on the cycle PERIODIC plays in ``scenario`` and the time its design takes."""
+    conditions = SteadyConditions.from_scenario(scenario)
+    if conditions is None:
+        return 'periodic: the leader turns; no cycle (greedy throughout)'
+    period = int(make_strategy('periodic', **options).settings['period'])
+    start = time.perf_counter()
+    design = design_pattern(conditions, period)
+    elapsed = time.perf_counter() - start
+    if design is None:
+        return f'periodic: no cycle has a steady state (greedy throughout); search {elapsed:.2f} s'
+    angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
+    return (f'periodic: cycle of {period} boundary points at [{angles}] deg around p_o, steady '
+            f'tr(W P W) {design.steady_cost:.6g} m^2, settles in {design.horizon} steps; '
+            f'designed offline in {elapsed:.2f} s ({design.evaluations} cycles evaluated; '
+            'once per scenario and worker process)')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -182,15 +242,19 @@ def main(argv: list[str] | None = None) -> int:
     for kind in kinds:
         try:
             config = StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
-                                 {'gbs': {'cell': args.gbs_cell}}, leader_path(args))
+                                 {'gbs': {'cell': args.gbs_cell}},
+                                 scenario_overrides(kind, args))
         except ValueError as error:
-            fail(parser.prog, f'--strategies: {error}')
+            fail(parser.prog, str(error))
         bar = _progress(args.trials * len(strategies), kind)
         result = run_study(config, args.jobs, bar.update if bar else None)
         if bar:
             bar.close()
         summary = write_outputs(result, args.out / kind, not args.no_figures)
         print(report_markdown(summary))
+        if 'periodic' in strategies:
+            print(describe_periodic_design(result.scenario, config.strategy_options('periodic')))
+            print()
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
           f'{args.steps} steps, {args.jobs} jobs); results in {args.out}')

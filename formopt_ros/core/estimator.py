@@ -11,7 +11,7 @@ import numpy as np
 from formopt_ros.core.cost import Problem, weighted_trace
 from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
 from formopt_ros.core.protocol import (
-    SUBSTEPS, MotionCommand, Timebase, held_leader_motion, motion_commands)
+    MotionCommand, Timebase, held_leader_motion, motion_commands, predict_move)
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.solver import timed_plan
 from formopt_ros.core.stepper import ReadyStep, StepAssembler
@@ -55,12 +55,7 @@ class EstimatorPlanner:
         """Covariance (3, 3) after driving to ``target`` (2,) with the protocol's commands under
         the leader velocities ``leader`` (one (v, omega) per sub-step), before the update."""
         s = self.scenario
-        command = motion_commands(self.x, target, s.dt, leader[0][0], leader[0][1])
-        x, P = self.x, self.P
-        for j in range(SUBSTEPS):
-            x, P = propagate(x, P, command.linear[j], command.angular[j], s.dt, leader[j][0],
-                             leader[j][1], s.sigma_v, s.sigma_omega)
-        return P
+        return predict_move(self.x, self.P, target, leader, s.dt, s.sigma_v, s.sigma_omega)[1]
 
     def plan(self, step: int, leader: tuple[tuple[float, float], ...]) -> StepPlan:
         """Choose the position for measurement step ``step`` (1-based) and its commands.

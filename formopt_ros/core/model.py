@@ -66,6 +66,16 @@ def integrate_unicycle(pose: tuple[float, float, float], v: float, omega: float,
     return x + v * math.cos(yaw) * dt, y + v * math.sin(yaw) * dt, yaw + omega * dt
 
 
+def _transition_terms(phi: float, v_f: float, dt: float, omega_l: float, sigma_v: float,
+                      sigma_omega: float) -> tuple[float, float, float, float, float, float,
+                                                   float]:
+    """Entries of eq. (11)-(12) at heading phi: Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]] and
+    G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3'; returns (a, b, e, c, s, qv, qw)."""
+    c, s = math.cos(phi), math.sin(phi)
+    return omega_l * dt, -s * v_f * dt, c * v_f * dt, c, s, (sigma_v * dt) ** 2, \
+        (sigma_omega * dt) ** 2
+
+
 def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: float,
               v_l: float, omega_l: float, sigma_v: float,
               sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
@@ -81,24 +91,36 @@ def propagate(x: np.ndarray, P: np.ndarray, v_f: float, omega_f: float, dt: floa
 
     Returns:
         (x, P) after the step; P_next = Phi P Phi' + G Q G' written out (symmetric by
-        construction; a test checks it against the matrix form).
+        construction; a test checks it against :func:`transition_matrices`).
     """
-    phi = float(x[2])
-    c, s = math.cos(phi), math.sin(phi)
-    # Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]]
-    a, b, e = omega_l * dt, -s * v_f * dt, c * v_f * dt
+    a, b, e, c, s, qv, qw = _transition_terms(float(x[2]), v_f, dt, omega_l, sigma_v,
+                                              sigma_omega)
     (p00, p01, p02), (_, p11, p12), (_, _, p22) = P.tolist()
     # rows of Phi P
     r00, r01, r02 = p00 + a * p01 + b * p02, p01 + a * p11 + b * p12, p02 + a * p12 + b * p22
     r10, r11, r12 = -a * p00 + p01 + e * p02, -a * p01 + p11 + e * p12, -a * p02 + p12 + e * p22
-    # G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3'
-    qv, qw = (sigma_v * dt) ** 2, (sigma_omega * dt) ** 2
     n00 = r00 + a * r01 + b * r02 + qv * c * c
     n01 = -a * r00 + r01 + e * r02 + qv * c * s
     n11 = -a * r10 + r11 + e * r12 + qv * s * s
     n02, n12, n22 = r02, r12, p22 + qw
     P_next = np.array([[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]])
     return propagate_state(x, v_f, omega_f, dt, v_l, omega_l), P_next
+
+
+def transition_matrices(x: np.ndarray, v_f: float, dt: float, omega_l: float, sigma_v: float,
+                        sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """The matrices of one propagation sub-step, eqs. (11)-(12): (Phi, G Q G'), each (3, 3).
+
+    :func:`propagate` applies them written out (P_next = Phi P Phi' + G Q G'); multi-step
+    planners compose them. Args as in :func:`propagate` (Phi does not depend on omega_f or v_l).
+    """
+    a, b, e, c, s, qv, qw = _transition_terms(float(x[2]), v_f, dt, omega_l, sigma_v,
+                                              sigma_omega)
+    Phi = np.array([[1.0, a, b], [-a, 1.0, e], [0.0, 0.0, 1.0]])
+    u = np.array([c, s, 0.0])
+    GQG = qv * np.outer(u, u)
+    GQG[2, 2] += qw
+    return Phi, GQG
 
 
 def predict_measurement(kind: str, x: np.ndarray) -> float:

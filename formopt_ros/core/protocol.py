@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formopt_ros.core.model import propagate_state, wrap_angle
+from formopt_ros.core.model import propagate, propagate_state, wrap_angle
 
 #: Sub-steps per measurement step: rotate, then translate.
 SUBSTEPS = 2
@@ -99,6 +99,21 @@ def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
     heading = math.atan2(dy, dx)
     turn = float(wrap_angle(heading - x[2]))
     return MotionCommand((0.0, math.hypot(dx, dy) / dt), (turn / dt + omega_l, omega_l))
+
+
+def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,
+                 leader: tuple[tuple[float, float], ...], dt: float, sigma_v: float,
+                 sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """The EKF's prediction (x (3,), P (3, 3)) after driving from pose x to position ``target``
+    (2,), m, with :func:`motion_commands` as odometry, under the leader velocities ``leader``
+    (one (v m/s, omega rad/s) per sub-step); the estimate lands on target. This is the exact,
+    move-dependent prior of the next measurement (the paper approximates it by target = p_o).
+    """
+    command = motion_commands(x, target, dt, leader[0][0], leader[0][1])
+    for j in range(SUBSTEPS):
+        x, P = propagate(x, P, command.linear[j], command.angular[j], dt, leader[j][0],
+                         leader[j][1], sigma_v, sigma_omega)
+    return x, P
 
 
 def held_leader_motion(latest: tuple[float, float]) -> tuple[tuple[float, float], ...]:

@@ -33,7 +33,9 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
         sigma: measurement noise standard deviation: m for 'range', rad for 'bearing'.
         measurement: 'range' or 'bearing'.
         method: 'ram' (paper, analytic), 'rq' (exact eigen solver), 'gbs' (grid), 'mtf'
-            (stay at p_o), 'crm' (random in the disc), 'mme' (sideways, alternating).
+            (stay at p_o), 'crm' (random in the disc), 'mme' (sideways, alternating),
+            'periodic' (plans for the long run through the estimator in ``context``; without
+            one, as in a one-off problem, it is RQ).
         rng: random generator for 'crm' (a fresh unseeded one when None); shorthand for
             ``context.rng``.
         context: step index and expected leader motion (MME's side and switch); default: step

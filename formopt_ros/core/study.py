@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
 
@@ -32,7 +32,8 @@ class StudyConfig:
     Attributes:
         options: strategy name -> options (validated here); strategies not listed use
             :data:`STUDY_OPTIONS`, then the library defaults.
-        leader: the leader's path (the paper: straight at 1 m/s).
+        scenario: overrides of the paper's Sec. V scenario (``Scenario.paper`` keywords, e.g.
+            r, sigma, leader), validated here; empty: the paper's settings.
     """
 
     measurement: str
@@ -41,7 +42,7 @@ class StudyConfig:
     seed: int = 0
     strategies: tuple[str, ...] = METHODS
     options: dict[str, dict[str, object]] = field(default_factory=dict)
-    leader: LeaderPath = field(default_factory=LeaderPath)
+    scenario: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         unknown = [s for s in self.strategies if s not in METHODS]
@@ -56,10 +57,11 @@ class StudyConfig:
         for name, values in merged.items():
             make_strategy(name, **values)           # ValueError naming a bad option
         object.__setattr__(self, 'options', merged)
+        self.make_scenario()                        # ValueError naming a bad override
 
-    def scenario(self) -> Scenario:
-        """The Sec. V scenario of the measurement kind with this study's leader path."""
-        return Scenario.paper(self.measurement, leader=self.leader)
+    def make_scenario(self) -> Scenario:
+        """The scenario of this study: the paper's, with the overrides of ``scenario``."""
+        return Scenario.paper(self.measurement, **self.scenario)
 
     def strategy_options(self, strategy: str) -> dict[str, object]:
         """Options of ``strategy`` in this study."""
@@ -91,9 +93,8 @@ class StudyResult:
 
 def _task(args: tuple[StudyConfig, str, int]) -> tuple[str, int, TrialResult]:
     config, strategy, trial = args
-    scenario = config.scenario()
-    return strategy, trial, run_trial(scenario, strategy, config.seed, trial, config.steps,
-                                      config.strategy_options(strategy))
+    return strategy, trial, run_trial(config.make_scenario(), strategy, config.seed, trial,
+                                      config.steps, config.strategy_options(strategy))
 
 
 def run_study(config: StudyConfig, jobs: int | None = None,
@@ -106,7 +107,7 @@ def run_study(config: StudyConfig, jobs: int | None = None,
         progress: called with 1 after each finished task.
     """
     jobs = jobs or os.cpu_count() or 1
-    scenario = config.scenario()
+    scenario = config.make_scenario()
     shape = (config.trials, config.steps)
     result = StudyResult(config, scenario, {
         s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape))
@@ -124,7 +125,7 @@ def run_study(config: StudyConfig, jobs: int | None = None,
 
 
 def _expected_cost(strategy: str) -> int:
-    return {'ram': 3, 'gbs': 2, 'rq': 1}.get(strategy, 0)
+    return {'ram': 3, 'gbs': 2, 'rq': 1, 'periodic': 1}.get(strategy, 0)
 
 
 def _collect(result: StudyResult, outputs: Iterable[tuple[str, int, TrialResult]],
@@ -164,12 +165,14 @@ def summarize(result: StudyResult) -> dict[str, Any]:
         strategies[name] = {
             'steady_trace': float(steady.mean()),
             'steady_trace_std': float(steady.std(ddof=1)) if config.trials > 1 else 0.0,
+            'mean_trace': float(record.weighted_trace.mean()),
             'nees_mean': float(record.nees.mean()),
             'nees_in_band': float(np.mean((mean_nees >= lo) & (mean_nees <= hi))),
             'decision_time_s': float(record.decision_time.mean()),
+            'decision_time_median_s': float(np.median(record.decision_time)),
         }
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
-            'seed': config.seed, 'leader': config.leader.to_dict(),
-            'gbs_cell': config.settings('gbs')['cell'],
+            'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],
+            'scenario': result.scenario.to_dict(),
             'options': {name: config.settings(name) for name in strategies},
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies}

@@ -8,7 +8,7 @@ import pytest
 
 from formopt_ros.core.model import (
     BEARING, RANGE, ekf_update, measurement_jacobian, normalized_estimation_error, propagate,
-    propagate_state, predict_measurement, wrap_angle)
+    propagate_state, predict_measurement, transition_matrices, wrap_angle)
 
 SEED = 20240611
 
@@ -106,6 +106,13 @@ def test_propagate_covariance_matches_finite_difference_jacobians(omega_l: float
         # rtol 1e-6 (central differences, step 1e-6: truncation ~1e-12, rounding ~1e-10).
         np.testing.assert_allclose(P_next, expected, rtol=1e-6, atol=1e-6 * np.abs(P).max())
         assert np.array_equal(P_next, P_next.T)
+        Phi_m, GQG = transition_matrices(x, v_f, dt, omega_l, sigma_v, sigma_omega)
+        # 1e-7 absolute on Phi (central differences); the matrix form reproduces propagate to
+        # 1e-12 relative to max |P| (same products, different summation order).
+        np.testing.assert_allclose(Phi_m, Phi, rtol=0, atol=1e-7)
+        np.testing.assert_allclose(GQG, G @ Q @ G.T, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(Phi_m @ P @ Phi_m.T + GQG, P_next, rtol=0,
+                                   atol=1e-12 * np.abs(P).max())
 
 
 def test_propagate_covariance_matches_printed_eq11() -> None:

@@ -577,6 +577,27 @@ def test_mme_alternates_perpendicular_sides() -> None:
         assert np.array_equal(straight.p, problem.p_o)
 
 
+def test_mme_amplitude_and_period_options() -> None:
+    """MME's options: amplitude 0.4 steps 0.4 r sideways; period 3 keeps a side for three
+    steps (steps 0-2 one side, 3-5 the other, 6 the first again); the defaults are 1 and 1."""
+    assert make_strategy('mme').settings == {'amplitude': 1.0, 'period': 1}
+    rng = np.random.default_rng(9201)
+    for _ in range(20):
+        problem = hard_problem(rng, RANGE)
+        offsets = [solve_problem(problem, 'mme', context=PlanContext(step=step),
+                                 amplitude=0.4, period=3).p - problem.p_o for step in range(7)]
+        for offset in offsets:
+            # 1e-12 relative: the step length is 0.4 r, perpendicular to p_o.
+            assert math.hypot(*offset) == pytest.approx(0.4 * problem.r, rel=1e-12)
+        for step in (1, 2, 6):
+            np.testing.assert_array_equal(offsets[step], offsets[0])
+        for step in (3, 4, 5):
+            np.testing.assert_allclose(offsets[step], -offsets[0], rtol=0,
+                                       atol=1e-12 * problem.r)
+    with pytest.raises(ValueError, match='mme'):
+        make_strategy('mme', period=0)
+
+
 @pytest.mark.parametrize('cell', [0.5, 0.1, 0.03])
 def test_gbs_grid(cell: float) -> None:
     """GBS's grid has spacing cell * r, contains p_o, lies in the disc, has the expected number

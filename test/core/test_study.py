@@ -105,18 +105,36 @@ def test_command_writes_outputs_and_figures(tmp_path) -> None:
     assert set(summary['strategies']) == {'mtf', 'gbs', 'ram'}
     assert summary['options']['gbs'] == {'cell': 0.01}
     assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
-                                                 'nees_mean', 'nees_in_band',
-                                                 'decision_time_s'}
+                                                 'mean_trace', 'nees_mean', 'nees_in_band',
+                                                 'decision_time_s', 'decision_time_median_s'}
+    assert summary['scenario']['r'] == pytest.approx(0.1 * 5 ** 0.5, rel=1e-12)
     assert len((out / 'steps.csv').read_text().splitlines()) == 31
     for name in ('fig5_range_weighted_trace.png', 'fig4_trajectories.png', 'nees.png'):
         assert (out / name).stat().st_size > 10_000, name
+
+
+def test_command_scenario_options(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """--r-fraction, --sigma-scale and --leader-speed change the study's scenario; with
+    PERIODIC the command prints its cycle and the time the design took."""
+    from formopt_ros.cli.montecarlo import main
+    assert main(['--measurement', 'bearing', '--trials', '2', '--steps', '20', '--jobs', '1',
+                 '--strategies', 'ram,periodic', '--r-fraction', '0.2', '--sigma-scale', '2',
+                 '--leader-speed', '0.5', '--no-figures', '--out', str(tmp_path)]) == 0
+    summary = json.loads((tmp_path / 'bearing' / 'summary.json').read_text())
+    scenario = summary['scenario']
+    assert scenario['r'] == pytest.approx(0.2 * 5 ** 0.5, rel=1e-12)
+    assert scenario['sigma'] == pytest.approx(0.04, rel=1e-12)
+    assert scenario['leader']['speed'] == 0.5
+    out = capsys.readouterr().out
+    assert 'periodic: cycle of 4 boundary points' in out and 'designed offline in' in out
 
 
 def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
     """Unknown strategies and bad counts stop with exit code 2 and a message."""
     from formopt_ros.cli.montecarlo import main
     for argv in (['--strategies', 'ram,foo'], ['--trials', '0'], ['--jobs', '0'],
-                 ['--gbs-cell', '2'], ['--gbs-cell', '1e-9'], ['--seed', '-1']):
+                 ['--gbs-cell', '2'], ['--gbs-cell', '1e-9'], ['--seed', '-1'],
+                 ['--r-fraction', '1'], ['--r-fraction', '0'], ['--sigma-scale', '0']):
         with pytest.raises(SystemExit) as stop:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2

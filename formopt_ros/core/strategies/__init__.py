@@ -5,13 +5,15 @@ from formopt_ros.core.strategies.base import (
     EstimatorView, OptionSpec, PlanContext, Solution, StepRecord, Strategy, make_solution)
 from formopt_ros.core.strategies.baselines import (
     ActiveSideSteps, ConstrainedRandomMotion, GridSearch, MaintainFormation)
+from formopt_ros.core.strategies.periodic import PeriodicPattern
 from formopt_ros.core.strategies.ram import RelaxedAlgebraicMethod
 from formopt_ros.core.strategies.rq import RayleighQuotient
 
-#: name -> strategy class, in the order of the paper's comparison.
+#: name -> strategy class, in the order of the paper's comparison, then ours beyond it.
 STRATEGIES: dict[str, type[Strategy]] = {
     cls.name: cls for cls in (MaintainFormation, ConstrainedRandomMotion, ActiveSideSteps,
-                              GridSearch, RelaxedAlgebraicMethod, RayleighQuotient)}
+                              GridSearch, RelaxedAlgebraicMethod, RayleighQuotient,
+                              PeriodicPattern)}
 
 
 def make_strategy(name: str, **options: object) -> Strategy:

@@ -1,0 +1,212 @@
+"""PERIODIC (beyond the paper): greedy while far from the periodic regime, then the best cycle.
+
+RAM and RQ minimise the cost after the next measurement only. Over many steps a cycle of a few
+boundary points does better (docs/periodic_pattern.md): in the Sec. V protocol the best cycle of
+four points has a steady tr(W P W) 18 % (range) and 23 % (bearing) below the greedy optimum's
+regime, but a cycle started from a large covariance can be much worse than greedy during the
+transient, and it may take hundreds of steps to pay. So this strategy
+
+1. designs, once per set of conditions (sensor, slot, r, noise levels, leader speed, dt), the
+   cycle of ``period`` boundary points with the lowest exact periodic steady state
+   (:mod:`.periodic_design`, cached per process);
+2. plays the exact greedy optimum (RQ) and, every ``check_every`` steps, forecasts with the
+   noise-free recursion the tr(W P W) summed over a look-ahead (until the cycle settles, at
+   most ``horizon`` steps) of: joining the cycle now (best phase), ``check_every`` greedy steps
+   and then the cycle, and greedy throughout; it joins when now is the cheapest;
+3. follows the cycle, watching the covariance: when it exceeds its forecast by more than
+   ``tolerance`` (lost measurements, a disturbance) it returns to 2.
+
+When the leader turns (or the expected leader motion is not constant over the step) it plays
+greedy; when the slot or r change, or a noise level, the leader speed or dt by more than
+``replan_tolerance``, it designs again (or takes the cached design) and starts over at 2.
+Every point is either RQ's (feasible) or on the boundary circle of the problem's own disc.
+``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
+greedy, turning fallbacks and switch tests.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.core.cost import Problem, weighted_trace
+from formopt_ros.core.strategies.base import (
+    OptionSpec, PlanContext, Solution, Strategy, make_solution)
+from formopt_ros.core.strategies.periodic_design import (
+    PatternDesign, SteadyConditions, cached_design, greedy_target, noise_free_step)
+from formopt_ros.core.strategies.rq import rq_optimum
+
+GREEDY = 'greedy'
+PATTERN = 'pattern'
+#: The interval between switch tests grows at most 2**6 = 64-fold.
+MAX_BACKOFF_DOUBLINGS = 6
+
+
+def steady_conditions(problem: Problem, context: PlanContext) -> SteadyConditions | None:
+    """The stationary conditions of this step, or None when the leader is not expected to
+    drive straight at one speed over the step."""
+    speeds = {v for v, _ in context.leader_velocities}
+    if not context.leader_straight or len(speeds) != 1:
+        return None
+    return SteadyConditions(problem.measurement, (float(problem.p_o[0]), float(problem.p_o[1])),
+                            float(problem.r), float(problem.sigma), float(speeds.pop()), 0.0,
+                            context.dt, context.sigma_v, context.sigma_omega)
+
+
+class PeriodicPattern(Strategy):
+    """PERIODIC: greedy transient, then the cycle of boundary points with the best steady state.
+
+    See the module docstring. One object per follower: it keeps the design, the mode and the
+    phase of the cycle.
+    """
+
+    name = 'periodic'
+    OPTIONS = {
+        'period': OptionSpec(4, 'points in the cycle of boundary points', 2, 6),
+        'check_every': OptionSpec(10, 'steps between tests whether joining the cycle pays',
+                                  1, 1000),
+        'horizon': OptionSpec(500, 'longest look-ahead of that test, steps', 10, 100000),
+        'tolerance': OptionSpec(0.25, 'relative excess of tr(W P W) over its prediction that '
+                                'sends the follower back to greedy', 0.01, 100.0),
+        'replan_tolerance': OptionSpec(1e-3, 'relative change of a noise level, the leader '
+                                       'speed or dt that makes a new design (any change of '
+                                       'the slot or r does)', 0.0, 1.0),
+    }
+
+    def __init__(self, **options: object) -> None:
+        super().__init__(**options)
+        self.conditions: SteadyConditions | None = None
+        self.design: PatternDesign | None = None
+        self.mode = GREEDY
+        self.phase = 0                     # phase of the cycle reached by the last target
+        self.next_check = 1                # step of the next switch test
+        self.backoff = 0                   # doublings of the interval between tests
+        self.predicted: np.ndarray = np.empty(0)   # tr(W P W) predicted after each step
+        self.joined_at = 0                 # step whose target was the first of the cycle
+        self.counts = {'replans': 0, 'returns_to_greedy': 0, 'turning_fallbacks': 0,
+                       'switch_tests': 0, 'unpaid_tests': 0}
+
+    # --- the decision ------------------------------------------------------------------------
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        """The next position: RQ's, or the cycle's next point (see the module docstring)."""
+        if context.estimator is None:
+            return self._greedy(problem, 'no estimator: one-off problem')
+        conditions = steady_conditions(problem, context)
+        if conditions is None:
+            self.mode = GREEDY
+            self.counts['turning_fallbacks'] += 1
+            return self._greedy(problem, 'leader turning')
+        designed = self._adopt(conditions, context.step)
+        if self.design is None:
+            return self._greedy(problem, 'no periodic steady state', designed)
+        x, P = context.estimator.x, context.estimator.P
+        if self.mode == PATTERN and not self._on_track(P, context.step):
+            self.mode = GREEDY
+            self.counts['returns_to_greedy'] += 1
+            self.backoff = min(self.backoff + 1, MAX_BACKOFF_DOUBLINGS)
+            self.next_check = context.step + int(self.settings['check_every']) * 2 ** self.backoff
+        if self.mode == GREEDY and context.step >= self.next_check:
+            self._switch_test(x, P, context.step)
+        if self.mode == GREEDY:
+            return self._greedy(problem, 'transient', designed)
+        self.phase = (self.phase + 1) % self.design.period
+        point = self.design.points[self.phase].copy()
+        if not problem.feasible(point):     # the design's disc is the problem's: never seen
+            self.mode = GREEDY
+            return self._greedy(problem, 'cycle point outside the disc', designed)
+        return make_solution(problem, point, self.name, True,
+                             details=self._details(PATTERN, 'cycle', designed))
+
+    def _greedy(self, problem: Problem, reason: str,
+                design_time_s: float | None = None) -> Solution:
+        solution = rq_optimum(problem, self.name)
+        solution.details.update(self._details(GREEDY, reason, design_time_s))
+        return solution
+
+    def _details(self, mode: str, reason: str, design_time_s: float | None) -> dict[str, Any]:
+        details: dict[str, Any] = {'mode': mode, 'reason': reason, 'phase': self.phase,
+                                   **self.counts}
+        if design_time_s is not None:
+            details['design_time_s'] = design_time_s
+        return details
+
+    # --- conditions and design ---------------------------------------------------------------
+    def _adopt(self, conditions: SteadyConditions, step: int) -> float | None:
+        """Design (or fetch) the cycle when the conditions changed; its design time when it was
+        computed now, else None."""
+        tolerance = float(self.settings['replan_tolerance'])
+        if self.conditions is not None and self.conditions.close_to(conditions, tolerance):
+            return None
+        if self.conditions is not None:
+            self.counts['replans'] += 1
+        self.conditions = conditions
+        start = time.perf_counter()
+        self.design, computed = cached_design(conditions, int(self.settings['period']))
+        self.mode, self.next_check, self.backoff = GREEDY, step, 0
+        return time.perf_counter() - start if computed else None
+
+    # --- switching ---------------------------------------------------------------------------
+    def _horizon(self) -> int:
+        assert self.design is not None
+        return max(2 * int(self.settings['check_every']),
+                   min(self.design.horizon, int(self.settings['horizon'])))
+
+    def _best_entry(self, x: np.ndarray, P: np.ndarray, steps: int) -> tuple[float, int,
+                                                                             np.ndarray]:
+        """(summed cost, phase, predicted costs) of the best phase to join the cycle at."""
+        assert self.design is not None
+        best: tuple[float, int, np.ndarray] | None = None
+        for phase in range(self.design.period):
+            costs = self.design.rollout_costs(x, P, phase, steps)
+            total = float(costs.sum())
+            if np.isfinite(total) and (best is None or total < best[0]):
+                best = (total, phase, costs)
+        if best is None:
+            return np.inf, 0, np.empty(0)
+        return best
+
+    def _switch_test(self, x: np.ndarray, P: np.ndarray, step: int) -> None:
+        """Join the cycle now when, predicted noise-free and summed over the look-ahead, that
+        beats both ``check_every`` greedy steps followed by the cycle (so the greedy transient
+        is not cut short) and greedy throughout (so the cycle pays within the look-ahead);
+        greedy throughout is extrapolated from the mean of the last two greedy steps (the
+        greedy optimum settles into a zigzag). Else test again: ``check_every`` steps later,
+        doubled for every return to greedy and every test in which the cycle did not pay within
+        the look-ahead (at most MAX_BACKOFF_DOUBLINGS times)."""
+        assert self.design is not None and self.conditions is not None
+        self.counts['switch_tests'] += 1
+        delay = int(self.settings['check_every'])
+        steps = self._horizon()
+        try:
+            now, phase, costs = self._best_entry(x, P, steps)
+            greedy_costs = []
+            for _ in range(delay):
+                x, P = noise_free_step(x, P, greedy_target(x, P, self.conditions),
+                                       self.conditions)
+                greedy_costs.append(weighted_trace(P, self.conditions.slot))
+            spent = float(np.sum(greedy_costs))
+            later = spent + self._best_entry(x, P, steps - delay)[0]
+            greedy_throughout = spent + (steps - delay) * float(np.mean(greedy_costs[-2:]))
+        except np.linalg.LinAlgError:
+            now, later, greedy_throughout = np.inf, 0.0, 0.0
+        if np.isfinite(now) and now <= min(later, greedy_throughout):
+            self.mode, self.joined_at, self.predicted = PATTERN, step, costs
+            self.phase = (phase - 1) % self.design.period     # plan() advances to `phase`
+            return
+        if not now <= greedy_throughout:
+            self.counts['unpaid_tests'] += 1
+            self.backoff = min(self.backoff + 1, MAX_BACKOFF_DOUBLINGS)
+        self.next_check = step + delay * 2 ** self.backoff
+
+    def _on_track(self, P: np.ndarray, step: int) -> bool:
+        """False when tr(W P W) of the posterior of step - 1 exceeds its prediction by more
+        than ``tolerance`` (relative); beyond the prediction, the cycle's steady value."""
+        assert self.design is not None
+        index = step - 1 - self.joined_at
+        if index < 0:
+            return True
+        expected = (self.predicted[index] if index < len(self.predicted)
+                    else self.design.costs[self.phase])
+        actual = weighted_trace(P, self.design.conditions.slot)
+        return actual <= (1.0 + float(self.settings['tolerance'])) * expected

@@ -1,0 +1,461 @@
+"""Offline design of the periodic boundary pattern: its exact steady state, search and cache.
+
+A pattern is a cycle of ``m`` points on the disc boundary, ``p_k = p_o + r [cos a_k, sin a_k]``,
+visited in turn. Under the noise-free recursion (the estimate lands on each target, zero
+innovations) every move of the cycle has fixed Jacobians, so the covariance obeys a periodic
+Riccati recursion. Each move (two propagation sub-steps, then one update) is a linear
+fractional map P -> (A P + B)(C P + D)^-1 given by a 6 x 6 matrix (the symplectic form of the
+Riccati map):
+
+    propagation  P -> Phi P Phi' + Q :  [[Phi, Q Phi^-T], [0, Phi^-T]]
+    update       P -> (P^-1 + h h'/R)^-1:  [[I, 0], [h h'/R, I]]
+
+The product over one period maps [X; Y] to [X'; Y'] with P = X Y^-1, so the periodic steady
+state is P* = X Y^-1 on the invariant subspace of its three largest eigenvalues (they come in
+pairs lambda, 1/lambda; the ratio of the 4th to the 3rd modulus is the convergence factor per
+period). The same eigen-decomposition gives the whole future of the covariance from any start,
+which the online switch test uses (:meth:`PatternDesign.future_costs`).
+
+The search (:func:`design_pattern`): every two-point cycle of a 10 degree grid at once (batched
+eigen-decompositions), Nelder-Mead on the best three; for m > 2, a short race of four seeds that
+group the points near the two of the best pair, the two best refined in full, kept when better
+than the pair repeated. A cycle that passes the leader closer than LINEARITY_MARGIN position
+standard deviations is rejected: there the EKF's linearisation, hence the forecast, fails.
+Designs are cached per :class:`SteadyConditions` and period (a study's trials share one).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.optimize import minimize
+
+from formopt_ros.core.cost import Problem, weight_vector, weighted_trace
+from formopt_ros.core.model import (
+    ekf_update, measurement_jacobian, predict_measurement, propagate_state, transition_matrices)
+from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move
+from formopt_ros.core.strategies.rq import rq_optimum
+
+if TYPE_CHECKING:
+    from formopt_ros.core.scenario import Scenario
+
+#: Coarse grid of boundary angles for the search of two-point patterns, degrees.
+GRID_STEP_DEG = 10.0
+#: Pairs of the coarse grid refined by Nelder-Mead.
+REFINED_PAIRS = 3
+#: Evaluations per angle of each seed of a longer pattern before the best seed is refined.
+SEED_BUDGET = 40
+#: Seeds of a longer pattern refined in full after the race.
+RACE_WINNERS = 2
+#: Spread of the points of one pair in the seeds of longer patterns, rad.
+PAIR_SPREAD = math.radians(15.0)
+#: The switch test looks ahead until the distance to the periodic regime shrinks by this factor.
+SETTLE_FACTOR = 0.01
+#: A cycle point must lie at least this many position standard deviations from the leader.
+LINEARITY_MARGIN = 6.0
+#: Designs kept in the cache.
+CACHE_SIZE = 16
+
+
+@dataclass(frozen=True)
+class SteadyConditions:
+    """The constants of a stationary planning problem: the cache key of a pattern.
+
+    Attributes:
+        measurement: 'range' or 'bearing'.
+        p_o: formation slot (x, y) in the leader frame, m.
+        r: disc radius, m.
+        sigma: measurement noise standard deviation, m or rad.
+        v_l, omega_l: the leader's constant velocity, m/s and rad/s.
+        dt: sub-step length, s.
+        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+    """
+
+    measurement: str
+    p_o: tuple[float, float]
+    r: float
+    sigma: float
+    v_l: float
+    omega_l: float
+    dt: float
+    sigma_v: float
+    sigma_omega: float
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
+        """The conditions at the start of ``scenario``; None when its leader turns then."""
+        v_l, omega_l = scenario.leader.velocity(0, scenario.dt)
+        if omega_l != 0.0:
+            return None
+        return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, 0.0,
+                   scenario.dt, scenario.sigma_v, scenario.sigma_omega)
+
+    @property
+    def slot(self) -> np.ndarray:
+        """p_o, shape (2,), m."""
+        return np.array(self.p_o, dtype=float)
+
+    @property
+    def leader(self) -> tuple[tuple[float, float], ...]:
+        """The leader velocity (v m/s, omega rad/s) per sub-step."""
+        return ((self.v_l, self.omega_l),) * SUBSTEPS
+
+    def close_to(self, other: SteadyConditions, tolerance: float) -> bool:
+        """True when ``other`` has the same sensor, slot and disc (exactly: a cycle must stay
+        in the disc) and noise levels, leader velocity and dt within ``tolerance`` (relative)."""
+        if (self.measurement, self.p_o, self.r) != (other.measurement, other.p_o, other.r):
+            return False
+        mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega)
+        theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
+                  other.sigma_omega)
+        return all(abs(a - b) <= tolerance * max(abs(a), abs(b)) for a, b in zip(mine, theirs))
+
+    def boundary_points(self, angles: np.ndarray) -> np.ndarray:
+        """Points p_o + r [cos a, sin a] (n, 2), m, for angles a (n,), rad."""
+        a = np.asarray(angles, dtype=float)
+        return self.slot + self.r * np.stack([np.cos(a), np.sin(a)], axis=-1)
+
+    def problem(self, P: np.ndarray) -> Problem:
+        """The paper's one-step problem with prior P (3, 3) (trusted, not validated)."""
+        return Problem(P, self.slot, self.r, self.sigma, self.measurement, False)
+
+
+def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
+                    conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
+    """Drive from pose x (3,) to target (2,) and measure there with zero innovation.
+
+    Returns the EKF's (x, P) after the update: the covariance the filter will have when the
+    estimate lands on target, the noise-free recursion of the planners.
+    """
+    c = conditions
+    x, P = predict_move(x, P, target, c.leader, c.dt, c.sigma_v, c.sigma_omega)
+    x, P, _, _ = ekf_update(x, P, predict_measurement(c.measurement, x), c.measurement,
+                            c.sigma * c.sigma)
+    return x, P
+
+
+def greedy_target(x: np.ndarray, P: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+    """RQ's choice from posterior (x, P): the exact optimum with the paper's planning prior."""
+    c = conditions
+    prior = predict_move(x, P, c.slot, c.leader, c.dt, c.sigma_v, c.sigma_omega)[1]
+    return rq_optimum(c.problem(prior)).p
+
+
+def lft(M: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The linear fractional map of a 6 x 6 matrix: (A P + B)(C P + D)^-1, P (..., 3, 3)."""
+    X = M[..., :3, :3] @ P + M[..., :3, 3:]
+    Y = M[..., 3:, :3] @ P + M[..., 3:, 3:]
+    return np.swapaxes(np.linalg.solve(np.swapaxes(Y, -1, -2), np.swapaxes(X, -1, -2)), -1, -2)
+
+
+def move_map(x: np.ndarray, target: np.ndarray,
+             conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
+    """The 6 x 6 symplectic map of one step (drive from pose x (3,) to target (2,), measure)
+    and the pose (3,) at the target; see the module docstring."""
+    c = conditions
+    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l)
+    Phi, GQG = np.eye(3), np.zeros((3, 3))       # the sub-steps composed: P -> Phi P Phi' + GQG
+    for j in range(SUBSTEPS):
+        Phi_j, GQG_j = transition_matrices(x, command.linear[j], c.dt, c.omega_l, c.sigma_v,
+                                           c.sigma_omega)
+        Phi, GQG = Phi_j @ Phi, Phi_j @ GQG @ Phi_j.T + GQG_j
+        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l)
+    Phi_inv_t = np.linalg.inv(Phi).T
+    h = measurement_jacobian(c.measurement, x)
+    M = np.zeros((6, 6))
+    M[:3, :3], M[:3, 3:], M[3:, 3:] = Phi, GQG @ Phi_inv_t, Phi_inv_t
+    M[3:] += np.outer(h, h) / (c.sigma * c.sigma) @ M[:3]
+    return M, x
+
+
+def periodic_solutions(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steady states of period maps M (n, 6, 6): P (n, 3, 3), the convergence factor per
+    period (n,) and which rows have a unique positive definite steady state (n,) bool (the
+    others leave a direction unobservable; their P and factor are meaningless)."""
+    values, vectors = np.linalg.eig(M)
+    order = np.argsort(-np.abs(values), axis=-1)
+    moduli = np.take_along_axis(np.abs(values), order, axis=-1)
+    dominant = np.take_along_axis(vectors, order[:, None, :3], axis=-1)       # (n, 6, 3)
+    valid = np.all(np.isfinite(moduli), axis=-1) & (moduli[:, 2] > (1.0 + 1e-9) * moduli[:, 3])
+    X, Y = dominant[:, :3], dominant[:, 3:]
+    Y = np.where(valid[:, None, None], Y, np.eye(3))                # keep singular rows solvable
+    P = np.real(np.swapaxes(np.linalg.solve(np.swapaxes(Y, 1, 2), np.swapaxes(X, 1, 2)), 1, 2))
+    P = 0.5 * (P + np.swapaxes(P, 1, 2))
+    valid &= np.all(np.isfinite(P), axis=(1, 2))
+    P = np.where(valid[:, None, None], P, np.eye(3))
+    valid &= np.linalg.eigvalsh(P)[:, 0] > 0.0
+    return P, moduli[:, 3] / np.maximum(moduli[:, 2], 1e-300), valid
+
+
+@dataclass(frozen=True)
+class PatternDesign:
+    """A periodic boundary pattern for one :class:`SteadyConditions`, with its steady state.
+
+    Phase k is the state just after the measurement at ``points[k]``; the next target is
+    ``points[(k + 1) % m]``.
+
+    Attributes:
+        conditions: what it was designed for.
+        angles: boundary angles a_k (m,), rad: p_k = p_o + r [cos a_k, sin a_k].
+        points: the pattern's points (m, 2), leader frame, m.
+        posteriors: steady posterior covariance at each phase (m, 3, 3).
+        costs: tr(W P W) of those posteriors (m,), m^2.
+        steady_cost: their mean, the pattern's long-run value, m^2.
+        decay: convergence factor of the covariance towards the steady state per period.
+        horizon: steps the switch test looks ahead (until the decay reaches SETTLE_FACTOR).
+        moves: symplectic map (m, 6, 6) of the move into each phase.
+        design_time_s: wall time of the search, s.
+        evaluations: patterns evaluated by the search.
+    """
+
+    conditions: SteadyConditions
+    angles: np.ndarray
+    points: np.ndarray
+    posteriors: np.ndarray
+    costs: np.ndarray
+    steady_cost: float
+    decay: float
+    horizon: int
+    moves: np.ndarray
+    design_time_s: float
+    evaluations: int
+
+    @property
+    def period(self) -> int:
+        """Number of points m."""
+        return len(self.points)
+
+    def future_costs(self, phase: int, P: np.ndarray, steps: int) -> np.ndarray:
+        """tr(W P W) (steps,) after each of the next ``steps`` pattern steps, m^2.
+
+        Starts from the posterior P (3, 3) at ``phase`` (the follower at points[phase] with the
+        pattern's heading) and uses the eigen-decomposition of the period map starting there,
+        so the cost does not grow with ``steps``.
+        """
+        m = self.period
+        partial = np.empty((m, 6, 6))             # maps from `phase` to phase + i + 1
+        product = np.eye(6)
+        for i in range(m):
+            product = self.moves[(phase + 1 + i) % m] @ product
+            partial[i] = product
+        # [X; Y] after n periods = V_d D_d^n C_d + V_s D_s^n C_s (dominant / subdominant
+        # eigenpairs, C = V^-1 [P; I]); right-multiplying by (D_d^n C_d)^-1 leaves X Y^-1
+        # unchanged and gives V_d + V_s (G o R^n) with G = C_s C_d^-1, R_ij = l_s,i / l_d,j,
+        # |R_ij| < 1: no overflow however long the horizon.
+        values, vectors = np.linalg.eig(product)
+        order = np.argsort(-np.abs(values))
+        dominant, subdominant = order[:3], order[3:]
+        coefficients = np.linalg.solve(vectors, np.vstack([P, np.eye(3)]))
+        G = np.linalg.solve(coefficients[dominant].T, coefficients[subdominant].T).T
+        ratio = values[subdominant][:, None] / values[dominant][None, :]
+        periods = -(-steps // m)
+        powers = ratio[None] ** np.arange(periods)[:, None, None]          # (periods, 3, 3)
+        Z = vectors[:, dominant][None] + vectors[:, subdominant] @ (G * powers)
+        Z = np.einsum('mij,njk->nmik', partial, Z).reshape(-1, 6, 3)[:steps]
+        X, Y = Z[:, :3], Z[:, 3:]
+        covariances = np.real(np.swapaxes(np.linalg.solve(np.swapaxes(Y, 1, 2),
+                                                          np.swapaxes(X, 1, 2)), 1, 2))
+        w2 = weight_vector(self.conditions.slot) ** 2
+        return np.einsum('i,nii->n', w2, covariances)
+
+    def rollout_costs(self, x: np.ndarray, P: np.ndarray, phase: int,
+                      steps: int) -> np.ndarray:
+        """tr(W P W) (steps,) after each of the next ``steps`` steps when the follower, at pose
+        x (3,) with posterior P (3, 3), joins the pattern at points[phase].
+
+        The first two steps (into the pattern, then its first regular move, whose heading still
+        comes from x) are computed exactly; the rest by :meth:`future_costs`.
+        """
+        m, c = self.period, self.conditions
+        head = []
+        for i in range(min(2, steps)):
+            x, P = noise_free_step(x, P, self.points[(phase + i) % m], c)
+            head.append(weighted_trace(P, c.slot))
+        if steps <= 2:
+            return np.array(head)
+        return np.concatenate([head, self.future_costs((phase + 1) % m, P, steps - 2)])
+
+
+def arrival_pose(x: np.ndarray, target: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+    """The pose (3,) at target (2,) after the protocol's move from pose x (3,)."""
+    c = conditions
+    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l)
+    for j in range(SUBSTEPS):
+        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l)
+    return x
+
+
+def cycle_maps(points: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+    """Symplectic maps (m, 6, 6) of the moves into each of the cycle's points (m, 2), with
+    the cycle's headings (the heading at a point is that of the move into it)."""
+    pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], conditions)
+    maps = np.empty((len(points), 6, 6))
+    for k, point in enumerate(points):
+        maps[k], pose = move_map(pose, point, conditions)
+    return maps
+
+
+def evaluate_cycles(maps: np.ndarray, points: np.ndarray, conditions: SteadyConditions
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steady states of n cycles given by their move maps (n, m, 6, 6) and points (n, m, 2).
+
+    Returns the mean steady tr(W P W) (n,), m^2 (inf for a cycle without a steady state or
+    passing the leader closer than LINEARITY_MARGIN position standard deviations), the steady
+    posteriors (n, m, 3, 3) and the convergence factors per period (n,).
+    """
+    period_maps = maps[:, 0]
+    for k in range(1, maps.shape[1]):
+        period_maps = maps[:, k] @ period_maps
+    P, decay, valid = periodic_solutions(period_maps)     # posterior at the last phase
+    posteriors = np.empty(maps.shape[:2] + (3, 3))
+    for k in range(maps.shape[1]):
+        P = lft(maps[:, k], P)
+        P = 0.5 * (P + np.swapaxes(P, 1, 2))
+        posteriors[:, k] = P
+    w2 = weight_vector(conditions.slot) ** 2
+    costs = np.einsum('i,nmii->nm', w2, posteriors)
+    valid &= np.all(np.isfinite(costs) & (costs > 0.0), axis=1)
+    # the EKF linearises the measurement at each point: the position uncertainty the follower
+    # carries there (that of the previous phase) must be small against its distance to the
+    # leader, else the noise-free recursion is no forecast (the filter can diverge)
+    spread = np.sqrt(np.abs(np.linalg.eigvalsh(
+        np.where(valid[:, None, None, None], posteriors, np.eye(3))[..., :2, :2])[..., -1]))
+    distance = np.hypot(points[..., 0], points[..., 1])
+    valid &= np.all(distance >= LINEARITY_MARGIN * np.roll(spread, 1, axis=1), axis=1)
+    return np.where(valid, costs.mean(axis=1), np.inf), posteriors, decay
+
+
+def evaluate_pattern(angles: np.ndarray, conditions: SteadyConditions
+                     ) -> tuple[float, np.ndarray, float, np.ndarray]:
+    """One cycle with boundary angles (m,), rad: (mean steady tr(W P W) m^2 or inf, steady
+    posteriors (m, 3, 3), convergence factor per period, move maps (m, 6, 6)); see
+    :func:`evaluate_cycles`."""
+    points = conditions.boundary_points(angles)
+    maps = cycle_maps(points, conditions)
+    costs, posteriors, decay = evaluate_cycles(maps[None], points[None], conditions)
+    return float(costs[0]), posteriors[0], float(decay[0]), maps
+
+
+def pair_grid(conditions: SteadyConditions, step_deg: float = GRID_STEP_DEG
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Every two-point cycle of a grid of boundary angles: pairs of angles (n, 2), rad, and
+    their mean steady tr(W P W) (n,), m^2, with one move map per ordered pair of grid points."""
+    angles = np.radians(np.arange(0.0, 360.0, step_deg))
+    points = conditions.boundary_points(angles)
+    count = len(angles)
+    maps = np.empty((count, count, 6, 6))          # [i, j]: from i (arrived from j) to j
+    for i in range(count):
+        for j in range(count):
+            if i != j:
+                pose = arrival_pose(np.array([*points[j], 0.0]), points[i], conditions)
+                maps[i, j] = move_map(pose, points[j], conditions)[0]
+    first, second = np.triu_indices(count, 1)
+    cycle = np.stack([maps[second, first], maps[first, second]], axis=1)   # into a, into b
+    costs = evaluate_cycles(cycle, np.stack([points[first], points[second]], axis=1),
+                            conditions)[0]
+    return np.stack([angles[first], angles[second]], axis=1), costs
+
+
+class _Objective:
+    """Mean steady cost of a pattern (inf without a steady state), counting evaluations."""
+
+    def __init__(self, conditions: SteadyConditions) -> None:
+        self.conditions = conditions
+        self.evaluations = 0
+
+    def __call__(self, angles: np.ndarray) -> float:
+        self.evaluations += 1
+        return evaluate_pattern(np.asarray(angles, dtype=float), self.conditions)[0]
+
+    def refine(self, start: np.ndarray, scale: float, step: float = 0.2, budget: int = 100,
+               restart: bool = True) -> tuple[float, np.ndarray]:
+        """Nelder-Mead from ``start`` (rad) with an initial simplex of ``step`` rad until the
+        angles settle to 1e-3 rad and the cost to 1e-7 ``scale`` (m^2) or ``budget`` evaluations
+        per angle are spent; with ``restart``, once more from its result with a smaller simplex
+        (a collapsed simplex stalls early)."""
+        best = np.asarray(start, dtype=float)
+        value = math.inf
+        for size in (step, 0.25 * step) if restart else (step,):
+            simplex = np.vstack([best, best + size * np.eye(len(best))])
+            result = minimize(self, best, method='Nelder-Mead',
+                              options={'initial_simplex': simplex, 'xatol': 1e-3,
+                                       'fatol': 1e-7 * scale, 'maxfev': budget * len(best)})
+            if result.fun <= value:
+                value, best = float(result.fun), np.asarray(result.x)
+        return value, best
+
+
+def _seeds(pair: np.ndarray, period: int) -> list[np.ndarray]:
+    """Starts of the search for ``period`` points from the best two-point pattern (a, b): the
+    pair repeated, and the points split into a group near a and a group near b, each group
+    stepping along the boundary one way or the other (the shape of the optima we found)."""
+    a, b = pair
+    seeds = [np.resize(pair, period)]
+    sizes = ((period + 1) // 2, period // 2)
+    for sense_a in (1.0, -1.0):
+        for sense_b in (1.0, -1.0):
+            seeds.append(np.concatenate([
+                centre + sense * PAIR_SPREAD * np.linspace(-1.0, 1.0, size) if size > 1
+                else np.array([centre])
+                for centre, sense, size in ((a, sense_a, sizes[0]), (b, sense_b, sizes[1]))]))
+    return seeds
+
+
+def design_pattern(conditions: SteadyConditions, period: int) -> PatternDesign | None:
+    """The best pattern of ``period`` (>= 2) boundary points found by the search (see module
+    docstring), or None when no pattern qualifies (no steady state, e.g. without process noise,
+    or too close to the leader for its uncertainty, e.g. with a tiny r)."""
+    start_time = time.perf_counter()
+    objective = _Objective(conditions)
+    pairs, pair_costs = pair_grid(conditions)
+    objective.evaluations += len(pairs)
+    ranked = np.argsort(pair_costs)[:REFINED_PAIRS]
+    ranked = ranked[np.isfinite(pair_costs[ranked])]
+    if len(ranked) == 0:
+        return None
+    scale = float(pair_costs[ranked[0]])
+    best_value, best = min((objective.refine(pairs[i], scale) for i in ranked),
+                           key=lambda item: item[0])
+    if period > 2:
+        # a short race of the grouped seeds, the best RACE_WINNERS refined in full, against
+        # the pair repeated (a stationary point: Nelder-Mead does not leave it)
+        raced = sorted((objective.refine(seed, scale, budget=SEED_BUDGET, restart=False)
+                        for seed in _seeds(best, period)[1:]), key=lambda item: item[0])
+        refined = min((objective.refine(start, scale, step=0.05)
+                       for _, start in raced[:RACE_WINNERS]), key=lambda item: item[0])
+        if refined[0] < best_value:
+            best_value, best = refined
+        else:
+            best = np.resize(best, period)
+    if not math.isfinite(best_value):
+        return None
+    mean_cost, posteriors, decay, maps = evaluate_pattern(best, conditions)
+    angles = np.mod(best, 2.0 * math.pi)
+    horizon = period * math.ceil(math.log(SETTLE_FACTOR) / math.log(min(decay, 1.0 - 1e-9)))
+    return PatternDesign(conditions, angles, conditions.boundary_points(angles), posteriors,
+                         np.einsum('i,nii->n', weight_vector(conditions.slot) ** 2, posteriors),
+                         mean_cost, decay, max(horizon, 4 * period), maps,
+                         time.perf_counter() - start_time, objective.evaluations)
+
+
+_CACHE: dict[tuple[SteadyConditions, int], PatternDesign | None] = {}
+
+
+def cached_design(conditions: SteadyConditions, period: int) -> tuple[PatternDesign | None,
+                                                                      bool]:
+    """(design, computed now) for the conditions, from the per-process cache when possible."""
+    key = (conditions, period)
+    if key in _CACHE:
+        return _CACHE[key], False
+    if len(_CACHE) >= CACHE_SIZE:
+        _CACHE.pop(next(iter(_CACHE)))
+    _CACHE[key] = design_pattern(conditions, period)
+    return _CACHE[key], True
+
+
+def clear_cache() -> None:
+    """Forget every cached design (benchmarks time cold designs)."""
+    _CACHE.clear()
