@@ -107,7 +107,8 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
         elif kind == 'truth':
             inputs.feed_truth(session, msg)
         else:
-            inputs.feed_measurement(session, msg, description.follower_id, now)
+            inputs.feed_measurement(session, msg, description.follower_id, now,
+                                    description.run_id)
         for outcome in session.advance():
             outcomes.append(outcome)
             if outcome.plan is not None:

@@ -1,7 +1,6 @@
 """Figures and a summary of one recorded formation run (an .mcap bag), without ROS."""
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.protocol import SUBSTEPS, Timebase
 from formopt_ros.core.study import nees_band, steady_window
 from formopt_ros.wire.messages import estimate_values, header_ns, pose_values
+from formopt_ros.wire.jsonfile import write_json
 
 
 @dataclass
@@ -146,7 +146,7 @@ def make_report(recording: Recording, out: Path, trajectory_steps: int = 40,
     }
     if len(rows) == 1:                     # the single follower's row at the top level too
         summary.update(next(iter(rows.values())))
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    write_json(out / 'summary.json', summary)
     (out / 'summary.md').write_text(_markdown(summary))
     return summary
 

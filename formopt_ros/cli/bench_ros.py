@@ -2,7 +2,6 @@
 realtime latency, with 1 and 2 followers."""
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import sys
@@ -17,6 +16,7 @@ import numpy as np
 from formopt_ros.cli.common import ArgumentParser, integer, number
 from formopt_ros.cli.run_formation import Launcher
 from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.wire.jsonfile import write_json
 
 DESCRIPTION = """\
 Start leader_sim and, per follower, follower_sim and estimator_planner as separate processes
@@ -211,7 +211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, value in rows:
         print(f'{name:<{width}}  {value}')
     if args.json:
-        args.json.write_text(json.dumps(dict(rows), indent=2) + '\n')
+        write_json(args.json, dict(rows))
     return 0
 
 

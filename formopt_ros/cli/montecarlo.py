@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import sys
 import time
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.cli.common import ArgumentParser, fail, integer, new_folder, number
+from formopt_ros.core.estimator import INNOVATION_GATE
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
@@ -22,6 +22,7 @@ from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.strategies.periodic_design import SteadyConditions, design_pattern
 from formopt_ros.core.study import (
     METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_study, summarize)
+from formopt_ros.wire.jsonfile import write_json
 
 FIGURE_NAMES = {'range': 'fig5_range_weighted_trace.png',
                 'bearing': 'fig6_bearing_weighted_trace.png'}
@@ -77,7 +78,7 @@ def write_outputs(result: StudyResult, out: Path, figures: bool) -> dict[str, An
     """Write summary.json, steps.csv, report.md and the figures into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarize(result)
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    write_json(out / 'summary.json', summary)
     config, scenario = result.config, result.scenario
     time_s = (np.arange(config.steps) + 1) * SUBSTEPS * scenario.dt
     mean_trace = {n: r.weighted_trace.mean(axis=0) for n, r in result.records.items()}
@@ -165,6 +166,12 @@ def report_markdown(summary: dict[str, Any]) -> str:
                      f"{row['nees_mean']:.3f} | {100 * row['nees_in_band']:.1f} % | "
                      f"{1e3 * row['decision_time_s']:.3f} / "
                      f"{1e3 * row['decision_time_median_s']:.3f} |")
+    rows = summary['strategies'].values()
+    updates = summary['trials'] * summary['steps'] * len(summary['strategies'])
+    gated = sum(r['gated_updates'] for r in rows)
+    largest = max(r['max_innovation_nis'] for r in rows)
+    lines += ['', f'Innovation gate ({INNOVATION_GATE:g}): {gated} of {updates} updates '
+              f'refused; largest normalised innovation squared {largest:.3g}.']
     return '\n'.join(lines) + '\n'
 
 
@@ -178,25 +185,26 @@ def add_scenario_options(parser: ArgumentParser) -> None:
                              '(default: 1)')
     paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
     paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
-                       default='straight', help='straight, arc (--yaw-rate) or s-curve '
-                       '(--amplitude, --period)')
-    paths.add_argument('--speed', type=number(-100.0, 100.0), default=1.0,
+                       default='straight', help='straight, arc (--leader-yaw-rate) or s-curve '
+                       '(--leader-amplitude, --leader-period)')
+    paths.add_argument('--leader-speed', type=number(-100.0, 100.0), default=1.0,
                        help='leader speed, m/s (default 1)')
-    paths.add_argument('--yaw-rate', type=number(-100.0, 100.0), default=0.5,
+    paths.add_argument('--leader-yaw-rate', type=number(-100.0, 100.0), default=0.5,
                        help='arc: yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--amplitude', type=number(-100.0, 100.0), default=0.5,
+    paths.add_argument('--leader-amplitude', type=number(-100.0, 100.0), default=0.5,
                        help='s-curve: peak yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--period', type=number(1e-3, 1e6), default=10.0,
+    paths.add_argument('--leader-period', type=number(1e-3, 1e6), default=10.0,
                        help='s-curve: period, s (default 10)')
 
 
 def leader_path(args: argparse.Namespace) -> LeaderPath:
     """The leader path of the command line."""
     if args.leader_path == 'arc':
-        return LeaderPath('arc', args.speed, args.yaw_rate)
+        return LeaderPath('arc', args.leader_speed, args.leader_yaw_rate)
     if args.leader_path == 's-curve':
-        return LeaderPath('s-curve', args.speed, amplitude=args.amplitude, period=args.period)
-    return LeaderPath('straight', args.speed)
+        return LeaderPath('s-curve', args.leader_speed, amplitude=args.leader_amplitude,
+                          period=args.leader_period)
+    return LeaderPath('straight', args.leader_speed)
 
 
 def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:

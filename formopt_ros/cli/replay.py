@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
 from formopt_ros.analysis.offline import offline
@@ -12,6 +11,7 @@ from formopt_ros.analysis.recording import load_recording
 from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import ArgumentParser, existing_file, fail, integer, new_file, number
 from formopt_ros.core.strategies import STRATEGIES
+from formopt_ros.wire.jsonfile import write_json
 
 PROG = 'replay'
 
@@ -106,9 +106,8 @@ def offline_main(args: Any) -> int:
     print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
           f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
     if args.json:
-        Path(args.json).write_text(json.dumps(
-            {'bag': str(args.bag), **result.as_dict(), 'tolerance': args.tolerance, 'ok': ok},
-            indent=2) + '\n')
+        write_json(args.json, {'bag': str(args.bag), **result.as_dict(),
+                               'tolerance': args.tolerance, 'ok': ok})
     return 0 if ok else 1
 
 

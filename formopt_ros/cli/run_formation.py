@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,12 +20,13 @@ from formopt_ros.cli.common import ArgumentParser, fail, integer, number
 from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.formation import load_formation
+from formopt_ros.wire.jsonfile import write_json
 from formopt_ros.wire.topics import BY_KEY, resolve
 
 PROG = 'run_formation.sh'
 SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
-#: Output files a run writes into OUT (an OUT that has any of them is refused).
-OUTPUTS = ('run.mcap', 'summary.json', 'recorder_counts.json')
+#: Exit code of a node refusing its configuration (not respawned: it would refuse again).
+CONFIGURATION_EXIT = 2
 
 
 @dataclass
@@ -34,8 +36,20 @@ class Process:
     name: str
     process: subprocess.Popen[bytes]
     log: Path
+    args: list[str]
     summary_path: Path | None = None
     code: int | None = None
+    restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
+
+    def restart(self) -> None:
+        """Start the process again (same arguments; the log continues)."""
+        self.restarts.append(self.process.wait())
+        with open(self.log, 'ab') as stream:
+            stream.write(f'--- {PROG}: restarted after exit code {self.restarts[-1]} ---\n'
+                         .encode())
+            stream.flush()
+            self.process = subprocess.Popen(self.args, stdout=stream, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
 
     def alive(self) -> bool:
         """True while the process runs."""
@@ -58,6 +72,7 @@ class Launcher:
     """Starts node processes through scripts/<node>.sh with a namespace and -p parameters."""
 
     out: Path
+    checkpoints: bool = False
     processes: list[Process] = field(default_factory=list)
 
     def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
@@ -66,6 +81,8 @@ class Launcher:
         summary_path = self.out / f'{name}.json' if summary else None
         if summary_path is not None:
             params = {**params, 'summary_path': str(summary_path)}
+        if summary_path is not None and self.checkpoints:
+            params['checkpoint_path'] = str(self.out / 'checkpoints' / f'{name}.pkl')
         args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
         for key, value in params.items():
             args += ['-p', f'{key}:={format_value(value)}']
@@ -73,7 +90,7 @@ class Launcher:
         with open(log, 'wb') as stream:
             process = subprocess.Popen(args, stdout=stream, stderr=subprocess.STDOUT,
                                        start_new_session=True)
-        self.processes.append(Process(name, process, log, summary_path))
+        self.processes.append(Process(name, process, log, args, summary_path))
         return self.processes[-1]
 
     def stop(self, processes: list[Process], grace: float = 10.0) -> None:
@@ -126,12 +143,18 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--prefix', default='',
                         help='formation namespace prefix, e.g. /run7: two runs with different '
                              'prefixes share a ROS domain without seeing each other')
-    parser.add_argument('--run-id', default='', help='identity of the run (default: none)')
+    parser.add_argument('--run-id', default='',
+                        help='identity of the run: nodes refuse messages and peers of another '
+                             'run (default: a fresh random id, in summary.json)')
     parser.add_argument('--domain-id', type=integer(0, 232),
                         help='ROS_DOMAIN_ID of the run (default: $ROS_DOMAIN_ID, else 0)')
     parser.add_argument('--no-record', action='store_true', help='do not record run.mcap')
     parser.add_argument('--timeout', type=number(0.0, math.inf, low_open=True), default=600.0,
                         help='give up after this long, s (default 600)')
+    parser.add_argument('--respawn', type=integer(0, 100), default=0,
+                        help='restart a node that dies (crash, signal) up to this many times; '
+                             'nodes then save checkpoints in OUT/checkpoints and a restarted '
+                             'node resumes the run (default 0: a dead node fails the run)')
     parser.add_argument('-p', dest='extra', action='append', default=[], metavar='NAME:=VALUE',
                         help='extra parameter for the simulator and estimator nodes '
                              '(single follower only), e.g. -p dt:=0.02 (repeatable)')
@@ -160,12 +183,12 @@ def formation_of(args: Any) -> tuple[Formation, Path | None]:
 
 
 def prepare_out(out: Path) -> Path:
-    """Create OUT; refuse one that holds an earlier run's outputs (nothing is overwritten)."""
+    """Create OUT; refuse one that is not empty (nothing is overwritten)."""
     if out.exists() and not out.is_dir():
         fail(PROG, f'--out {out}: exists and is not a folder')
-    earlier = [name for name in OUTPUTS if (out / name).exists()]
+    earlier = sorted(p.name for p in out.iterdir())[:3] if out.is_dir() else []
     if earlier:
-        fail(PROG, f'--out {out}: holds an earlier run ({", ".join(earlier)}); choose a new '
+        fail(PROG, f'--out {out}: is not empty ({", ".join(earlier)}, ...); choose a new '
                    'folder (nothing is overwritten)')
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -196,6 +219,7 @@ def expected_counts(prefix: str, leader: dict[str, Any] | None,
                 out[resolve(ns, BY_KEY[key])] = sim['published'][name]
             out['/tf'] += sim['published']['tf']
             out['/tf_static'] = out.get('/tf_static', 0) + 1
+            out[resolve(ns, BY_KEY['sim_description'])] = 1
         if estimator:
             published = estimator['message_counts']['published']
             for key in ('estimate', 'waypoint', 'status', 'markers'):
@@ -215,6 +239,8 @@ def run(args: Any) -> int:
         check_id('--run-id', args.run_id) if args.run_id else None
     except ValueError as error:
         fail(PROG, str(error))
+    run_id = args.run_id or f'run_{uuid.uuid4().hex[:12]}'
+
     prefix = args.prefix.rstrip('/')
     if prefix and not all(part and check_id_ok(part) for part in prefix.lstrip('/').split('/')):
         fail(PROG, f'--prefix must look like /name or /name/name, got {args.prefix!r}')
@@ -222,9 +248,9 @@ def run(args: Any) -> int:
     if args.domain_id is not None:
         os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    launcher = Launcher(out)
+    launcher = Launcher(out, checkpoints=args.respawn > 0)
     record = not args.no_record
-    common: dict[str, Any] = {'mode': args.mode, 'run_id': args.run_id,
+    common: dict[str, Any] = {'mode': args.mode, 'run_id': run_id,
                               'recorders': 1 if record else 0,
                               'use_sim_time': args.mode == 'lockstep'}
     extra = dict(item.split(':=', 1) for item in args.extra)
@@ -262,15 +288,12 @@ def run(args: Any) -> int:
     others = [leader] + [s for s, _ in nodes.values()]
     failure = ''
     try:
-        while any(e.alive() for e in estimators):
-            dead = [p for p in others + ([recorder] if recorder else []) if not p.alive()]
-            if dead:
-                failure = f'{dead[0].name} exited before the run finished:\n{dead[0].tail()}'
-                break
-            if time.monotonic() - started > args.timeout:
+        while not failure and any(e.alive() for e in estimators):
+            failure = supervise(estimators, others, recorder, args.respawn)
+            if not failure and time.monotonic() - started > args.timeout:
                 failure = f'timeout after {args.timeout:g} s'
-                break
             time.sleep(0.05)
+        failure = failure or supervise(estimators, others, recorder, 0)
     except KeyboardInterrupt:
         failure = 'interrupted'
     wall = time.monotonic() - started
@@ -279,7 +302,27 @@ def run(args: Any) -> int:
     if recorder is not None:
         launcher.stop([recorder])
     return write_summary(args, formation, out, launcher, leader, nodes, recorder, failure,
-                         wall, prefix)
+                         wall, prefix, run_id)
+
+
+def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,
+              respawn: int) -> str:
+    """Restart dead nodes while ``respawn`` allows; the failure when one cannot go on ('' if
+    none). An estimator that exited 0 has finished; any other exit before the end is a
+    failure unless the node can be restarted (not after exit code 2, a refused configuration,
+    and never the recorder, whose file would be cut)."""
+    for item in estimators + others + ([recorder] if recorder else []):
+        code = item.process.poll()
+        if code is None or (item in estimators and code == 0):
+            continue
+        if item is not recorder and code != CONFIGURATION_EXIT and \
+                len(item.restarts) < respawn:
+            print(f'{PROG}: {item.name} exited with code {code}; restarting it '
+                  f'({len(item.restarts) + 1}/{respawn})', file=sys.stderr)
+            item.restart()
+            continue
+        return f'{item.name} exited with code {code} before the run finished:\n{item.tail()}'
+    return ''
 
 
 def check_id_ok(part: str) -> bool:
@@ -303,7 +346,8 @@ def leader_extra(extra: dict[str, str]) -> dict[str, str]:
 
 def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher,
                   leader: Process, nodes: dict[str, tuple[Process, Process]],
-                  recorder: Process | None, failure: str, wall: float, prefix: str) -> int:
+                  recorder: Process | None, failure: str, wall: float, prefix: str,
+                  run_id: str) -> int:
     """Collect the node summaries, check the recording, write OUT/summary.json."""
     codes = {p.name: p.code for p in launcher.processes}
     followers = {}
@@ -335,15 +379,17 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
             failure = f'the recording misses messages: {missing or "no counts"}'
     steps = min((r['steps'] for r in followers.values()), default=0)
     summary: dict[str, Any] = {
-        'ok': not failure, 'failure': failure or None, 'mode': args.mode, 'steps': steps,
+        'ok': not failure, 'failure': failure or None, 'run_id': run_id, 'mode': args.mode,
+        'steps': steps,
         'steps_requested': args.steps, 'wall_time_s': wall,
         'steps_per_s': steps / wall if wall > 0 else None,
         'formation': formation.to_dict(), 'followers': followers, 'exit_codes': codes,
+        'restarts': {p.name: p.restarts for p in launcher.processes if p.restarts},
         'recording': recording}
     if len(followers) == 1:                   # the single follower's results at the top too
         summary.update({k: v for k, v in next(iter(followers.values())).items()
                         if k not in summary})
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
+    write_json(out / 'summary.json', summary)
     if failure:
         print(f'{PROG}: error: {failure}', file=sys.stderr)
         return 1

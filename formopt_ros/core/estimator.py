@@ -1,5 +1,19 @@
 """One follower's brain: the EKF and its motion strategy (paper Secs. III-B to III-D), and the
 session that feeds it timestamped inputs (the estimator node and offline replay both use it).
+
+The input gate (documented thresholds; every refusal is counted and says why):
+
+* plausibility (:class:`InputBounds`, relative to the scenario): a speed above
+  ``TRAVEL_BOUND`` |p_o| per sub-step, a yaw rate above ``TURN_BOUND`` half-turns per
+  sub-step, a range above ``RANGE_BOUND`` |p_o|, a bearing outside [-pi, pi], a measurement
+  variance outside [sigma^2 / VARIANCE_BOUND, sigma^2 * VARIANCE_BOUND] are refused;
+* innovation (chi-square, 1 dof): a measurement whose normalised innovation squared
+  nu^2 / S exceeds ``INNOVATION_GATE`` = 100 (10 standard deviations) is not used. In the
+  Sec. V study (2 sensors x 7 strategies x 50 trials x 600 steps = 420 000 updates) the largest
+  value is 78 (bearing, step 3, while the heading is still uncertain), so the gate changes
+  no study number. After ``GATE_PATIENCE`` refusals in a row the filter is taken to be lost:
+  the next measurement is used after scaling P so that its innovation is at 3 standard
+  deviations (counted as a covariance inflation).
 """
 from __future__ import annotations
 
@@ -20,6 +34,82 @@ from formopt_ros.core.strategies import (
 
 #: Processed steps a strategy can look back on through ``EstimatorView.history``.
 HISTORY_LENGTH = 256
+#: Normalised innovation squared above which a measurement is not used (chi-square, 1 dof).
+INNOVATION_GATE = 100.0
+#: Gated measurements in a row after which the filter re-opens with an inflated covariance.
+GATE_PATIENCE = 3
+#: Normalised innovation squared a re-opening measurement is scaled to (3 standard deviations).
+REOPEN_NIS = 9.0
+#: Plausibility: at most this many |p_o| of travel per sub-step (speed <= bound |p_o| / dt).
+TRAVEL_BOUND = 20.0
+#: Plausibility: at most this many half-turns per sub-step (|omega| <= bound pi / dt).
+TURN_BOUND = 10.0
+#: Plausibility: a range of at most this many |p_o|.
+RANGE_BOUND = 100.0
+#: Plausibility: a measurement variance within this factor of sigma^2, either way.
+VARIANCE_BOUND = 100.0
+
+
+@dataclass(frozen=True)
+class InputBounds:
+    """Plausibility bounds of the inputs of one scenario (see the module docstring).
+
+    Attributes:
+        speed: largest |v| of an odometry sub-step, m/s.
+        yaw_rate: largest |omega|, rad/s.
+        range: largest range, m.
+        variance: (smallest, largest) measurement variance, m^2 or rad^2.
+    """
+
+    speed: float
+    yaw_rate: float
+    range: float
+    variance: tuple[float, float]
+
+    @classmethod
+    def from_scenario(cls, scenario: Scenario) -> 'InputBounds':
+        """The bounds of ``scenario``."""
+        sigma2 = scenario.sigma ** 2
+        return cls(TRAVEL_BOUND * scenario.d_o / scenario.dt,
+                   TURN_BOUND * np.pi / scenario.dt, RANGE_BOUND * scenario.d_o,
+                   (sigma2 / VARIANCE_BOUND, sigma2 * VARIANCE_BOUND))
+
+    def odometry_problem(self, v: float, omega: float) -> str | None:
+        """Why a velocity pair (m/s, rad/s) is implausible, or None."""
+        if not abs(v) <= self.speed:
+            return f'speed {v:.6g} m/s exceeds the plausible {self.speed:.6g} m/s'
+        if not abs(omega) <= self.yaw_rate:
+            return f'yaw rate {omega:.6g} rad/s exceeds the plausible {self.yaw_rate:.6g} rad/s'
+        return None
+
+    def measurement_problem(self, kind: str, value: float, variance: float) -> str | None:
+        """Why a range (m) or bearing (rad) with its variance is implausible, or None."""
+        if kind == 'range' and not 0.0 <= value <= self.range:
+            return f'range {value:.6g} m is outside [0, {self.range:.6g}] m'
+        if kind == 'bearing' and not abs(value) <= np.pi:
+            return f'bearing {value:.6g} rad is outside [-pi, pi]'
+        low, high = self.variance
+        if not low <= variance <= high:
+            return (f'variance {variance:.6g} is outside [{low:.6g}, {high:.6g}] (a factor '
+                    f'{VARIANCE_BOUND:g} around sigma^2)')
+        return None
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What one measurement did to the filter.
+
+    Attributes:
+        innovation: z - h(x), m or rad (wrapped for bearing).
+        nis: normalised innovation squared nu^2 / S (before any inflation).
+        used: False when the innovation gate refused the measurement.
+        inflation: factor applied to P before a re-opening update (1: none).
+    """
+
+    innovation: float
+    nis: float
+    used: bool
+    inflation: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -47,6 +137,7 @@ class EstimatorPlanner:
         self.rng = rng
         self.x, self.P = scenario.initial_estimate()
         self.history: deque[StepRecord] = deque(maxlen=HISTORY_LENGTH)
+        self.gated_in_a_row = 0
         self._target = scenario.slot
         self._slot = scenario.slot
 
@@ -81,17 +172,30 @@ class EstimatorPlanner:
         self.x, self.P = propagate(self.x, self.P, v_f, omega_f, s.dt, v_l, omega_l, s.sigma_v,
                                    s.sigma_omega)
 
-    def update(self, step: int, z: float, variance: float | None = None) -> tuple[float, float]:
-        """EKF update with a range (m) or bearing (rad) measurement of step ``step``.
-
-        Returns:
-            (innovation, innovation variance S).
+    def update(self, step: int, z: float, variance: float | None = None) -> UpdateResult:
+        """EKF update with a range (m) or bearing (rad) measurement of step ``step``, behind the
+        innovation gate (module docstring): a refused measurement leaves x and P as they are.
         """
         s = self.scenario
         variance = s.sigma ** 2 if variance is None else variance
-        self.x, self.P, innovation, S = ekf_update(self.x, self.P, z, s.measurement, variance)
+        x, P, innovation, S = ekf_update(self.x, self.P, z, s.measurement, variance)
+        nis = innovation * innovation / S
+        inflation = 1.0
+        if not nis <= INNOVATION_GATE:
+            self.gated_in_a_row += 1
+            if self.gated_in_a_row <= GATE_PATIENCE or not np.isfinite(nis):
+                return UpdateResult(innovation, nis, False)
+            # lost: scale P so that this innovation lies at 3 standard deviations
+            projected = S - variance
+            if not projected > 0.0:
+                return UpdateResult(innovation, nis, False)
+            inflation = max((innovation * innovation / REOPEN_NIS - variance) / projected, 1.0)
+            x, P, innovation, S = ekf_update(self.x, inflation * self.P, z, s.measurement,
+                                             variance)
+        self.gated_in_a_row = 0
+        self.x, self.P = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))
-        return innovation, S
+        return UpdateResult(innovation, nis, True, inflation)
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""
@@ -107,7 +211,7 @@ class StepOutcome:
     x: np.ndarray                  # (3,) posterior
     P: np.ndarray                  # (3, 3) posterior covariance
     weighted_trace: float          # tr(W P W), m^2
-    innovation: float
+    update: UpdateResult           # the measurement's effect (gated or used)
     plan: StepPlan | None          # the decision for step + 1 (None once the run is done)
     skipped: int = 0
 
@@ -120,6 +224,10 @@ class Counters:
     rejected_measurements: int = 0
     rejected_odometry: int = 0
     skipped_steps: int = 0
+    gated_measurements: int = 0          # refused by the innovation gate
+    covariance_inflations: int = 0       # re-openings after GATE_PATIENCE gated in a row
+    foreign_messages: int = 0            # messages of another run (another run_id)
+    filled_substeps: int = 0             # hold sub-steps for odometry lost while down
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict (for JSON and the status message)."""
@@ -148,6 +256,14 @@ class EstimatorSession:
     _truth: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
     _posteriors: dict[int, tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict, repr=False)
+    _bounds: InputBounds | None = field(default=None, repr=False)
+
+    @property
+    def bounds(self) -> InputBounds:
+        """The plausibility bounds of the scenario."""
+        if self._bounds is None:
+            self._bounds = InputBounds.from_scenario(self.estimator.scenario)
+        return self._bounds
 
     @classmethod
     def create(cls, scenario: Scenario, strategy: Strategy, rng: np.random.Generator | None,
@@ -175,12 +291,19 @@ class EstimatorSession:
                      now_ns: int | None = None) -> str | None:
         """Odometry of one sub-step of robot 'follower' or 'leader'; the refusal reason, or
         None."""
+        problem = self.bounds.odometry_problem(v, omega)
+        if problem is not None:
+            return self.reject('rejected_odometry', f'{robot} odometry {problem}')
         return self._count(self.assembler.add_odometry(robot, stamp_ns, v, omega, now_ns),
                            'rejected_odometry')
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
                         now_ns: int | None = None) -> str | None:
         """The measurement of ``step``; the refusal reason, or None."""
+        problem = self.bounds.measurement_problem(self.estimator.scenario.measurement, value,
+                                                  variance)
+        if problem is not None:
+            return self.reject('rejected_measurements', f'measurement {problem}')
         reason = self._count(self.assembler.add_measurement(step, stamp_ns, value, variance,
                                                             now_ns), 'rejected_measurements')
         if reason is None:
@@ -224,8 +347,14 @@ class EstimatorSession:
         estimator = self.estimator
         for m in ready.motions:
             estimator.propagate(m.v_f, m.omega_f, m.v_l, m.omega_l)
-        innovation, _ = estimator.update(ready.step, ready.value, ready.variance)
+        update = estimator.update(ready.step, ready.value, ready.variance)
+        if not update.used:
+            self.reject('gated_measurements', f'measurement of step {ready.step} gated: '
+                        f'normalised innovation {update.nis:.4g} > {INNOVATION_GATE:g}')
+        elif update.inflation > 1.0:
+            self.counters.covariance_inflations += 1
         self.counters.skipped_steps += ready.skipped
+        self.counters.filled_substeps += ready.filled
         self.last_stamp_ns, self.final_truth = ready.stamp_ns, None
         self._posteriors[ready.stamp_ns] = (estimator.x, estimator.P)
         for old in [t for t in self._posteriors if t < ready.stamp_ns]:
@@ -235,7 +364,7 @@ class EstimatorSession:
         self._evaluate(ready.stamp_ns)
         plan = None if self.finished else self.plan_next()
         return StepOutcome(ready.step, ready.stamp_ns, estimator.x, estimator.P,
-                           estimator.weighted_trace(), innovation, plan, ready.skipped)
+                           estimator.weighted_trace(), update, plan, ready.skipped)
 
     def mean_nees(self) -> float | None:
         """Mean NEES over the steps with known truth (None without any)."""

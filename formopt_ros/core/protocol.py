@@ -116,6 +116,12 @@ def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,
     return x, P
 
 
+def hold_command(omega_l: float) -> tuple[float, float]:
+    """(v m/s, omega rad/s) of a follower sub-step without a waypoint: no forward motion,
+    turning with the leader (so its heading relative to the leader holds)."""
+    return 0.0, omega_l
+
+
 def held_leader_motion(latest: tuple[float, float]) -> tuple[tuple[float, float], ...]:
     """Expected leader (v m/s, omega rad/s) per sub-step of the next step: the latest held.
 

@@ -55,6 +55,11 @@ class FollowerTruth:
         self.x = propagate_state(self.x, v_cmd + s.sigma_v * w[0],
                                  omega_cmd + s.sigma_omega * w[1], s.dt, v_l, omega_l)
 
+    def park(self, v_l: float, omega_l: float) -> None:
+        """One sub-step standing still (the driver is down: no command, no noise) while the
+        leader moves at (v_l m/s, omega_l rad/s)."""
+        self.x = propagate_state(self.x, 0.0, 0.0, self.scenario.dt, v_l, omega_l)
+
     def measure(self) -> float:
         """Range (m) or bearing (rad, wrapped) of the true pose plus N(0, sigma^2) noise."""
         s = self.scenario
@@ -90,6 +95,8 @@ class TrialResult:
     commands: np.ndarray           # (steps, SUBSTEPS, 2) odometry (v m/s, omega rad/s)
     leader: np.ndarray             # (steps, SUBSTEPS, 2) leader (v m/s, omega rad/s)
     measurements: np.ndarray       # (steps,) range (m) or bearing (rad)
+    innovation_nis: np.ndarray     # (steps,) normalised innovation squared of each update
+    gated: np.ndarray              # (steps,) True where the innovation gate refused it
 
 
 def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: int,
@@ -107,7 +114,8 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
     out = TrialResult(np.empty(steps), np.empty(steps), np.empty((steps, 3)),
                       np.empty((steps, 3)), np.empty((steps, 3, 3)), np.empty((steps, 2)),
                       np.empty(steps), np.empty((steps, SUBSTEPS, 2)),
-                      np.empty((steps, SUBSTEPS, 2)), np.empty(steps))
+                      np.empty((steps, SUBSTEPS, 2)), np.empty(steps), np.empty(steps),
+                      np.zeros(steps, dtype=bool))
     for k in range(steps):
         plan = estimator.plan(k + 1, held_leader_motion(latest))
         for j, substep in enumerate(step_substeps(k + 1)):
@@ -117,7 +125,8 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
             estimator.propagate(v, omega, v_l, omega_l)
             out.commands[k, j], out.leader[k, j] = (v, omega), latest
         out.measurements[k] = truth.measure()
-        estimator.update(k + 1, out.measurements[k])
+        update = estimator.update(k + 1, out.measurements[k])
+        out.innovation_nis[k], out.gated[k] = update.nis, not update.used
         out.weighted_trace[k] = estimator.weighted_trace()
         out.nees[k] = normalized_estimation_error(truth.x, estimator.x, estimator.P)
         out.estimate[k], out.truth[k], out.covariance[k] = estimator.x, truth.x, estimator.P

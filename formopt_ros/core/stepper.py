@@ -12,17 +12,21 @@ Inputs are keyed by integer nanosecond stamps. Two modes:
 * realtime: a step is ready when a measurement of a step not yet processed is in; it takes the
   follower odometry stamped up to the measurement, each paired with the latest leader odometry
   stamped at or before it. Stamps more than ``future_tolerance_ns`` after the caller's clock are
-  refused, so one bad stamp cannot block the order check of the later real messages. A lost
-  measurement is skipped (the next one carries the odometry since) and counted.
+  refused, so one bad stamp cannot block the later real messages; so are inputs stamped at or
+  before the last processed measurement (already accounted for) and duplicate stamps. Inputs
+  may come in any order otherwise (a follower that repeats its last step's messages after a
+  restart of the estimator is heard). A lost measurement is skipped (the next one carries the
+  odometry since) and counted. After a resume (:meth:`StepAssembler.open_gap`) the follower
+  odometry lost while the estimator was down is replaced by the protocol's hold sub-steps (v = 0,
+  omega = omega_L: what a follower without a waypoint does), one per missing dt, and counted.
 
-realtime: per input stream, stamps must not decrease; refused inputs never move that check.
 Every refusal returns a reason (a short text) to count.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from formopt_ros.core.protocol import Timebase, step_substeps
+from formopt_ros.core.protocol import Timebase, hold_command, step_substeps
 
 #: Realtime: how far (ns) a stamp may lie in the future of the receiving clock.
 DEFAULT_FUTURE_TOLERANCE_NS = 500_000_000
@@ -51,6 +55,7 @@ class ReadyStep:
     value: float          # m or rad
     variance: float       # m^2 or rad^2
     skipped: int = 0      # realtime: steps whose measurement never came
+    filled: int = 0       # realtime: hold sub-steps put in for odometry lost in a resume gap
 
 
 @dataclass
@@ -74,7 +79,17 @@ class StepAssembler:
     _leader: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
     _measurements: dict[int, tuple[int, float, float]] = field(
         default_factory=dict, repr=False)
-    _last: dict[str, int] = field(default_factory=dict, repr=False)
+    _accounted_ns: int = -1           # realtime: stamp of the last processed measurement
+    _last_follower_ns: int | None = None   # realtime: last follower odometry used
+    _leader_used_ns: int = -1               # realtime: last leader odometry used
+    _gap: tuple[int, int] | None = None     # realtime: (since, resumed at) stamps, ns
+
+    def open_gap(self, resumed_ns: int) -> None:
+        """Realtime, after a resume at ``resumed_ns``: follower odometry missing between the
+        last one used and the first one after the resume is filled with hold sub-steps."""
+        since = self._last_follower_ns if self._last_follower_ns is not None \
+            else self._accounted_ns
+        self._gap = (since, resumed_ns)
 
     # --- inputs ------------------------------------------------------------------------------
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
@@ -119,10 +134,14 @@ class StepAssembler:
             return None
         if now_ns is not None and stamp_ns > now_ns + self.future_tolerance_ns:
             return f'stamp {stamp_ns} ns is {(stamp_ns - now_ns) * 1e-9:.3f} s in the future'
-        last = self._last.get(stream)
-        if last is not None and stamp_ns < last:
-            return f'stamp {stamp_ns} ns before the last {stream} at {last} ns'
-        self._last[stream] = stamp_ns
+        leader = stream == 'leader odometry'
+        accounted = self._leader_used_ns if leader else self._accounted_ns
+        if stamp_ns <= accounted:
+            what = 'leader odometry used' if leader else 'processed measurement'
+            return f'stamp {stamp_ns} ns is not after the last {what} ({accounted} ns)'
+
+        if stamp_ns in pending:
+            return f'duplicate {stream} stamped {stamp_ns} ns'
         return None
 
     # --- output ------------------------------------------------------------------------------
@@ -152,18 +171,42 @@ class StepAssembler:
             return None
         k = min(self._measurements)
         stamp, value, variance = self._measurements.pop(k)
-        motions = []
+        motions: list[Motion] = []
+        filled = 0
         for t in sorted(t for t in self._follower if t <= stamp):
             earlier = [u for u in self._leader if u <= t]
             if earlier:
-                self.latest_leader = self._leader[max(earlier)]
+                self._leader_used_ns = max(earlier)
+                self.latest_leader = self._leader[self._leader_used_ns]
                 for u in earlier:
                     del self._leader[u]
+            filled += self._fill_gap(t, motions)
             v_f, omega_f = self._follower.pop(t)
             motions.append(Motion(v_f, omega_f, *self.latest_leader))
+            self._last_follower_ns = t
         skipped = k - self.next_step
         self.next_step = k + 1
-        return ReadyStep(k, stamp, tuple(motions), value, variance, skipped)
+        self._accounted_ns = stamp
+        return ReadyStep(k, stamp, tuple(motions), value, variance, skipped, filled)
+
+    def _fill_gap(self, t: int, motions: list[Motion]) -> int:
+        """Hold sub-steps for the follower odometry missing before ``t`` inside the resume gap;
+        their number."""
+        if self._gap is None:
+            return 0
+        since, resumed = self._gap
+        if t <= since:
+            return 0
+        previous = self._last_follower_ns if self._last_follower_ns is not None and \
+            self._last_follower_ns >= since else since
+        missing = 0
+        if previous < resumed and previous >= 0:
+            missing = max(round((t - previous) / self.timebase.dt_ns) - 1, 0)
+        v_l, omega_l = self.latest_leader
+        motions.extend(Motion(*hold_command(omega_l), v_l, omega_l) for _ in range(missing))
+        if t >= resumed:
+            self._gap = None
+        return missing
 
     def pending(self) -> dict[str, int]:
         """How many inputs wait, per stream (for status and diagnostics)."""

@@ -79,6 +79,8 @@ class StrategyRecord:
     weighted_trace: np.ndarray
     nees: np.ndarray
     decision_time: np.ndarray
+    max_nis: np.ndarray            # (trials,) largest normalised innovation squared
+    gated: np.ndarray              # (trials,) updates refused by the innovation gate
     example: TrialResult | None = None
 
 
@@ -110,7 +112,8 @@ def run_study(config: StudyConfig, jobs: int | None = None,
     scenario = config.make_scenario()
     shape = (config.trials, config.steps)
     result = StudyResult(config, scenario, {
-        s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape))
+        s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape),
+                          np.empty(config.trials), np.zeros(config.trials, dtype=int))
         for s in config.strategies})
     # the slow strategies first, so that the pool's tail is short
     tasks = [(config, s, t) for s in sorted(config.strategies, key=_expected_cost, reverse=True)
@@ -135,6 +138,8 @@ def _collect(result: StudyResult, outputs: Iterable[tuple[str, int, TrialResult]
         record.weighted_trace[trial] = out.weighted_trace
         record.nees[trial] = out.nees
         record.decision_time[trial] = out.decision_time
+        record.max_nis[trial] = out.innovation_nis.max()
+        record.gated[trial] = out.gated.sum()
         if trial == 0:
             record.example = out
         if progress:
@@ -170,6 +175,8 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'nees_in_band': float(np.mean((mean_nees >= lo) & (mean_nees <= hi))),
             'decision_time_s': float(record.decision_time.mean()),
             'decision_time_median_s': float(np.median(record.decision_time)),
+            'max_innovation_nis': float(record.max_nis.max()),
+            'gated_updates': int(record.gated.sum()),
         }
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
             'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],

@@ -53,10 +53,11 @@ def odometry(time: Time, frame_id: str, child_frame_id: str, pose: Sequence[floa
 
 
 def measurement(time: Time, frame_id: str, follower_id: str, step: int, kind: str,
-                value: float, variance: float) -> Measurement:
+                value: float, variance: float, run_id: str = '') -> Measurement:
     """A range (m) or bearing (rad) measurement of measurement step ``step``."""
-    return Measurement(header=header(time, frame_id), follower_id=follower_id, step=step,
-                       kind=KIND_CODES[kind], value=float(value), variance=float(variance))
+    return Measurement(header=header(time, frame_id), follower_id=follower_id, run_id=run_id,
+                       step=step, kind=KIND_CODES[kind], value=float(value),
+                       variance=float(variance))
 
 
 def pose_stamped(time: Time, frame_id: str, x: np.ndarray) -> PoseStamped:
@@ -80,10 +81,11 @@ def estimate(time: Time, frame_id: str, x: np.ndarray,
 
 
 def waypoint(time: Time, frame_id: str, follower_id: str, plan: StepPlan, p_o: np.ndarray,
-             r: float, dt: float) -> Waypoint:
+             r: float, dt: float, run_id: str = '') -> Waypoint:
     """The planner's decision for ``plan.step`` as a Waypoint with its sub-step commands."""
     solution = plan.solution
-    msg = Waypoint(header=header(time, frame_id), follower_id=follower_id, step=plan.step,
+    msg = Waypoint(header=header(time, frame_id), follower_id=follower_id, run_id=run_id,
+                   step=plan.step,
                    radius=float(r), strategy=solution.method,
                    predicted_cost=solution.cost, cost_at_slot=solution.cost_at_slot,
                    substep_duration=float(dt), linear_velocity=list(plan.command.linear),
@@ -94,15 +96,18 @@ def waypoint(time: Time, frame_id: str, follower_id: str, plan: StepPlan, p_o: n
 
 
 def status(time: Time, frame_id: str, follower_id: str, step: int, strategy: str, kind: str,
-           weighted_trace: float, plan: StepPlan | None,
-           counters: dict[str, int]) -> PlannerStatus:
+           weighted_trace: float, plan: StepPlan | None, counters: dict[str, int],
+           run_id: str = '') -> PlannerStatus:
     """PlannerStatus after step ``step``; plan is the decision for the next step, if any."""
-    msg = PlannerStatus(header=header(time, frame_id), follower_id=follower_id, step=step,
+    msg = PlannerStatus(header=header(time, frame_id), follower_id=follower_id, run_id=run_id,
+                        step=step,
                         strategy=strategy, measurement_kind=kind,
                         weighted_trace=float(weighted_trace),
                         rejected_measurements=counters.get('rejected_measurements', 0),
                         rejected_odometry=counters.get('rejected_odometry', 0),
-                        accepted_measurements=counters.get('accepted_measurements', 0))
+                        accepted_measurements=counters.get('accepted_measurements', 0),
+                        gated_measurements=counters.get('gated_measurements', 0),
+                        foreign_messages=counters.get('foreign_messages', 0))
     if plan is not None:
         msg.cost_chosen = plan.solution.cost
         msg.cost_at_slot = plan.solution.cost_at_slot

@@ -14,7 +14,7 @@ from formopt_ros.core.scenario import (
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.ros.naming import robot_id
 from formopt_ros.ros.params import Param, ParameterError
-from formopt_ros.wire.description import MODES
+from formopt_ros.wire.description import MODES, path_parameters, scenario_parameters
 from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.topics import DEFAULT_FOLLOWER, DEFAULT_LEADER
 
@@ -56,15 +56,21 @@ SEGMENT_YAW_RATES = Param('segment_yaw_rates', [0.0], 'segments: yaw rate of eac
                           -100.0, 100.0)
 REPEAT = Param('repeat_segments', False, 'segments: repeat the list instead of holding the '
                'last segment')
-RUN_ID = Param('run_id', '', 'identity of the run: messages of another run are refused; '
-               "'' accepts any")
+RUN_ID = Param('run_id', '', 'identity of the run: messages and peers of another run are '
+               "refused; '' accepts any (run_formation.sh sets a fresh one per run)")
 RECORDERS = Param('recorders', 0, 'recorders (or other subscribers of every topic) each '
                   'publisher waits for before the first message of the run', 0, 100)
 WAIT_FOR_PEERS = Param('wait_for_peers', True, "before the first message, also wait for the "
-                       "formation nodes that listen to each topic (false: only for the "
-                       "recorders, e.g. an estimator driven by a replayed bag)")
+                       "formation nodes that listen to each topic and for the peers' run "
+                       "descriptions, the scenario handshake (false: only for the recorders, "
+                       "e.g. an estimator driven by a replayed bag; descriptions that do come "
+                       "are still compared)")
 SUMMARY_PATH = Param('summary_path', '', 'write a JSON summary of the node here when it ends, '
-                     'also on SIGINT/SIGTERM (empty: none)')
+                     'also on SIGINT/SIGTERM (empty: none); checked at start: an existing file '
+                     'is refused unless the node resumes from its checkpoint')
+CHECKPOINT_PATH = Param('checkpoint_path', '', 'checkpoint file: the node saves its state after '
+                        'every step and, restarted with the same file, resumes the run (empty: '
+                        'none; a checkpoint of another or a finished run is refused)')
 FOLLOWERS = Param('followers', [DEFAULT_FOLLOWER], 'ids of the followers the leader serves: '
                   'lockstep advances when each has sent its waypoint for the next step')
 PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATIONS,
@@ -139,29 +145,11 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
         raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
 
 
-def _path_values(path: LeaderPath) -> dict[str, Any]:
-    """The path parameters that describe ``path``."""
-    return {'path': path.kind, 'v_leader': path.speed, 'omega_leader': path.yaw_rate,
-            'amplitude': path.amplitude, 'period': path.period,
-            'segment_durations': [s.duration for s in path.segments] or [1.0],
-            'segment_speeds': [s.speed for s in path.segments] or [1.0],
-            'segment_yaw_rates': [s.yaw_rate for s in path.segments] or [0.0],
-            'repeat_segments': path.repeat}
-
-
 def follower_values(spec: FollowerSpec, trial: int, leader_id: str) -> dict[str, Any]:
     """The parameters of a follower node that describe ``spec`` (inverse of follower_run)."""
-    scenario = spec.scenario
-    kind = scenario.measurement
-    values = {'measurement': kind, 'dt': scenario.dt, 'sigma_v': scenario.sigma_v,
-              'sigma_omega': scenario.sigma_omega,
-              'range_sigma': scenario.sigma if kind == 'range' else RANGE_SIGMA.default,
-              'bearing_sigma': scenario.sigma if kind == 'bearing' else BEARING_SIGMA.default,
-              'formation_slot': list(scenario.p_o),
-              'deviation_fraction': scenario.r / scenario.d_o,
-              'initial_covariance': list(scenario.initial_covariance), 'seed': spec.seed,
-              'trial': trial, 'leader_id': leader_id, 'strategy': spec.strategy,
-              **_path_values(scenario.leader)}
+    values = {'range_sigma': RANGE_SIGMA.default, 'bearing_sigma': BEARING_SIGMA.default,
+              **scenario_parameters(spec.scenario), 'seed': spec.seed, 'trial': trial,
+              'leader_id': leader_id, 'strategy': spec.strategy}
     values.update({f'{spec.strategy}_{k}': v for k, v in spec.options.items()})
     return values
 
@@ -189,7 +177,7 @@ def formation_defaults(node: Node, role: str) -> dict[str, Any]:
         raise ParameterError(f"parameter 'formation_file': {error}") from None
     if role == 'leader':
         values = {'dt': formation.dt, 'followers': [f.id for f in formation.followers],
-                  **_path_values(formation.leader)}
+                  **path_parameters(formation.leader)}
         leader_id = robot_id(node, DEFAULT_LEADER)
         if formation.leader_id != leader_id:
             raise ParameterError(f"parameter 'formation_file': its leader is "

@@ -1,8 +1,8 @@
 """How every node process runs: arguments, help, the spin loop, signals and exit codes."""
 from __future__ import annotations
 
-import json
 import math
+import os
 import signal
 import sys
 import textwrap
@@ -17,6 +17,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from formopt_ros.ros.params import Param, ParameterError
+from formopt_ros.wire.jsonfile import write_json
 
 
 class Throttle:
@@ -41,10 +42,8 @@ DELIVERY_TIMEOUT = 5.0
 def fast_announcements() -> None:
     """Point FASTRTPS_DEFAULT_PROFILES_FILE at config/fastdds_discovery.xml (participants
     announce every 0.25 s) unless it is set; for processes not started by scripts/*.sh."""
-    import os
     if os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
         return
-    import sys
     for folder in (Path(__file__).resolve().parents[2] / 'config',
                    Path(sys.prefix) / 'share' / 'formopt_ros' / 'config'):
         if (folder / 'fastdds_discovery.xml').is_file():
@@ -55,7 +54,6 @@ def fast_announcements() -> None:
 def make_executor() -> Any:
     """rclpy's EventsExecutor (about twice the throughput of the wait-set executor in lockstep
     runs), or the SingleThreadedExecutor where it is missing or FORMOPT_EXECUTOR=single."""
-    import os
     if os.environ.get('FORMOPT_EXECUTOR', 'events') != 'single':
         try:
             from rclpy.experimental import EventsExecutor
@@ -80,18 +78,49 @@ def deliver(node: Node, timeout: float = DELIVERY_TIMEOUT) -> bool:
     return acked
 
 
+def stop_run(node: Node, code: int, message: str) -> None:
+    """End the node's run with exit code ``code``: the error is logged, kept for the summary
+    (``node.error``) and printed by :func:`node_main` as one line."""
+    node.get_logger().error(message)
+    node.exit_code = code                   # type: ignore[attr-defined]
+    node.error = message                    # type: ignore[attr-defined]
+    node.finished = True                    # type: ignore[attr-defined]
+
+
 def steady_timer(node: Node, period: float, callback: Callable[[], None]) -> Any:
     """A timer on the steady clock: it runs while simulated time (use_sim_time) stands still."""
     from rclpy.clock import Clock, ClockType
     return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
+def check_output_path(name: str, path: str, may_exist: bool = True) -> None:
+    """Refuse (ParameterError naming parameter ``name``) an output file path whose folder
+    cannot be created or written, that is a folder, or (unless ``may_exist``) that exists;
+    '' (no output) passes. Called at start, so a bad path never costs a run."""
+    if not path:
+        return
+    target = Path(path)
+    if target.exists() and not may_exist and not target.is_dir():
+        raise ParameterError(f"parameter '{name}': {path} exists; refusing to overwrite it "
+                             '(remove it or choose another path)')
+    if target.is_dir():
+        raise ParameterError(f"parameter '{name}': {path} is a folder; expected a file path")
+    folder = target.resolve().parent
+    existing = folder
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ParameterError(f"parameter '{name}': cannot write {path} ({existing} is not a "
+                             'writable folder)')
+    if target.exists() and not os.access(target, os.W_OK):
+        raise ParameterError(f"parameter '{name}': {path} is not writable")
+
+
 def write_summary(path: str, summary: dict[str, Any]) -> None:
-    """Write a node's JSON summary (folders created); nothing for an empty path."""
+    """Write a node's JSON summary (strict JSON: NaN and inf become null; folders created,
+    written atomically); nothing for an empty path."""
     if path:
-        target = Path(path)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(json.dumps(summary, indent=2) + '\n')
+        write_json(path, summary)
 
 
 def help_text(program: str, summary: str, specs: Sequence[Param]) -> str:
@@ -132,6 +161,7 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
         print(f'{program}: error: unknown argument {plain[0]!r} (node parameters go after '
               '--ros-args as -p NAME:=VALUE; see --help)', file=sys.stderr)
         return 2
+    fast_announcements()
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as error:              # e.g. a --params-file that does not exist or parse
@@ -150,6 +180,8 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
         while rclpy.ok() and not stop and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
         code = int(getattr(node, 'exit_code', 0))
+        if getattr(node, 'error', ''):
+            print(f'{program}: error: {node.error}', file=sys.stderr)  # type: ignore[attr-defined]
         if rclpy.ok():
             deliver(node)
     except ParameterError as error:

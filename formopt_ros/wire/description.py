@@ -59,6 +59,11 @@ class RunDescription:
             'options': self.options, 'seed': self.seed, 'trial': self.trial,
             'steps': self.steps, 'scenario': self.scenario.to_dict()}, sort_keys=True)
 
+    def leader_view(self) -> 'LeaderDescription':
+        """What this follower's run assumes about its leader."""
+        return LeaderDescription(self.leader_id, self.scenario.leader, self.scenario.dt,
+                                 (self.follower_id,), self.mode, self.run_id)
+
     @classmethod
     def from_json(cls, text: str) -> 'RunDescription':
         """Inverse of :meth:`to_json`; ValueError saying what is wrong."""
@@ -109,3 +114,81 @@ class LeaderDescription:
                        str(data.get('run_id', '')))
         except (KeyError, TypeError) as error:
             raise ValueError(f'leader description lacks or mangles {error}') from None
+
+
+# --- the scenario handshake: descriptions as node parameters, and how two of them differ -----
+def path_parameters(path: LeaderPath) -> dict[str, Any]:
+    """The node parameters (path, v_leader, ...) that describe ``path``."""
+    return {'path': path.kind, 'v_leader': path.speed, 'omega_leader': path.yaw_rate,
+            'amplitude': path.amplitude, 'period': path.period,
+            'segment_durations': [s.duration for s in path.segments] or [1.0],
+            'segment_speeds': [s.speed for s in path.segments] or [1.0],
+            'segment_yaw_rates': [s.yaw_rate for s in path.segments] or [0.0],
+            'repeat_segments': path.repeat}
+
+
+def scenario_parameters(scenario: Scenario) -> dict[str, Any]:
+    """The node parameters that describe ``scenario`` (the sensor's noise as range_sigma or
+    bearing_sigma, r as deviation_fraction of |p_o|)."""
+    return {'measurement': scenario.measurement, 'dt': scenario.dt,
+            f'{scenario.measurement}_sigma': scenario.sigma, 'sigma_v': scenario.sigma_v,
+            'sigma_omega': scenario.sigma_omega, 'formation_slot': list(scenario.p_o),
+            'deviation_fraction': scenario.r / scenario.d_o,
+            'initial_covariance': list(scenario.initial_covariance),
+            **path_parameters(scenario.leader)}
+
+
+def follower_parameters(description: RunDescription, strategy: bool) -> dict[str, Any]:
+    """The parameters of a follower node that describe its run (with the strategy and its
+    options as '<strategy>_<option>' when ``strategy``)."""
+    values = {'run_id': description.run_id, 'mode': description.mode,
+              'follower_id': description.follower_id, 'leader_id': description.leader_id,
+              'seed': description.seed, 'trial': description.trial,
+              **scenario_parameters(description.scenario)}
+    if strategy:
+        values['strategy'] = description.strategy
+        values.update({f'{description.strategy}_{k}': v
+                       for k, v in description.options.items()})
+    return values
+
+
+def leader_parameters(description: LeaderDescription) -> dict[str, Any]:
+    """The parameters of leader_sim that a follower's run must share."""
+    return {'run_id': description.run_id, 'mode': description.mode,
+            'leader_id': description.leader_id, 'dt': description.dt,
+            **path_parameters(description.path)}
+
+
+def _same(a: Any, b: Any, rtol: float = 1e-9) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y, rtol) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) \
+            and not isinstance(a, bool) and not isinstance(b, bool):
+        return a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+    return bool(a == b)
+
+
+def parameter_differences(mine: dict[str, Any],
+                          theirs: dict[str, Any]) -> list[tuple[str, Any, Any]]:
+    """(parameter, my value, their value) for every parameter both describe that differs
+    (numbers: relative 1e-9), in the order of ``mine``."""
+    return [(name, value, theirs[name]) for name, value in mine.items()
+            if name in theirs and not _same(value, theirs[name])]
+
+
+def follower_differences(mine: RunDescription, theirs: RunDescription,
+                         strategy: bool = False) -> list[tuple[str, Any, Any]]:
+    """How two descriptions of one follower's run differ, as node parameters."""
+    return parameter_differences(follower_parameters(mine, strategy),
+                                 follower_parameters(theirs, strategy))
+
+
+def leader_differences(follower: RunDescription,
+                       leader: LeaderDescription) -> list[tuple[str, Any, Any]]:
+    """How a follower's run and its leader's description disagree, as node parameters (the
+    follower's value first); 'followers' when the leader does not serve this follower."""
+    out = parameter_differences(leader_parameters(follower.leader_view()),
+                                leader_parameters(leader))
+    if follower.follower_id not in leader.followers:
+        out.append(('followers', follower.follower_id, list(leader.followers)))
+    return out

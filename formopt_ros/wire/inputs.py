@@ -12,14 +12,20 @@ from typing import Any
 
 from formopt_ros.core.estimator import EstimatorSession
 from formopt_ros.wire.messages import (
-    header_ns, measurement_problem, odometry_problem, odometry_values, pose_values)
+    foreign_run, header_ns, measurement_problem, odometry_problem, odometry_values, pose_values)
 
 
-def feed_odometry(session: EstimatorSession, robot: str, msg: Any, child_frame_id: str,
+def odometry_frames(robot: str, robot_id: str) -> tuple[str, str]:
+    """(frame_id, child_frame_id) of the odometry of robot 'leader' or 'follower' with id
+    ``robot_id``: the leader's is in the fixed 'odom' frame, a follower's in '<id>/odom'."""
+    return ('odom' if robot == 'leader' else f'{robot_id}/odom', robot_id)
+
+
+def feed_odometry(session: EstimatorSession, robot: str, msg: Any, robot_id: str,
                   now_ns: int | None = None) -> str | None:
-    """One sub-step of the odometry of robot 'follower' or 'leader' (whose odometry must carry
-    ``child_frame_id``)."""
-    problem = odometry_problem(msg, child_frame_id)
+    """One sub-step of the odometry of robot 'follower' or 'leader' (whose id is
+    ``robot_id``; its frames must be :func:`odometry_frames`)."""
+    problem = odometry_problem(msg, *odometry_frames(robot, robot_id))
     if problem is not None:
         return session.reject('rejected_odometry', f'{robot} odometry {problem}')
     v, omega, _, _ = odometry_values(msg)
@@ -27,8 +33,11 @@ def feed_odometry(session: EstimatorSession, robot: str, msg: Any, child_frame_i
 
 
 def feed_measurement(session: EstimatorSession, msg: Any, follower_id: str,
-                     now_ns: int | None = None) -> str | None:
-    """One range or bearing measurement."""
+                     now_ns: int | None = None, run_id: str = '') -> str | None:
+    """One range or bearing measurement (of run ``run_id``; '' accepts any)."""
+    foreign = foreign_run(msg, run_id)
+    if foreign is not None:
+        return session.reject('foreign_messages', f'measurement {foreign}')
     problem = measurement_problem(msg, follower_id, session.estimator.scenario.measurement)
     if problem is not None:
         return session.reject('rejected_measurements', f'measurement {problem}')

@@ -62,10 +62,23 @@ def estimate_values(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return pose_values(msg.pose.pose), covariance[np.ix_(POSE_INDEX, POSE_INDEX)]
 
 
+def foreign_run(msg: Any, run_id: str) -> str | None:
+    """Why a message belongs to another run: its run_id differs from ``run_id`` (None when it
+    is this run's, when ``run_id`` is '' (accept any) or the message has no run_id)."""
+    theirs = getattr(msg, 'run_id', None)
+    if run_id and theirs is not None and theirs != run_id:
+        return f'of run {theirs!r}, not {run_id!r}'
+    return None
+
+
 def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
-    """Why a measurement must be refused (None when it is acceptable)."""
+    """Why a measurement must be refused (None when it is acceptable): another follower, its
+    header frame not the follower's body frame (``follower_id``), another kind, a value or
+    variance that is not finite, a negative range."""
     if msg.follower_id != follower_id:
         return f'for follower {msg.follower_id!r}, not {follower_id!r}'
+    if msg.header.frame_id != follower_id:
+        return f'frame_id {msg.header.frame_id!r} is not the follower frame {follower_id!r}'
     if KIND_NAMES.get(int(msg.kind)) != kind:
         return f'kind {msg.kind} is not {kind}'
     if not math.isfinite(msg.value):
@@ -77,10 +90,13 @@ def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
     return None
 
 
-def odometry_problem(msg: Any, child_frame_id: str) -> str | None:
-    """Why an odometry message must be refused (None when it is acceptable)."""
+def odometry_problem(msg: Any, frame_id: str, child_frame_id: str) -> str | None:
+    """Why an odometry message must be refused (None when it is acceptable): frames other than
+    ``frame_id`` / ``child_frame_id``, velocities or variances that are not finite."""
     if msg.child_frame_id != child_frame_id:
         return f'child_frame_id {msg.child_frame_id!r} is not {child_frame_id!r}'
+    if msg.header.frame_id != frame_id:
+        return f'frame_id {msg.header.frame_id!r} is not {frame_id!r}'
     v, omega, var_v, var_omega = odometry_values(msg)
     if not (math.isfinite(v) and math.isfinite(omega)):
         return f'velocities ({v}, {omega}) are not finite'
@@ -90,7 +106,8 @@ def odometry_problem(msg: Any, child_frame_id: str) -> str | None:
 
 
 def waypoint_problem(msg: Any, follower_id: str) -> str | None:
-    """Why a waypoint must be refused (None when it is acceptable)."""
+    """Why a waypoint must be refused (None when it is acceptable): another follower, command
+    lists empty, of unequal length or not finite."""
     if msg.follower_id != follower_id:
         return f'for follower {msg.follower_id!r}, not {follower_id!r}'
     commands = list(msg.linear_velocity) + list(msg.angular_velocity)
@@ -98,4 +115,31 @@ def waypoint_problem(msg: Any, follower_id: str) -> str | None:
         return 'linear and angular velocity lists must be non-empty and of equal length'
     if not all(math.isfinite(c) for c in commands):
         return 'commands are not finite'
+    return None
+
+
+def waypoint_mismatch(msg: Any, dt: float, p_o: tuple[float, float], r: float,
+                      substeps: int) -> str | None:
+    """Why a well-formed waypoint does not fit this follower's scenario (None when it does):
+    its sub-step duration, slot or radius differ from ``dt``, ``p_o``, ``r`` (relative 1e-9),
+    it has not ``substeps`` commands, or its position lies outside the disc. Names the
+    parameter whose values differ, as the scenario handshake does."""
+    def differs(a: float, b: float) -> bool:
+        return not abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1e-300)
+
+    if differs(float(msg.substep_duration), dt):
+        return (f"parameter 'dt' is {dt!r} here and {msg.substep_duration!r} in the "
+                'waypoint')
+    slot = (float(msg.formation_slot.x), float(msg.formation_slot.y))
+    if differs(slot[0], p_o[0]) or differs(slot[1], p_o[1]):
+        return (f"parameter 'formation_slot' is {list(p_o)!r} here and {list(slot)!r} in the "
+                'waypoint')
+    if differs(float(msg.radius), r):
+        return f'the allowed deviation r is {r!r} m here and {msg.radius!r} m in the waypoint'
+    if len(msg.linear_velocity) != substeps:
+        return f'the waypoint has {len(msg.linear_velocity)} sub-step commands, not {substeps}'
+    distance = math.hypot(msg.position.x - p_o[0], msg.position.y - p_o[1])
+    if distance > r * (1.0 + 1e-9):
+        return (f'the waypoint position is {distance:.6g} m from the slot, outside the '
+                f'allowed deviation r = {r:.6g} m')
     return None

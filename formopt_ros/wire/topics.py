@@ -55,7 +55,8 @@ LEADER_TOPICS = (
           "the leader's odometry per sub-step (pose in 'odom', twist in the leader frame)",
           ('follower_sim', 'estimator_planner')),
     Topic('leader_description', 'description', 'formopt_interfaces/msg/RunDescription',
-          ('leader_sim',), 'latched', "the leader's description (path, dt, followers, run id)"),
+          ('leader_sim',), 'latched', "the leader's description (path, dt, followers, run id)",
+          ('follower_sim', 'estimator_planner')),
 )
 FOLLOWER_TOPICS = (
     Topic('follower_odom', 'odom', 'nav_msgs/msg/Odometry', ('follower_sim',), 'stream',
@@ -76,7 +77,11 @@ FOLLOWER_TOPICS = (
     Topic('markers', 'markers', 'visualization_msgs/msg/MarkerArray', ('estimator_planner',),
           'stream', 'slot, feasible disc, chosen waypoint and 3-sigma ellipse (leader frame)'),
     Topic('description', 'description', 'formopt_interfaces/msg/RunDescription',
-          ('estimator_planner',), 'latched', 'the run description (scenario, strategy, seed)'),
+          ('estimator_planner',), 'latched', 'the run description (scenario, strategy, seed)',
+          ('follower_sim', 'leader_sim')),
+    Topic('sim_description', 'sim_description', 'formopt_interfaces/msg/RunDescription',
+          ('follower_sim',), 'latched', "follower_sim's description of the same run (the "
+          'scenario handshake compares it with the estimator\'s)', ('estimator_planner',)),
 )
 GLOBAL_TOPICS = (
     Topic('tf', '/tf', 'tf2_msgs/msg/TFMessage',

@@ -122,9 +122,38 @@ def test_realtime_pairs_each_odometry_with_the_latest_leader_and_skips_lost_step
     ready = assembler.pop_ready()
     assert ready is not None and ready.step == 1 and ready.skipped == 0
     assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.5, 1.0), (0.6, 2.0)]
-    assert 'before' in assembler.add_odometry('follower', 45 * ms, 0.0, 0.0, now_ns=60 * ms)
+    late = assembler.add_odometry('follower', 45 * ms, 0.0, 0.0, now_ns=60 * ms)
+    assert 'processed measurement' in late
+    assert 'duplicate' in assembler.add_odometry('follower', 50 * ms, 0.0, 0.0, now_ns=60 * ms)
     assert assembler.add_measurement(3, 55 * ms, 3.1, 0.01, now_ns=56 * ms) is None
     ready = assembler.pop_ready()
     assert ready is not None and (ready.step, ready.skipped) == (3, 1)
     assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.7, 2.0)]
     assert assembler.next_step == 4
+
+
+def test_realtime_hears_a_repeated_step_out_of_order_and_fills_a_resume_gap() -> None:
+    """Realtime resume: the follower repeats its last step's odometry (stamped before fresh
+    odometry that came first): both are used, in stamp order; the ticks lost while the
+    estimator was down become hold sub-steps (v = 0, omega = omega_L), one per missing dt."""
+    ms = 1_000_000
+    assembler = StepAssembler(False, Timebase.from_dt(0.05), (1.0, 0.2))
+    assert assembler.add_odometry('follower', 50 * ms, 0.5, 0.0, now_ns=51 * ms) is None
+    assert assembler.add_measurement(1, 50 * ms, 3.0, 0.01, now_ns=51 * ms) is None
+    assert assembler.pop_ready() is not None
+    assembler.open_gap(400 * ms)                 # down from 50 ms to 400 ms
+    # fresh ticks after the resume come first, then the repeated step 2 (100 and 150 ms)
+    for stamp in (400, 450, 100, 150):
+        assert assembler.add_odometry('follower', stamp * ms, 0.7, 0.1, now_ns=460 * ms) is None
+    assert assembler.add_measurement(2, 150 * ms, 3.1, 0.01, now_ns=460 * ms) is None
+    step2 = assembler.pop_ready()
+    assert step2 is not None and step2.filled == 0 and len(step2.motions) == 2
+    assert assembler.add_measurement(3, 450 * ms, 3.2, 0.01, now_ns=460 * ms) is None
+    step3 = assembler.pop_ready()
+    # 150 -> 400 ms: 4 ticks lost (200, 250, 300, 350 ms), held at (0, omega_L = 0.2)
+    assert step3 is not None and step3.filled == 4
+    assert [(m.v_f, m.omega_f) for m in step3.motions] == [(0.0, 0.2)] * 4 + [(0.7, 0.1)] * 2
+    assembler.add_odometry('follower', 600 * ms, 0.7, 0.1, now_ns=601 * ms)
+    assembler.add_measurement(4, 600 * ms, 3.3, 0.01, now_ns=601 * ms)
+    step4 = assembler.pop_ready()
+    assert step4 is not None and step4.filled == 0, 'the gap closes after the resume'

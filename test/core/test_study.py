@@ -106,7 +106,9 @@ def test_command_writes_outputs_and_figures(tmp_path) -> None:
     assert summary['options']['gbs'] == {'cell': 0.01}
     assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
                                                  'mean_trace', 'nees_mean', 'nees_in_band',
-                                                 'decision_time_s', 'decision_time_median_s'}
+                                                 'decision_time_s', 'decision_time_median_s',
+                                                 'max_innovation_nis', 'gated_updates'}
+    assert summary['strategies']['ram']['gated_updates'] == 0
     assert summary['scenario']['r'] == pytest.approx(0.1 * 5 ** 0.5, rel=1e-12)
     assert len((out / 'steps.csv').read_text().splitlines()) == 31
     for name in ('fig5_range_weighted_trace.png', 'fig4_trajectories.png', 'nees.png'):

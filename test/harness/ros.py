@@ -115,7 +115,7 @@ class Probe(Node):
             f: {'estimates': [], 'statuses': []} for f in followers}
         self.counts: dict[str, int] = {}
         for name, type_name in formation_topics('leader', followers, PREFIX).items():
-            if name.endswith('/description') or name == '/tf_static':
+            if name.endswith('description') or name == '/tf_static':
                 continue                             # latched: not part of the start gate
             cls = message_class(type_name)
             self.counts[name] = 0
@@ -199,6 +199,7 @@ class Formation:
             latched[estimator.description_pub] = estimator.description_message
         for sim in self.followers.values():
             latched[sim.tf_static_pub] = sim.tf_static_message
+            latched[sim.description_pub] = sim.description_message
         for publisher in self.publishers:
             sink = self.published.setdefault(publisher.topic_name, [])
             if publisher in latched:

@@ -107,7 +107,7 @@ def test_mcap_reader_with_rclpy_deserialization(recording: Recording) -> None:
             assert channel.metadata['topic_type_hash'].startswith('RIHS01_')
             offered = channel.metadata['offered_qos_profiles']
             assert 'reliability: reliable' in offered
-            latched = channel.topic.endswith(('/description', '/tf_static'))
+            latched = channel.topic.endswith(('description', '/tf_static'))
             assert ('durability: transient_local' in offered) == latched, channel.topic
         decoded: dict[str, list] = {}
         last_log_time = 0

@@ -11,10 +11,11 @@ import pytest
 
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.wire import topics
-from formopt_ros.wire.description import RunDescription
+from formopt_ros.wire.description import (
+    LeaderDescription, RunDescription, follower_differences, leader_differences)
 from formopt_ros.wire.messages import (
-    estimate_values, header_ns, measurement_problem, odometry_problem, odometry_values,
-    pose_values, waypoint_problem, yaw_of)
+    estimate_values, foreign_run, header_ns, measurement_problem, odometry_problem,
+    odometry_values, pose_values, waypoint_mismatch, waypoint_problem, yaw_of)
 
 
 def test_topic_table_names() -> None:
@@ -77,20 +78,68 @@ def test_readers() -> None:
 @pytest.mark.parametrize('change,reason', [
     ({'follower_id': 'other'}, 'for follower'), ({'kind': 1}, 'kind'),
     ({'value': math.nan}, 'not finite'), ({'variance': 0.0}, 'variance'),
-    ({'value': -1.0}, 'negative')])
+    ({'value': -1.0}, 'negative'), ({'header': Msg(frame_id='f2')}, 'frame_id')])
 def test_measurement_refusals(change: dict, reason: str) -> None:
-    good = dict(follower_id='f1', kind=0, value=2.0, variance=0.01, step=1)
+    good = dict(header=Msg(frame_id='f1'), follower_id='f1', kind=0, value=2.0, variance=0.01,
+                step=1)
     assert measurement_problem(Msg(**good), 'f1', 'range') is None
     assert reason in measurement_problem(Msg(**{**good, **change}), 'f1', 'range')
 
 
+def test_foreign_run() -> None:
+    """A message of another run is foreign; '' accepts any; a message without run_id (a 0.1.x
+    bag) belongs to any run."""
+    assert foreign_run(Msg(run_id='a'), 'a') is None and foreign_run(Msg(run_id='b'), '') is None
+    assert "of run 'b', not 'a'" == foreign_run(Msg(run_id='b'), 'a')
+    assert foreign_run(Msg(), 'a') is None
+
+
 def test_odometry_and_waypoint_refusals() -> None:
-    assert odometry_problem(odometry('f1', 1.0, 0.0), 'f1') is None
-    assert 'child_frame_id' in odometry_problem(odometry('f2', 1.0, 0.0), 'f1')
-    assert 'not finite' in odometry_problem(odometry('f1', math.inf, 0.0), 'f1')
-    assert 'variances' in odometry_problem(odometry('f1', 1.0, 0.0, (-1.0, 0.0)), 'f1')
+    assert odometry_problem(odometry('f1', 1.0, 0.0), 'odom', 'f1') is None
+    assert 'child_frame_id' in odometry_problem(odometry('f2', 1.0, 0.0), 'odom', 'f1')
+    assert "frame_id 'odom' is not 'f1/odom'" in odometry_problem(odometry('f1', 1.0, 0.0),
+                                                                  'f1/odom', 'f1')
+    assert 'not finite' in odometry_problem(odometry('f1', math.inf, 0.0), 'odom', 'f1')
+    assert 'variances' in odometry_problem(odometry('f1', 1.0, 0.0, (-1.0, 0.0)), 'odom', 'f1')
     good = dict(follower_id='f1', linear_velocity=[0.0, 1.0], angular_velocity=[0.5, 0.0])
     assert waypoint_problem(Msg(**good), 'f1') is None
     assert 'equal length' in waypoint_problem(Msg(**{**good, 'linear_velocity': [1.0]}), 'f1')
     assert 'not finite' in waypoint_problem(
         Msg(**{**good, 'angular_velocity': [math.nan, 0.0]}), 'f1')
+
+
+@pytest.mark.parametrize('change,reason', [
+    ({}, None), ({'substep_duration': 0.02}, "parameter 'dt' is 0.05 here and 0.02"),
+    ({'formation_slot': Msg(x=-1.0, y=2.5)}, "parameter 'formation_slot'"),
+    ({'radius': 0.3}, 'allowed deviation r'),
+    ({'linear_velocity': [1.0]}, '1 sub-step commands, not 2'),
+    ({'position': Msg(x=-1.0, y=2.3)}, 'outside the allowed deviation')])
+def test_waypoint_must_fit_the_follower(change: dict, reason: str | None) -> None:
+    """The waypoint carries dt, the slot and r: a follower with another scenario refuses it,
+    naming the parameter (the handshake's second line of defence)."""
+    r = 0.1 * 5 ** 0.5
+    good = dict(substep_duration=0.05, formation_slot=Msg(x=-1.0, y=2.0), radius=r,
+                linear_velocity=[0.0, 1.0], position=Msg(x=-1.0, y=2.1))
+    problem = waypoint_mismatch(Msg(**{**good, **change}), 0.05, (-1.0, 2.0), r, 2)
+    assert problem is None if reason is None else reason in problem
+
+
+def test_descriptions_differ_by_parameter_name() -> None:
+    """The scenario handshake names node parameters with both values: dt, the slot, the
+    sensor's sigma, r as deviation_fraction, the run id; the leader side: its path, dt and
+    whether it serves this follower."""
+    base = RunDescription('f1', Scenario.paper('range'), 'ram', run_id='run_a')
+    assert follower_differences(base, base) == []
+    other = RunDescription('f1', Scenario.paper('range', dt=0.02, p_o=(-1.0, -2.5), sigma=0.2,
+                                                r=0.5), 'mtf', run_id='run_b')
+    names = {name: (mine, theirs) for name, mine, theirs in follower_differences(base, other)}
+    assert names['dt'] == (0.05, 0.02) and names['formation_slot'] == ([-1.0, -2.0],
+                                                                       [-1.0, -2.5])
+    assert names['range_sigma'] == (0.1, 0.2) and names['run_id'] == ('run_a', 'run_b')
+    assert 'deviation_fraction' in names and 'strategy' not in names
+    assert 'strategy' in dict((n, 0) for n, _, _ in follower_differences(base, other, True))
+    leader = LeaderDescription('leader', LeaderPath.constant(1.0, 0.5), 0.05, ('f2',),
+                               run_id='run_a')
+    assert {name for name, _, _ in leader_differences(base, leader)} == {
+        'path', 'omega_leader', 'followers'}
+    assert leader_differences(base, base.leader_view()) == []

@@ -20,34 +20,40 @@ from formopt_ros.core.protocol import Timebase
 from formopt_ros.core.simulation import trial_streams
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
+from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
+from formopt_ros.ros.guard import RunGuard
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.nodes.follower_sim import frames
 from formopt_ros.ros.params import Param, ParameterError, declare, validate_on_set
 from formopt_ros.ros.run_config import (
-    FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID, SCENARIO_PARAMS, SEED,
-    SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults, strategy_options,
-    strategy_params)
-from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
+    CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
+    SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults,
+    strategy_options, strategy_params)
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run, write_summary
 from formopt_ros.wire import inputs
+from formopt_ros.wire.description import LeaderDescription
 from formopt_ros.wire.description import RunDescription as Description
+from formopt_ros.wire.description import follower_differences, leader_differences
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
     strategy_params() + [
         Param('steps', 0, 'measurement steps to run, then exit 0 (0: run until stopped)', 0,
               10**9),
-        Param('resend_timeout', 1.0, 'lockstep: resend the last waypoint after this long '
-              'without progress (a peer restarted), s', 0.01, 3600.0, read_only=False),
+        Param('resend_timeout', 1.0, 'resend the last waypoint after this long without progress '
+              '(a peer restarted, a message was lost), s', 0.01, 3600.0, read_only=False),
         Param('status_period', 1.0, 'publish the status and /diagnostics at least this often, '
               'also while no step completes, s', 0.05, 60.0, read_only=False),
-        RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH]
+        RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in; estimate, "
            'waypoint, status, markers, leader -> <follower>/estimate on /tf, /diagnostics and '
            'the run description out.')
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
+#: Look for a second publisher on the input topics this often, s.
+GUARD_PERIOD = 0.5
 
 
 class EstimatorPlannerNode(Node):
@@ -61,7 +67,9 @@ class EstimatorPlannerNode(Node):
     since the last one, each paired with the latest leader odometry.
     Bad inputs are refused with a throttled warning and counted in the status. The run starts
     (waypoint 1) once every publisher has matched its subscribers (leader_sim and follower_sim
-    on the waypoint, plus the recorders).
+    on the waypoint, plus the recorders) and the descriptions of follower_sim and leader_sim
+    agree with this node's (a mismatch stops it with exit code 2; see ros.guard). With a
+    checkpoint it resumes where a previous instance stopped.
     """
 
     def __init__(self, cli_args: list[str] | None = None) -> None:
@@ -84,16 +92,23 @@ class EstimatorPlannerNode(Node):
                                        self.leader_id)
         self.started = False
         self.finished = False
+        self.exit_code = 0
+        self.error = ''
+        self.resumed: dict[str, Any] | None = None
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
         self.last_status = 0.0
         self.last_markers = -math.inf
+        self.last_guard_check = -math.inf
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
         self.published = {key: 0 for key in ('estimate', 'waypoint', 'status', 'markers', 'tf',
                                              'diagnostics')}
+        self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
+        if state is not None:
+            self._restore(state)
         self.throttle = Throttle(self)
         self.gate = PublisherGate(self, p['recorders'], int(p['wait_for_peers']))
         stream = qos.STREAM
@@ -123,6 +138,17 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.create_subscription(Measurement, BY_KEY['measurement'].name, self.on_measurement,
                                  qos.SUBSCRIBED)
+        self.guard = RunGuard(self, p['wait_for_peers'],
+                              lambda failure: stop_run(self, failure.code, failure.message))
+        self.guard.expect(self.resolve_topic_name(BY_KEY['sim_description'].name),
+                          lambda text: follower_differences(self.description,
+                                                            Description.from_json(text)))
+        self.guard.expect(peer_topic(self, self.leader_id, 'leader_description'),
+                          lambda text: leader_differences(self.description,
+                                                          LeaderDescription.from_json(text)))
+        for key in ('follower_odom', 'measurement', 'truth'):
+            self.guard.watch(self.resolve_topic_name(BY_KEY[key].name))
+        self.guard.watch(peer_topic(self, self.leader_id, 'leader_odom'))
         validate_on_set(self, PARAMS, self.on_set)
         steady_timer(self, 0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, "
@@ -173,7 +199,7 @@ class EstimatorPlannerNode(Node):
         """One range or bearing measurement."""
         self.received['measurement'] += 1
         self._refused('measurement', inputs.feed_measurement(
-            self.session, msg, self.follower_id, self._now_ns()))
+            self.session, msg, self.follower_id, self._now_ns(), self.params['run_id']))
 
     def on_truth(self, msg: PoseStamped) -> None:
         """Ground truth, for evaluation only (NEES, summary), matched to a step by its stamp."""
@@ -182,10 +208,34 @@ class EstimatorPlannerNode(Node):
 
     # --- processing ------------------------------------------------------------------------
     def _advance(self) -> None:
-        for outcome in self.session.advance():
+        if self.finished:
+            return
+        outcomes = self.session.advance()
+        if outcomes:
+            self.last_plan = outcomes[-1].plan
+            self.checkpoint.save(self._state(), finished=self.session.finished)
+        for outcome in outcomes:
             self._publish(outcome)
         if self.session.finished and not self.finished:
             self.finish()
+
+    # --- checkpoint --------------------------------------------------------------------------
+    def _state(self) -> dict[str, Any]:
+        return {'session': self.session, 'last_plan': self.last_plan,
+                'solve_times': self.solve_times, 'received': self.received,
+                'published': self.published}
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        """Continue a run from a checkpoint: lockstep exactly (the peers repeat what was lost);
+        realtime with the odometry lost while down filled by hold sub-steps (reported)."""
+        self.session = state['session']
+        self.last_plan = state['last_plan']
+        self.solve_times = state['solve_times']
+        self.received, self.published = state['received'], state['published']
+        gap = time.time() - (self.checkpoint.saved_at or time.time())
+        if not self.lockstep:
+            self.session.assembler.open_gap(self.get_clock().now().nanoseconds)
+        self.resumed = {'from_step': self.session.step, 'down_s': round(gap, 3)}
 
     def _stamp(self, nanoseconds: int) -> Any:
         return conversions.stamp(nanoseconds) if self.lockstep else \
@@ -200,7 +250,6 @@ class EstimatorPlannerNode(Node):
         self.published['estimate'] += 1
         self.published['tf'] += 1
         self.last_progress = time.monotonic()
-        self.last_plan = outcome.plan
         if outcome.plan is not None:
             self._send(outcome.plan)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
@@ -216,7 +265,7 @@ class EstimatorPlannerNode(Node):
         self.status_pub.publish(conversions.status(
             stamp, '', self.follower_id, step, self.session.estimator.strategy.name,
             self.scenario.measurement, weighted_trace, self.last_plan,
-            self.session.counters.as_dict()))
+            self.session.counters.as_dict(), self.params['run_id']))
         self.published['status'] += 1
         self.last_status = time.monotonic()
 
@@ -224,21 +273,27 @@ class EstimatorPlannerNode(Node):
         self.solve_times.append(plan.solution.solve_time_s)
         self.last_waypoint = conversions.waypoint(
             self._stamp(self.timebase.waypoint_stamp(plan.step)), self.leader_id,
-            self.follower_id, plan, self.scenario.slot, self.scenario.r, self.scenario.dt)
+            self.follower_id, plan, self.scenario.slot, self.scenario.r, self.scenario.dt,
+            self.params['run_id'])
         self.waypoint_pub.publish(self.last_waypoint)
         self.published['waypoint'] += 1
 
     def on_timer(self) -> None:
-        """Start the run once the publishers are matched; resend a waypoint that got no
-        answer; publish the status and diagnostics while no step completes."""
+        """Start the run once the publishers are matched and the peers agree; resend a waypoint
+        that got no answer; watch for intruders; publish the status and diagnostics while no
+        step completes."""
         now = time.monotonic()
+        if now - self.last_guard_check >= GUARD_PERIOD:
+            self.last_guard_check = now
+            self.guard.check()
         if not self.finished and not self.started:
-            if self.gate.ready():
+            if self.gate.ready() and self.guard.ready():
                 self.started = True
-                self.last_plan = self.session.plan_next()
+                if self.last_plan is None:               # a new run (else: resumed)
+                    self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
                 self.last_progress = now
-        elif not self.finished and self.lockstep and self.last_waypoint is not None and \
+        elif not self.finished and self.last_waypoint is not None and \
                 now - self.last_progress > self.params['resend_timeout']:
             self.throttle.warn('resend', f'no progress on step {self.session.step + 1}: '
                                          'resending its waypoint')
@@ -261,12 +316,18 @@ class EstimatorPlannerNode(Node):
         level, message = 'OK', f'step {self.session.step}'
         if not (np.all(np.isfinite(estimator.x)) and np.all(np.isfinite(estimator.P))):
             level, message = 'ERROR', 'the estimate is not finite'
+        elif self.error:
+            level, message = 'ERROR', self.error
         elif not self.gate.open:
             level, message = 'WARN', 'waiting for subscribers: ' + ', '.join(self.gate.missing())
+        elif not self.guard.ready():
+            level, message = 'WARN', 'waiting for the descriptions on: ' + ', '.join(
+                self.guard.missing())
         elif self.started and not self.finished and stalled > 2 * self.params['status_period']:
             level, message = 'WARN', f'no progress for {stalled:.1f} s at step ' \
                                      f'{self.session.step}'
-        elif counters.rejected_measurements or counters.rejected_odometry:
+        elif counters.rejected_measurements or counters.rejected_odometry or \
+                counters.gated_measurements or counters.foreign_messages:
             level, message = 'WARN', f'inputs refused, last: {self.session.last_reason}'
         solve = self.solve_times[-1] if self.solve_times else 0.0
         return conversions.diagnostic(
@@ -284,7 +345,11 @@ class EstimatorPlannerNode(Node):
         estimator = self.session.estimator
         truth = self.session.final_truth
         return {
+            'ok': not self.error and (self.session.finished or not self.params['steps']),
+            'error': self.error or None,
+            'run_id': self.params['run_id'],
             'steps': self.session.step,
+            'resumed': self.resumed,
             'follower_id': self.follower_id,
             'strategy': estimator.strategy.name,
             'measurement': self.scenario.measurement,

@@ -1,36 +1,47 @@
 """follower_sim: the follower robot; executes waypoints with noise, measures range or bearing."""
 from __future__ import annotations
 
+import math
 import sys
+import time
 from typing import Any
 
-from formopt_interfaces.msg import Measurement, Waypoint
+from formopt_interfaces.msg import Measurement, RunDescription, Waypoint
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.model import integrate_unicycle
-from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
+from formopt_ros.core.protocol import SUBSTEPS, Timebase, hold_command, step_substeps
 from formopt_ros.core.simulation import FollowerTruth, trial_streams
 from formopt_ros.ros import conversions, qos
+from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
+from formopt_ros.ros.guard import MISMATCH_EXIT, RunGuard
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.nodes.leader_sim import ODOM_FRAME
 from formopt_ros.ros.params import declare
 from formopt_ros.ros.run_config import (
-    FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID, SCENARIO_PARAMS, SEED,
-    SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults)
-from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
-from formopt_ros.wire.messages import header_ns, odometry_problem, odometry_values, \
-    waypoint_problem
+    CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
+    SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults)
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run, write_summary
+from formopt_ros.wire.description import LeaderDescription
+from formopt_ros.wire.description import RunDescription as Description
+from formopt_ros.wire.description import follower_differences, leader_differences
+from formopt_ros.wire.inputs import odometry_frames
+from formopt_ros.wire.messages import (
+    foreign_run, header_ns, odometry_problem, odometry_values, waypoint_mismatch,
+    waypoint_problem)
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + [
-    RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH]
+    RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and publishes its '
            'odometry, one range or bearing measurement per step, its true pose and its frames '
            'on /tf.')
+#: Look for a second publisher on the input topics this often, s.
+GUARD_PERIOD = 0.5
 
 
 def frames(follower_id: str) -> dict[str, str]:
@@ -45,12 +56,19 @@ class FollowerSim(Node):
     Per sub-step it publishes its odometry (the commanded velocities it measured, with the
     noise variances) and <id>/odom -> <id> on /tf; after the motion its true relative pose
     (and leader -> <id>/truth) and one measurement. /tf_static holds odom -> <id>/odom, where
-    its odometry started. lockstep: executes waypoint k once the leader's odometry for the
-    step's sub-steps arrived (matched by their simulated-time stamps); a repeated waypoint
-    republishes the cached output. realtime: a timer at 1/dt executes the current sub-step with
-    the latest waypoint and leader velocity; a step starts only when its waypoint is in: a tick
-    without it counts as a missed cycle, in which the follower holds (v = 0, turning with the
-    leader) and the step waits. Nothing is published before the publishers are matched.
+    its odometry started. A waypoint of the step last executed (the estimator resends it after
+    a restart or a lost message) republishes that step's messages.
+
+    lockstep: executes waypoint k once the leader's odometry for the step's sub-steps arrived
+    (matched by their simulated-time stamps). realtime: a timer at 1/dt executes the current
+    sub-step with the latest waypoint and leader velocity; a step starts with the newest
+    waypoint not yet executed (a step number may be skipped), and a tick without one holds
+    (v = 0, turning with the leader) and counts as a missed cycle.
+
+    Nothing is published before the publishers are matched and the estimator's and leader's
+    descriptions agree with this node's (ros.guard). With a checkpoint (saved every sub-step)
+    a restarted follower resumes its true pose; in realtime the time it was down is spent
+    standing still, published as zero-velocity odometry.
     """
 
     def __init__(self, cli_args: list[str] | None = None) -> None:
@@ -65,14 +83,29 @@ class FollowerSim(Node):
         self.lockstep = p['mode'] == 'lockstep'
         noise, _ = trial_streams(self.run.spec.seed, self.run.trial)
         self.truth = FollowerTruth(self.scenario, noise)
+        self.description = Description(self.follower_id, self.scenario, '', {},
+                                       self.run.spec.seed, self.run.trial, p['mode'], 0,
+                                       p['run_id'], self.leader_id)
         self.odom_pose = (0.0, 0.0, 0.0)
         self.executed = 0
-        self.pending: Waypoint | None = None
+        self.current: Waypoint | None = None       # realtime: the step being executed
+        self.pending: Waypoint | None = None       # the next waypoint to execute
         self.leader: dict[int, tuple[float, float]] = {}
         self.latest_leader = self.scenario.leader.velocity(0, self.scenario.dt)
-        self.cache: list[tuple[str, Any]] = []
-        self.counters = {'rejected_waypoints': 0, 'rejected_odometry': 0, 'missed_cycles': 0}
+        self.step_messages: list[tuple[str, Any]] = []   # the step in progress
+        self.cache: list[tuple[str, Any]] = []           # the last executed step
+        self.substep_in_step = 0
+        self.counters = {'rejected_waypoints': 0, 'foreign_waypoints': 0,
+                         'rejected_odometry': 0, 'missed_cycles': 0, 'repeated_steps': 0,
+                         'parked_substeps': 0}
         self.published = {'odometry': 0, 'measurement': 0, 'truth': 0, 'tf': 0}
+        self.finished = False
+        self.exit_code = 0
+        self.error = ''
+        self.resumed: dict[str, Any] | None = None
+        self.last_guard_check = -math.inf
+        self.parked: list[Odometry] = []     # realtime resume: odometry of the time down
+        self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
         self.throttle = Throttle(self)
         self.gate = PublisherGate(self, p['recorders'], int(p['wait_for_peers']))
         self.odom_pub = self.gate.add(self.create_publisher(
@@ -86,32 +119,87 @@ class FollowerSim(Node):
         self.tf_static_message = conversions.tf_message([conversions.transform(
             self.get_clock().now().to_msg(), ODOM_FRAME, self.frames['odom'],
             self.truth.x)])                  # the leader starts at the origin of 'odom'
+        if state is not None:
+            self._restore(state)
         self.tf_static_pub.publish(self.tf_static_message)
+        self.description_pub = self.create_publisher(
+            RunDescription, BY_KEY['sim_description'].name, qos.LATCHED)
+        self.description_message = conversions.description(
+            self.get_clock().now().to_msg(), p['run_id'], self.get_fully_qualified_name(),
+            self.description.to_json())
+        self.description_pub.publish(self.description_message)
         self.create_subscription(Waypoint, BY_KEY['waypoint'].name, self.on_waypoint,
                                  qos.SUBSCRIBED)
         self.create_subscription(Odometry, peer_topic(self, self.leader_id, 'leader_odom'),
                                  self.on_leader_odom, qos.SUBSCRIBED)
-        self.substep_in_step = 0
-        if self.lockstep:
-            steady_timer(self, 0.05, self._try_execute)
-        else:
+        self.guard = RunGuard(self, p['wait_for_peers'],
+                              lambda failure: stop_run(self, failure.code, failure.message))
+        self.guard.expect(self.resolve_topic_name(BY_KEY['description'].name),
+                          lambda text: follower_differences(self.description,
+                                                            Description.from_json(text)))
+        self.guard.expect(peer_topic(self, self.leader_id, 'leader_description'),
+                          lambda text: leader_differences(self.description,
+                                                          LeaderDescription.from_json(text)))
+        self.guard.watch(self.resolve_topic_name(BY_KEY['waypoint'].name))
+        self.guard.watch(peer_topic(self, self.leader_id, 'leader_odom'))
+        steady_timer(self, 0.05, self.on_check)
+        if not self.lockstep:
             self.create_timer(self.scenario.dt, self.on_tick)
         self.get_logger().info(f"follower_sim ready ({p['mode']}, "
                                f'{self.scenario.measurement}, follower {self.follower_id})')
 
+    # --- checkpoint --------------------------------------------------------------------------
+    def _state(self) -> dict[str, Any]:
+        return {key: getattr(self, key) for key in (
+            'truth', 'odom_pose', 'executed', 'current', 'pending', 'leader', 'latest_leader',
+            'step_messages', 'cache', 'substep_in_step', 'counters', 'published',
+            'tf_static_message')}
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        """Continue from a checkpoint; realtime: stand still for the time the node was down
+        (the zero-velocity odometry of those sub-steps goes out once the run is under way)."""
+        for key, value in state.items():
+            setattr(self, key, value)
+        down = time.time() - (self.checkpoint.saved_at or time.time())
+        if not self.lockstep:
+            start = int((self.checkpoint.saved_at or time.time()) * 1e9)
+            for i in range(1, int(down / self.scenario.dt) + 1):
+                self.truth.park(*self.latest_leader)
+                self.odom_pose = integrate_unicycle(self.odom_pose, 0.0, 0.0, self.scenario.dt)
+                self.parked.append(self._odometry(conversions.stamp(
+                    start + i * self.timebase.dt_ns), 0.0, 0.0))
+            self.counters['parked_substeps'] += len(self.parked)
+        self.resumed = {'from_step': self.executed, 'down_s': round(down, 3),
+                        'parked_substeps': len(self.parked)}
+
     # --- inputs ----------------------------------------------------------------------------
     def on_waypoint(self, msg: Waypoint) -> None:
-        """A new waypoint is executed (lockstep: once the leader moved); a repeat republishes."""
+        """A new waypoint is executed (lockstep: once the leader moved); the waypoint of the
+        step last executed republishes that step's messages; a waypoint that does not fit this
+        follower's scenario stops the run (exit 2)."""
+        foreign = foreign_run(msg, self.params['run_id'])
+        if foreign is not None:
+            self.counters['foreign_waypoints'] += 1
+            self.throttle.warn('foreign', f'refused waypoint {foreign}')
+            return
         problem = waypoint_problem(msg, self.follower_id)
         if problem is not None:
             self.counters['rejected_waypoints'] += 1
             self.throttle.warn('waypoint', f'rejected waypoint: {problem}')
             return
-        if msg.step == self.executed and self.lockstep:
+        s = self.scenario
+        mismatch = waypoint_mismatch(msg, s.dt, s.p_o, s.r, SUBSTEPS)
+        if mismatch is not None:
+            stop_run(self, MISMATCH_EXIT, f'the waypoint of step {msg.step} does not fit this '
+                                          f'follower: {mismatch}')
+            return
+        if msg.step == self.executed and self.executed > 0:
+            self.counters['repeated_steps'] += 1
             for key, item in self.cache:
                 self._publish(key, item)
             return
-        if msg.step <= self.executed:
+        if msg.step <= self.executed or (self.pending is not None
+                                         and msg.step <= self.pending.step):
             return
         self.pending = msg
         if self.lockstep:
@@ -119,7 +207,7 @@ class FollowerSim(Node):
 
     def on_leader_odom(self, msg: Odometry) -> None:
         """The leader's velocity of one sub-step."""
-        problem = odometry_problem(msg, self.leader_id)
+        problem = odometry_problem(msg, *odometry_frames('leader', self.leader_id))
         if problem is not None:
             self.counters['rejected_odometry'] += 1
             self.throttle.warn('odometry', f'rejected leader odometry: {problem}')
@@ -136,72 +224,103 @@ class FollowerSim(Node):
             self.leader[substep] = (v, omega)
             self._try_execute()
 
+    def on_check(self) -> None:
+        """Watch for intruders; lockstep: execute what became executable once the run may
+        start; send the odometry of a parked restart."""
+        now = time.monotonic()
+        if now - self.last_guard_check >= GUARD_PERIOD:
+            self.last_guard_check = now
+            self.guard.check()
+        if self.parked and self._may_run():
+            for msg in self.parked:
+                self._publish('odometry', msg)
+            self.parked = []
+        if self.lockstep:
+            self._try_execute()
+
+    def _may_run(self) -> bool:
+        return not self.finished and self.gate.ready() and self.guard.ready()
+
     # --- motion ----------------------------------------------------------------------------
-    def _substep(self, v_cmd: float, omega_cmd: float, leader: tuple[float, float],
-                 stamp: Any) -> None:
-        self.truth.execute(v_cmd, omega_cmd, leader[0], leader[1])
-        self.odom_pose = integrate_unicycle(self.odom_pose, v_cmd, omega_cmd, self.scenario.dt)
+    def _odometry(self, stamp: Any, v_cmd: float, omega_cmd: float) -> Odometry:
         s = self.scenario
-        odom = conversions.odometry(stamp, self.frames['odom'], self.follower_id,
+        return conversions.odometry(stamp, self.frames['odom'], self.follower_id,
                                     self.odom_pose, v_cmd, omega_cmd,
                                     (s.sigma_v ** 2, s.sigma_omega ** 2))
+
+    def _substep(self, v_cmd: float, omega_cmd: float, leader: tuple[float, float],
+                 stamp: Any, keep: bool = True) -> None:
+        self.truth.execute(v_cmd, omega_cmd, leader[0], leader[1])
+        self.odom_pose = integrate_unicycle(self.odom_pose, v_cmd, omega_cmd, self.scenario.dt)
+        odom = self._odometry(stamp, v_cmd, omega_cmd)
         tf = conversions.tf_message([conversions.transform(
             stamp, self.frames['odom'], self.frames['body'], self.odom_pose)])
         for key, msg in (('odometry', odom), ('tf', tf)):
-            self.cache.append((key, msg))
+            if keep:
+                self.step_messages.append((key, msg))
             self._publish(key, msg)
 
     def _finish_step(self, step: int, stamp: Any) -> None:
         s = self.scenario
         truth = conversions.pose_stamped(stamp, self.leader_id, self.truth.x)
         meas = conversions.measurement(stamp, self.follower_id, self.follower_id, step,
-                                       s.measurement, self.truth.measure(), s.sigma ** 2)
+                                       s.measurement, self.truth.measure(), s.sigma ** 2,
+                                       self.params['run_id'])
         tf = conversions.tf_message([conversions.transform(
             stamp, self.leader_id, self.frames['truth'], self.truth.x)])
         for key, msg in (('truth', truth), ('tf', tf), ('measurement', meas)):
-            self.cache.append((key, msg))
+            self.step_messages.append((key, msg))
             self._publish(key, msg)
         self.executed = step
+        self.cache, self.step_messages = self.step_messages, []
 
     def _try_execute(self) -> None:
         """Lockstep: run the pending waypoint once the leader's sub-steps are known."""
         msg = self.pending
-        if msg is None:
+        if msg is None or not self._may_run():
             return
         substeps = step_substeps(msg.step)
-        if any(n not in self.leader for n in substeps) or not self.gate.ready():
+        if any(n not in self.leader for n in substeps):
             return
-        self.cache = []
+        self.step_messages = []
         for j, n in enumerate(substeps):
             self._substep(msg.linear_velocity[j], msg.angular_velocity[j], self.leader.pop(n),
                           conversions.stamp(self.timebase.substep_end(n)))
         self._finish_step(msg.step, conversions.stamp(self.timebase.measurement_stamp(msg.step)))
         self.pending = None
+        self.checkpoint.save(self._state())
 
     def on_tick(self) -> None:
         """Realtime: execute one sub-step of the current step.
 
         The sub-steps of a waypoint are only meaningful together (rotate, then translate), so a
-        step starts when its waypoint is in; a tick without it holds position instead of
-        repeating an old command (repeating a translation made the formation diverge).
+        step starts with a waypoint; a tick without one holds position instead of repeating an
+        old command (repeating a translation made the formation diverge).
         """
-        if (self.pending is None and self.executed == 0) or not self.gate.ready():
-            return                                   # wait for the first waypoint
-        j = self.substep_in_step
-        msg = self.pending if (self.pending is not None
-                               and self.pending.step == self.executed + 1) else None
-        now = self.get_clock().now().to_msg()
-        if msg is None:                              # late waypoint (only possible at j == 0)
-            self.counters['missed_cycles'] += 1
-            self._substep(0.0, self.latest_leader[1], self.latest_leader, now)
+        if not self._may_run():
             return
-        if j == 0:
-            self.cache = []
-        self._substep(msg.linear_velocity[j], msg.angular_velocity[j], self.latest_leader, now)
-        self.substep_in_step = (j + 1) % SUBSTEPS
         if self.substep_in_step == 0:
-            self._finish_step(self.executed + 1, now)
-            self.pending = None
+            if self.pending is not None and self.pending.step > self.executed:
+                self.current, self.pending = self.pending, None
+                self.step_messages = []
+            else:
+                self.current = None
+        now = self.get_clock().now().to_msg()
+        if self.current is None:
+            if self.executed == 0:
+                return                               # wait for the first waypoint
+            self.counters['missed_cycles'] += 1
+            self._substep(*hold_command(self.latest_leader[1]), self.latest_leader, now,
+                          keep=False)
+        else:
+            j = self.substep_in_step
+            self._substep(self.current.linear_velocity[j], self.current.angular_velocity[j],
+                          self.latest_leader, now)
+            self.substep_in_step = (j + 1) % SUBSTEPS
+            if self.substep_in_step == 0:
+                self._finish_step(self.current.step, now)
+                self.current = None
+        self.checkpoint.save(self._state())
 
     def _publish(self, key: str, msg: Any) -> None:
         {'odometry': self.odom_pub, 'measurement': self.meas_pub, 'truth': self.truth_pub,
@@ -210,7 +329,9 @@ class FollowerSim(Node):
 
     def summary(self) -> dict[str, Any]:
         """What the follower did: steps executed, counters, its final true pose."""
-        return {'follower_id': self.follower_id, 'executed_steps': self.executed,
+        return {'ok': not self.error, 'error': self.error or None,
+                'run_id': self.params['run_id'], 'follower_id': self.follower_id,
+                'executed_steps': self.executed, 'resumed': self.resumed,
                 'counters': dict(self.counters), 'published': dict(self.published),
                 'final_truth': self.truth.x.tolist()}
 

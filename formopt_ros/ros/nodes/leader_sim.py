@@ -1,7 +1,9 @@
 """leader_sim: the leader robot; drives its path and publishes its odometry, /tf and /clock."""
 from __future__ import annotations
 
+import math
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -14,24 +16,29 @@ from tf2_msgs.msg import TFMessage
 from formopt_ros.core.model import integrate_unicycle
 from formopt_ros.core.protocol import Timebase, step_substeps
 from formopt_ros.ros import conversions, qos
+from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
+from formopt_ros.ros.guard import RunGuard
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.params import declare
 from formopt_ros.ros.run_config import (
-    DT, FOLLOWERS, FORMATION_FILE, MODE, PATH_PARAMS, RECORDERS, RUN_ID, SUMMARY_PATH,
-    WAIT_FOR_PEERS, formation_defaults, leader_run)
-from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
-from formopt_ros.wire.description import LeaderDescription
-from formopt_ros.wire.messages import waypoint_problem
+    CHECKPOINT_PATH, DT, FOLLOWERS, FORMATION_FILE, MODE, PATH_PARAMS, RECORDERS, RUN_ID,
+    SUMMARY_PATH, WAIT_FOR_PEERS, formation_defaults, leader_run)
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run, write_summary
+from formopt_ros.wire.description import LeaderDescription, RunDescription as Description
+from formopt_ros.wire.description import leader_differences
+from formopt_ros.wire.messages import foreign_run, waypoint_problem
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER
 
 PARAMS = [FORMATION_FILE, FOLLOWERS, MODE, DT] + PATH_PARAMS + [
-    RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH]
+    RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub-step, '
            "odom -> leader on /tf and, in lockstep, /clock (lockstep: a step once every "
            "follower's waypoint for it is in; realtime: at 1/dt).")
 #: The fixed frame of the leader's odometry (the world of the formation).
 ODOM_FRAME = 'odom'
+#: Look for a second publisher on the input topics this often, s.
+GUARD_PERIOD = 0.5
 
 
 class LeaderSim(Node):
@@ -41,7 +48,9 @@ class LeaderSim(Node):
     timebase, with /clock advanced to each stamp) once every follower has sent its waypoint
     of step k; a repeated waypoint of the served step republishes the cached odometry (a
     follower restarted). realtime: one odometry per timer tick at 1/dt, stamped with the node
-    clock. Nothing is published before the publishers have matched their subscribers.
+    clock. Nothing is published before the publishers have matched their subscribers and every
+    follower's run description agrees with the leader's (ros.guard). With a checkpoint a
+    restarted leader resumes its path where it stopped.
     """
 
     def __init__(self, cli_args: list[str] | None = None) -> None:
@@ -58,6 +67,19 @@ class LeaderSim(Node):
         self.requested = {follower: 0 for follower in self.run.followers}
         self.cache: list[tuple[int, Odometry, tuple[float, float, float]]] = []
         self.published = {'odometry': 0, 'clock': 0, 'tf': 0}
+        self.foreign_waypoints = 0
+        self.finished = False
+        self.exit_code = 0
+        self.error = ''
+        self.last_guard_check = -math.inf
+        self.description = LeaderDescription(self.leader_id, self.run.path, self.run.dt,
+                                             self.run.followers, p['mode'], p['run_id'])
+        self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
+        self.resumed: dict[str, Any] | None = None
+        if state is not None:
+            for key, value in state.items():
+                setattr(self, key, value)
+            self.resumed = {'from_step': self.served_step, 'from_substep': self.substep}
         self.throttle = Throttle(self)
         self.gate = PublisherGate(self, p['recorders'],
                                   len(self.run.followers) if p['wait_for_peers'] else 0)
@@ -66,8 +88,6 @@ class LeaderSim(Node):
         self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
         self.clock_pub = self.gate.add(self.create_publisher(Clock, '/clock', qos.CLOCK),
                                        'clock') if self.lockstep else None
-        self.description = LeaderDescription(self.leader_id, self.run.path, self.run.dt,
-                                             self.run.followers, p['mode'], p['run_id'])
         self.description_pub = self.create_publisher(
             RunDescription, BY_KEY['leader_description'].name, qos.LATCHED)
         self.description_message = conversions.description(
@@ -76,16 +96,41 @@ class LeaderSim(Node):
         self.description_pub.publish(self.description_message)
         # Subscribed in both modes: the estimators count the leader among the waypoint
         # subscribers they wait for before the first waypoint.
+        self.guard = RunGuard(self, p['wait_for_peers'],
+                              lambda failure: stop_run(self, failure.code, failure.message))
         for follower in self.run.followers:
             self.create_subscription(Waypoint, peer_topic(self, follower, 'waypoint'),
                                      self._waypoint_callback(follower), qos.SUBSCRIBED)
-        if self.lockstep:
-            steady_timer(self, 0.05, self.serve)
-        else:
+            self.guard.expect(peer_topic(self, follower, 'description'), self._compare)
+            self.guard.watch(peer_topic(self, follower, 'waypoint'))
+        steady_timer(self, 0.05, self.on_check)
+        if not self.lockstep:
             self.create_timer(self.run.dt, self.on_tick)
         self.get_logger().info(
             f"leader_sim ready ({p['mode']}, {self.run.path.kind} path at "
             f"{self.run.path.speed} m/s, followers {', '.join(self.run.followers)})")
+
+    def _compare(self, text: str) -> list[tuple[str, Any, Any]]:
+        """How a follower's description disagrees with this leader (this node's value first)."""
+        return [(name, mine, theirs) for name, theirs, mine in
+                leader_differences(Description.from_json(text), self.description)]
+
+    def _state(self) -> dict[str, Any]:
+        return {key: getattr(self, key) for key in (
+            'pose', 'substep', 'served_step', 'requested', 'cache', 'published',
+            'foreign_waypoints')}
+
+    def on_check(self) -> None:
+        """Watch for intruders; lockstep: serve a step that became servable."""
+        now = time.monotonic()
+        if now - self.last_guard_check >= GUARD_PERIOD:
+            self.last_guard_check = now
+            self.guard.check()
+        if self.lockstep:
+            self.serve()
+
+    def _may_run(self) -> bool:
+        return not self.finished and self.gate.ready() and self.guard.ready()
 
     def _advance(self, stamp_ns: int | None) -> Odometry:
         """Drive one sub-step; its odometry (node clock stamp when stamp_ns is None)."""
@@ -117,6 +162,10 @@ class LeaderSim(Node):
         cached odometry again."""
         if not self.lockstep:
             return                                   # realtime: the timer drives the leader
+        if foreign_run(msg, self.params['run_id']) is not None:
+            self.foreign_waypoints += 1
+            self.throttle.warn('foreign', f'refused a waypoint of another run on {follower}')
+            return
         problem = waypoint_problem(msg, follower)
         if problem is not None:
             self.throttle.warn('waypoint', f'ignoring waypoint on {follower}: {problem}')
@@ -132,7 +181,7 @@ class LeaderSim(Node):
         """Lockstep: serve the next step once every follower asked for it (and the gate is
         open)."""
         step = self.served_step + 1
-        if min(self.requested.values()) < step or not self.gate.ready():
+        if min(self.requested.values()) < step or not self._may_run():
             return
         substeps = step_substeps(step)
         self.substep = substeps[0]
@@ -141,18 +190,23 @@ class LeaderSim(Node):
             stamp = self.timebase.substep_end(n)
             self.cache.append((stamp, self._advance(stamp), self.pose))
         self.served_step = step
+        self.checkpoint.save(self._state())
         for entry in self.cache:
             self._publish(*entry)
 
     def on_tick(self) -> None:
         """Realtime: one sub-step per tick, once the publishers are matched."""
-        if self.gate.ready():
+        if self._may_run():
             odom = self._advance(None)
             self._publish(None, odom, self.pose)
+            self.checkpoint.save(self._state())
 
     def summary(self) -> dict[str, Any]:
         """What the leader did: steps served, messages published, its final pose."""
-        return {'leader_id': self.leader_id, 'served_steps': self.served_step,
+        return {'ok': not self.error, 'error': self.error or None,
+                'run_id': self.params['run_id'], 'resumed': self.resumed,
+                'foreign_waypoints': self.foreign_waypoints,
+                'leader_id': self.leader_id, 'served_steps': self.served_step,
                 'substeps': self.substep, 'published': dict(self.published),
                 'final_pose': list(self.pose)}
 

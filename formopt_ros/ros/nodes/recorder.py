@@ -1,7 +1,6 @@
 """recorder: records the formation's topics, raw CDR, into one rosbag2-compatible MCAP file."""
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -17,7 +16,8 @@ from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import FOLLOWERS, FORMATION_FILE
 from formopt_ros.ros.runtime import Throttle, node_main
 from formopt_ros.wire.formation import load_formation
-from formopt_ros.wire.topics import DEFAULT_LEADER, GLOBAL_TOPICS, formation_topics
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER, GLOBAL_TOPICS, formation_topics
+from formopt_ros.wire.jsonfile import write_json
 
 PARAMS = [
     Param('output_path', '', 'the .mcap file to write (required; an existing file is refused)'),
@@ -109,7 +109,9 @@ class Recorder(Node):
         """The subscription QoS of a formation topic: transient local for the latched
         descriptions and /tf_static (so they are recorded whenever they were published)."""
         name = topic.rpartition('/')[2]
-        return qos.adapted(True, name in ('description', 'tf_static'))
+        latched = {t.name.lstrip('/') for t in BY_KEY.values()
+                   if t.qos in ('latched', 'tf_static')}
+        return qos.adapted(True, name in latched)
 
     def _subscribe(self, topic: str, type_name: str, profile: QoSProfile) -> None:
         cls = message_class(type_name, topic)
@@ -189,10 +191,8 @@ class Recorder(Node):
                                + ', '.join(f'{t} {n}' for t, n in self.counts.items()))
         path = self.params['counts_path']
         if path:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            Path(path).write_text(json.dumps({'output_path': str(self.writer.path),
-                                              'total': total, 'counts': self.counts},
-                                             indent=2) + '\n')
+            write_json(path, {'output_path': str(self.writer.path), 'total': total,
+                              'counts': self.counts})
 
 
 SUMMARY = ('Records the formation topics, raw CDR, into one rosbag2-compatible MCAP file that '

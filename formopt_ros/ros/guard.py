@@ -1,0 +1,117 @@
+"""The run guard: a node starts its run only once its peers' run descriptions agree with its
+own (the scenario handshake), and stops the run when they disagree or when a second publisher
+appears on a topic it reads (another run, or a stray node, in the same domain and namespace).
+
+Mismatch: the node stops with exit code 2 and one line naming every differing parameter with
+both values. Intruder: a topic the node reads has more than one publisher for longer than
+``INTRUDER_GRACE`` s; the node stops with exit code 1 and names the publishing nodes. The grace
+covers a restarted peer whose killed predecessor stays in the ROS graph until its discovery
+lease ends (3 s with config/fastdds_discovery.xml, which every formopt_ros node loads unless
+FASTRTPS_DEFAULT_PROFILES_FILE is set).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from formopt_interfaces.msg import RunDescription
+
+from formopt_ros.ros import qos
+
+#: How long (s) a topic may have a second publisher before the run is stopped.
+INTRUDER_GRACE = 5.0
+#: Exit codes: a scenario mismatch is a configuration error; an intruder a run-time failure.
+MISMATCH_EXIT, INTRUDER_EXIT = 2, 1
+
+#: Differences as (parameter, value here, value there), from a peer's description JSON text.
+Compare = Callable[[str], list[tuple[str, Any, Any]]]
+
+
+@dataclass(frozen=True)
+class Failure:
+    """Why the guard stopped the run."""
+
+    code: int
+    message: str
+
+
+class RunGuard:
+    """Handshake with the peers of a run and watch the topics the node reads.
+
+    Args:
+        node: the node.
+        wait: the run waits for every expected peer description (False: compare the ones that
+            come, start without them; e.g. an estimator driven by a replayed bag).
+        on_failure: called once with the Failure that stops the run.
+    """
+
+    def __init__(self, node: Any, wait: bool, on_failure: Callable[[Failure], None]) -> None:
+        self.node = node
+        self.wait = wait
+        self.on_failure = on_failure
+        self.failure: Failure | None = None
+        self.seen: dict[str, str] = {}            # description topic -> publishing node
+        self.expected: list[str] = []
+        self.watched: list[str] = []
+        self._crowded_since: dict[str, float] = {}
+
+    def expect(self, topic: str, compare: Compare) -> None:
+        """Subscribe to the latched description on ``topic`` and compare it when it comes."""
+        self.expected.append(topic)
+        self.watch(topic)
+
+        def on_description(msg: Any) -> None:
+            try:
+                differences = compare(msg.description)
+            except ValueError as error:
+                self.fail(Failure(MISMATCH_EXIT, f'the description on {topic} from {msg.node} '
+                                                 f'is unreadable: {error}'))
+                return
+            if differences:
+                self.fail(Failure(MISMATCH_EXIT, 'scenario mismatch: ' + '; '.join(
+                    f'parameter {name!r} is {mine!r} in {self.node.get_fully_qualified_name()} '
+                    f'and {theirs!r} in {msg.node}' for name, mine, theirs in differences)))
+                return
+            self.seen[topic] = msg.node
+
+        self.node.create_subscription(RunDescription, topic, on_description, qos.LATCHED)
+
+    def watch(self, topic: str) -> None:
+        """Expect exactly one publisher on ``topic`` (checked by :meth:`check`)."""
+        self.watched.append(topic)
+
+    def missing(self) -> list[str]:
+        """The description topics not heard yet."""
+        return [topic for topic in self.expected if topic not in self.seen]
+
+    def ready(self) -> bool:
+        """True when the run may start: no failure and (unless not waiting) every peer agreed."""
+        return self.failure is None and (not self.wait or not self.missing())
+
+    def check(self) -> None:
+        """Look for topics with more than one publisher (call it periodically)."""
+        if self.failure is not None:
+            return
+        now = time.monotonic()
+        for topic in self.watched:
+            infos = self.node.get_publishers_info_by_topic(topic)
+            if len(infos) <= 1:
+                self._crowded_since.pop(topic, None)
+                continue
+            since = self._crowded_since.setdefault(topic, now)
+            if now - since >= INTRUDER_GRACE:
+                names = ', '.join(sorted(
+                    f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos))
+                self.fail(Failure(INTRUDER_EXIT, (
+                    f'{len(infos)} publishers on {topic} ({names}) for {now - since:.1f} s: '
+                    'another run or node publishes on the topics of this run; its data may '
+                    'be mixed in (run formations in separate ROS_DOMAIN_IDs or namespaces)')))
+                return
+
+    def fail(self, failure: Failure) -> None:
+        """Record the first failure and report it."""
+        if self.failure is None:
+            self.failure = failure
+            self.on_failure(failure)
