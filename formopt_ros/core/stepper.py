@@ -9,12 +9,15 @@ Inputs are keyed by integer nanosecond stamps. Two modes:
   own pace). Inputs off the grid, of steps already processed, duplicates, and inputs more than
   ``LOCKSTEP_LOOKAHEAD_STEPS`` steps ahead are refused; a refused input changes nothing, so a
   stamp from far in the future cannot block the real ones.
-* realtime: a step is ready when a measurement of a step not yet processed is in; it takes the
-  follower odometry stamped up to the measurement, each paired with the latest leader odometry
-  stamped at or before it. Stamps more than ``future_tolerance_ns`` after the caller's clock are
-  refused, so one bad stamp cannot block the later real messages; so are inputs stamped at or
-  before the last processed measurement (already accounted for) and duplicate stamps. Inputs
-  may come in any order otherwise (a follower that repeats its last step's messages after a
+* realtime: a step is ready when a measurement of a step not yet processed is in, and the
+  follower odometry stamped like it (the follower stamps its last sub-step and the measurement
+  alike; the measurement may overtake it on its own topic), or ``REALTIME_PATIENCE`` follower
+  odometry messages came after the measurement without it (it was lost). The step takes the
+  follower odometry stamped up to the measurement, each paired with the latest leader
+  odometry stamped at or before it. Stamps more than ``future_tolerance_ns`` after the
+  caller's clock are refused, so one bad stamp cannot block the later real messages; so are
+  inputs stamped at or before the last processed measurement (already accounted for) and
+  duplicate stamps. Inputs may come in any order otherwise (a follower that repeats its last step's messages after a
   restart of the estimator is heard). A lost measurement is skipped (the next one carries the
   odometry since) and counted. After a resume (:meth:`StepAssembler.open_gap`) the follower
   odometry lost while the estimator was down is replaced by the protocol's hold sub-steps (v = 0,
@@ -33,6 +36,8 @@ DEFAULT_FUTURE_TOLERANCE_NS = 500_000_000
 #: Lockstep: inputs may belong to at most this many steps after the next one (the skew a replay
 #: of a bag can produce between topics is bounded by the subscription queue depth).
 LOCKSTEP_LOOKAHEAD_STEPS = 2000
+#: Realtime: follower odometry messages a measurement waits for the odometry of its stamp.
+REALTIME_PATIENCE = 10
 
 
 @dataclass(frozen=True)
@@ -82,6 +87,8 @@ class StepAssembler:
     _accounted_ns: int = -1           # realtime: stamp of the last processed measurement
     _last_follower_ns: int | None = None   # realtime: last follower odometry used
     _leader_used_ns: int = -1               # realtime: last leader odometry used
+    #: realtime: step -> follower odometry messages received since its measurement
+    _waited: dict[int, int] = field(default_factory=dict, repr=False)
     _gap: tuple[int, int] | None = None     # realtime: (since, resumed at) stamps, ns
 
     def open_gap(self, resumed_ns: int) -> None:
@@ -100,6 +107,9 @@ class StepAssembler:
         reason = self._check_stamp(f'{robot} odometry', stamp_ns, now_ns, store)
         if reason is None:
             store[stamp_ns] = (v, omega)
+            if robot == 'follower':
+                for step in self._waited:
+                    self._waited[step] += 1
         return reason
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
@@ -115,6 +125,8 @@ class StepAssembler:
         reason = self._check_stamp('measurement', stamp_ns, now_ns, {})
         if reason is None:
             self._measurements[step] = (stamp_ns, value, variance)
+            if not self.lockstep:
+                self._waited[step] = 0
         return reason
 
     def _check_stamp(self, stream: str, stamp_ns: int, now_ns: int | None,
@@ -170,7 +182,11 @@ class StepAssembler:
         if not self._measurements:
             return None
         k = min(self._measurements)
+        if self._measurements[k][0] not in self._follower and \
+                self._waited[k] < REALTIME_PATIENCE:
+            return None                      # its last odometry is still on the way
         stamp, value, variance = self._measurements.pop(k)
+        del self._waited[k]
         motions: list[Motion] = []
         filled = 0
         for t in sorted(t for t in self._follower if t <= stamp):

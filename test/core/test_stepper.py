@@ -9,7 +9,7 @@ from formopt_ros.core.estimator import EstimatorSession
 from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial, trial_streams
-from formopt_ros.core.stepper import StepAssembler
+from formopt_ros.core.stepper import REALTIME_PATIENCE, StepAssembler
 from formopt_ros.core.strategies import make_strategy
 
 STEPS, SEED = 40, 4
@@ -118,18 +118,28 @@ def test_realtime_pairs_each_odometry_with_the_latest_leader_and_skips_lost_step
     assert assembler.add_odometry('follower', 40 * ms, 0.6, 0.1, now_ns=41 * ms) is None
     assert 'future' in assembler.add_odometry('follower', 10**15, 0.0, 0.0, now_ns=42 * ms)
     assert assembler.add_odometry('follower', 50 * ms, 0.7, 0.0, now_ns=51 * ms) is None
-    assert assembler.add_measurement(1, 45 * ms, 3.0, 0.01, now_ns=46 * ms) is None
+    assert assembler.add_measurement(1, 40 * ms, 3.0, 0.01, now_ns=46 * ms) is None
     ready = assembler.pop_ready()
     assert ready is not None and ready.step == 1 and ready.skipped == 0
     assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.5, 1.0), (0.6, 2.0)]
-    late = assembler.add_odometry('follower', 45 * ms, 0.0, 0.0, now_ns=60 * ms)
+    late = assembler.add_odometry('follower', 35 * ms, 0.0, 0.0, now_ns=60 * ms)
     assert 'processed measurement' in late
     assert 'duplicate' in assembler.add_odometry('follower', 50 * ms, 0.0, 0.0, now_ns=60 * ms)
+    # the measurement overtakes the odometry of its last sub-step (same stamp): it waits
     assert assembler.add_measurement(3, 55 * ms, 3.1, 0.01, now_ns=56 * ms) is None
+    assert assembler.pop_ready() is None
+    assert assembler.add_odometry('follower', 55 * ms, 0.8, 0.0, now_ns=56 * ms) is None
     ready = assembler.pop_ready()
     assert ready is not None and (ready.step, ready.skipped) == (3, 1)
-    assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.7, 2.0)]
+    assert [(m.v_f, m.v_l) for m in ready.motions] == [(0.7, 2.0), (0.8, 2.0)]
     assert assembler.next_step == 4
+    # a measurement whose odometry was lost goes ahead after REALTIME_PATIENCE later ones
+    assert assembler.add_measurement(4, 57 * ms, 3.2, 0.01, now_ns=58 * ms) is None
+    for i in range(REALTIME_PATIENCE):
+        assert assembler.pop_ready() is None
+        assembler.add_odometry('follower', (60 + i) * ms, 0.1, 0.0, now_ns=70 * ms)
+    ready = assembler.pop_ready()
+    assert ready is not None and ready.step == 4 and ready.motions == ()
 
 
 def test_realtime_hears_a_repeated_step_out_of_order_and_fills_a_resume_gap() -> None:

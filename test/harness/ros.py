@@ -163,48 +163,84 @@ class Formation:
         followers: follower ids (their namespaces under PREFIX).
         follower: create the follower_sim nodes (False: the test starts them elsewhere).
         per_follower: id -> extra parameters of that follower's nodes.
+        per_node: node name ('leader_sim', 'follower_sim', 'estimator_planner') -> extra
+            parameters of every node of that kind.
 
     ``published`` holds a copy of every message the nodes published, per topic.
     """
 
     def __init__(self, params: dict[str, Any], followers: tuple[str, ...] = ('follower',),
                  follower: bool = True,
-                 per_follower: dict[str, dict[str, Any]] | None = None) -> None:
-        from formopt_ros.ros.nodes.estimator_planner import EstimatorPlannerNode
-        from formopt_ros.ros.nodes.follower_sim import FollowerSim
-        from formopt_ros.ros.nodes.leader_sim import LeaderSim
-        per_follower = per_follower or {}
+                 per_follower: dict[str, dict[str, Any]] | None = None,
+                 per_node: dict[str, dict[str, Any]] | None = None) -> None:
+        per_follower, per_node = per_follower or {}, per_node or {}
         self.executor = SingleThreadedExecutor()
         self.probe = Probe(followers)
+        self.formation_topics = set(formation_topics('leader', followers, PREFIX))
+        self.published: dict[str, list[Any]] = {}
+        self.publishers: list[Any] = []          # the formation nodes' formation publishers
+        self.args: dict[tuple[str, str], list[str]] = {}
         leader_params = params if 'formation_file' in params else {
             'followers': list(followers), **params}
-        self.leader = LeaderSim(node_args('leader_sim', 'leader', leader_params))
-        self.followers = {f: FollowerSim(node_args('follower_sim', f, {
-            **params, **per_follower.get(f, {})})) for f in followers} if follower else {}
-        self.estimators = {f: EstimatorPlannerNode(node_args('estimator_planner', f, {
-            **params, **per_follower.get(f, {})})) for f in followers}
+        self.leader = self._make('leader_sim', 'leader', {**leader_params,
+                                                          **per_node.get('leader_sim', {})})
+        self.followers = {f: self._make('follower_sim', f, {
+            **params, **per_follower.get(f, {}), **per_node.get('follower_sim', {})})
+            for f in followers} if follower else {}
+        self.estimators = {f: self._make('estimator_planner', f, {
+            **params, **per_follower.get(f, {}), **per_node.get('estimator_planner', {})})
+            for f in followers}
         self.follower = next(iter(self.followers.values()), None)
         self.estimator = next(iter(self.estimators.values()))
         self.nodes = [self.probe, self.leader, *self.followers.values(),
                       *self.estimators.values()]
-        for node in self.nodes:
-            self.executor.add_node(node)
-        formation = set(formation_topics('leader', followers, PREFIX))
-        sims = [self.leader, *self.followers.values(), *self.estimators.values()]
-        self.publishers = [pub for node in sims for pub in node.publishers
-                           if pub.topic_name in formation]
-        self.published: dict[str, list[Any]] = {}
-        latched = {self.leader.description_pub: self.leader.description_message}
-        for estimator in self.estimators.values():
-            latched[estimator.description_pub] = estimator.description_message
-        for sim in self.followers.values():
-            latched[sim.tf_static_pub] = sim.tf_static_message
-            latched[sim.description_pub] = sim.description_message
-        for publisher in self.publishers:
-            sink = self.published.setdefault(publisher.topic_name, [])
-            if publisher in latched:
-                sink.append(latched[publisher])
-            tap(publisher, sink)
+        self.executor.add_node(self.probe)
+
+    def _make(self, kind: str, robot: str, params: dict[str, Any],
+              extra: list[str] | None = None) -> Any:
+        """Create a formation node, add it to the executor and tap its publications."""
+        import importlib
+        module = importlib.import_module(f'formopt_ros.ros.nodes.{kind}')
+        cls = {'leader_sim': 'LeaderSim', 'follower_sim': 'FollowerSim',
+               'estimator_planner': 'EstimatorPlannerNode'}[kind]
+        args = self.args.setdefault((kind, robot), node_args(kind, robot, params))
+        node = getattr(module, cls)(args + (extra or []))
+        self.executor.add_node(node)
+        latched = {node.description_pub: node.description_message}
+        if kind == 'follower_sim':
+            latched[node.tf_static_pub] = node.tf_static_message
+        for publisher in node.publishers:
+            if publisher.topic_name in self.formation_topics:
+                self.publishers.append(publisher)
+                sink = self.published.setdefault(publisher.topic_name, [])
+                if publisher in latched:
+                    sink.append(latched[publisher])
+                tap(publisher, sink)
+        return node
+
+    def restart(self, kind: str, robot: str = 'follower', down: float = 0.0,
+                extra: list[str] | None = None) -> Any:
+        """Kill a node the hard way (no close(): no summary, no final checkpoint), spin ``down``
+        s without it, start it again with the same arguments (plus ``extra``); the new node."""
+        old = {'leader_sim': lambda: self.leader, 'follower_sim': lambda: self.followers[robot],
+               'estimator_planner': lambda: self.estimators[robot]}[kind]()
+        self.executor.remove_node(old)
+        self.publishers = [p for p in self.publishers if p not in old.publishers]
+        old.destroy_node()
+        self.nodes.remove(old)
+        if down:
+            self.spin_until(lambda: False, down)
+        node = self._make(kind, robot, {}, extra)
+        self.nodes.append(node)
+        if kind == 'leader_sim':
+            self.leader = node
+        elif kind == 'follower_sim':
+            self.followers[robot] = node
+            self.follower = next(iter(self.followers.values()))
+        else:
+            self.estimators[robot] = node
+            self.estimator = next(iter(self.estimators.values()))
+        return node
 
     def total(self) -> int:
         """Messages published so far, all topics."""
