@@ -428,7 +428,7 @@ def test_boundary_wronskian_degree_four_harmonics_cancel() -> None:
         k = np.arange(-2, 3)
         spectra = []
         for X in (problem.M, problem.N):
-            coefficients = common._fourier(X, a, rho)
+            coefficients = common.fourier(X, a, rho)
             h = a + rho * np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
             direct = np.einsum('ij,jk,ik->i', h, X, h)
             series = (np.exp(1j * np.outer(t, k)) @ coefficients).real
@@ -583,7 +583,7 @@ def test_gbs_grid(cell: float) -> None:
     of points, and GBS returns its best point."""
     problem = Problem(np.diag([0.01, 0.02, 0.003]), np.array([1.5, 0.5]), 0.4, 0.01, BEARING)
     baselines._GRID_CACHE.clear()
-    points, _ = baselines.grid_monomials(problem, cell)
+    points = baselines.grid_for(BEARING, problem.slot, problem.r, cell).points
     offsets = (points - problem.p_o) / (problem.r * cell)
     # Lattice coordinates are integers (1e-9 absolute) and the lattice includes p_o itself.
     np.testing.assert_allclose(offsets, np.round(offsets), rtol=0, atol=1e-9)
