@@ -73,10 +73,13 @@ def trace_entries(p00: Value, p11: Value, p22: Value, d2: Any) -> Value:
     return p00 + p11 + d2 * p22
 
 
-def weighted_trace(P: np.ndarray, p_o: np.ndarray) -> float:
-    """tr(W P W) for a 3x3 covariance P (m^2); the paper's uncertainty metric (eq. 20)."""
+def weighted_trace(P: np.ndarray, p_o: np.ndarray) -> Any:
+    """tr(W P W) (m^2), the paper's uncertainty metric (eq. 20): a float for a covariance (3, 3),
+    an array (T,) for a batch (T, 3, 3)."""
     d_o = math.hypot(p_o[0], p_o[1])
-    return float(trace_entries(float(P[0, 0]), float(P[1, 1]), float(P[2, 2]), d_o * d_o))
+    if np.ndim(P) == 2:
+        return float(trace_entries(float(P[0, 0]), float(P[1, 1]), float(P[2, 2]), d_o * d_o))
+    return trace_entries(P[..., 0, 0], P[..., 1, 1], P[..., 2, 2], d_o * d_o)
 
 
 def quotient_entries(P: Entries, w22: Any, R: Any) -> tuple[Entries, Entries]:
@@ -426,12 +429,19 @@ class ProblemBatch:
         """The gain's coefficients (:func:`gain_coefficients`), each entry of shape (T,)."""
         return gain_coefficients(self.measurement, *self.forms, self.R)
 
-    def gain_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Gains (m^2) of every problem at points x, y of shape (T, C) (m); shape (T, C)."""
-        num, den = self.coefficients
-        return np.asarray(quotient_gain(self.measurement, (
-            tuple(np.asarray(c, dtype=float).reshape(-1, 1) for c in num),
-            tuple(np.asarray(c, dtype=float).reshape(-1, 1) for c in den)), x, y))
+    def gains_of(self, owner: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Gains (m^2) at points x, y (C,) (m) of the problems ``owner`` (C,); shape (C,).
+        Point by point the arithmetic of :meth:`Problem.gain_at`."""
+        num, den = self.coefficient_rows
+        rows_n, rows_d = num[:, owner], den[:, owner]
+        return np.asarray(quotient_gain(self.measurement, (tuple(rows_n), tuple(rows_d)), x, y))
+
+    @lazy_property
+    def coefficient_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`coefficients` as two arrays (k + 1, T)."""
+        T = len(self)
+        return tuple(np.array([np.broadcast_to(np.asarray(c, dtype=float), (T,)) for c in part])
+                     for part in self.coefficients)  # type: ignore[return-value]
 
     @lazy_property
     def q_circle(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

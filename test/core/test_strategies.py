@@ -418,7 +418,7 @@ def test_active_polynomial_vanishes_at_rq_boundary_optimum() -> None:
 
 def test_boundary_wronskian_degree_four_harmonics_cancel() -> None:
     """On the q-circle the Wronskian of the gain's numerator and denominator has no k = +-4
-    harmonics; common._fourier is checked against direct evaluation first."""
+    harmonics; common.fourier is checked against direct evaluation first."""
     rng = np.random.default_rng(7200)
     for _ in range(200):
         problem = hard_problem(rng, BEARING)
@@ -427,8 +427,10 @@ def test_boundary_wronskian_degree_four_harmonics_cancel() -> None:
         t = rng.uniform(-math.pi, math.pi, 20)
         k = np.arange(-2, 3)
         spectra = []
-        for X in (problem.M, problem.N):
-            coefficients = common.fourier(X, a, rho)
+        for X, entries in zip((problem.M, problem.N), problem.forms):
+            k0, k1r, k1i, k2r, k2i = common.fourier(entries, centre[0], centre[1], rho)
+            k1, k2 = k1r + 1j * k1i, k2r + 1j * k2i
+            coefficients = np.array([np.conj(k2), np.conj(k1), k0, k1, k2])
             h = a + rho * np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
             direct = np.einsum('ij,jk,ik->i', h, X, h)
             series = (np.exp(1j * np.outer(t, k)) @ coefficients).real

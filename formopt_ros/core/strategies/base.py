@@ -221,14 +221,14 @@ class Strategy:
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {}
 
     def __init__(self, **options: object) -> None:
+        self.settings: dict[str, float | int | bool] = {}
         if not options and not self.OPTIONS:
-            self.settings = {}
             return
         unknown = sorted(set(options) - set(self.OPTIONS))
         if unknown:
             raise ValueError(f'method {self.name!r} accepts options {sorted(self.OPTIONS)}, '
                              f'got unknown {unknown}')
-        self.settings: dict[str, float | int | bool] = {
+        self.settings = {
             key: spec.check(self.name, key, options.get(key, spec.default))
             for key, spec in self.OPTIONS.items()}
 

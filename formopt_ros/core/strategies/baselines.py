@@ -124,7 +124,9 @@ class Grid:
         monomials: the gain's monomials at the points, k arrays of shape (n,).
         starts: offsets of the blocks in ``points``, shape (B + 1,).
         centre: index (into ``points``) of each block's point nearest its centroid, shape (B,).
-        h: homogeneous vectors (first two components) of the centres, two arrays (B,).
+        features: the monomials and 1 at the block centres, shape (k + 1, B).
+        centre_h: homogeneous vectors of the centres, [h0, h1, 1] (the third component enters
+            as -1 (bearing) or 0 (range) through the signs of the matrix rows), shape (3, B).
         radius: largest distance of a block's homogeneous vectors from its centre's, (B,).
         position: inverse of ``rank``: the index in ``points`` of each row-major position.
     """
@@ -134,7 +136,8 @@ class Grid:
     monomials: tuple[np.ndarray, ...]
     starts: np.ndarray
     centre: np.ndarray
-    h: tuple[np.ndarray, np.ndarray]
+    features: np.ndarray
+    centre_h: np.ndarray
     radius: np.ndarray
     position: np.ndarray
 
@@ -162,10 +165,13 @@ class Grid:
                                          for a, b in zip(starts[:-1], starts[1:])])
         spread = np.hypot(hx - hx[centre][segment], hy - hy[centre][segment])
         radius = np.maximum.reduceat(spread, starts[:-1]) * (1.0 + 1e-12)
-        grid = cls(points, order, monomials(measurement, x, y), starts, centre,
-                   (hx[centre], hy[centre]), radius, np.argsort(order))
-        for array in (grid.points, grid.rank, grid.starts, grid.centre, grid.radius,
-                      grid.position, *grid.monomials, *grid.h):
+        terms = monomials(measurement, x, y)
+        features = np.array([t[centre] for t in terms] + [np.ones(len(centre))])
+        centre_h = np.array([hx[centre], hy[centre], np.ones(len(centre))])
+        grid = cls(points, order, terms, starts, centre, features, centre_h, radius,
+                   np.argsort(order))
+        for array in (grid.points, grid.rank, grid.starts, grid.centre, grid.features,
+                      grid.centre_h, grid.radius, grid.position, *grid.monomials):
             array.setflags(write=False)
         return grid
 
@@ -212,45 +218,44 @@ def grid_argmax(grid: Grid, measurement: str, forms: tuple[Entries, Entries],
     Returns:
         Indices, shape (T,) (T = 1 for float inputs).
     """
-    column = _columns
-    num, den = ([column(c) for c in part] for part in coefficients)
-    mono_c = tuple(m[grid.centre] for m in grid.monomials)
-    num_c = weighted_sum(tuple(num[:-1]), mono_c, num[-1])
-    den_c = weighted_sum(tuple(den[:-1]), mono_c, den[-1])
+    T = max(np.size(c) for part in coefficients for c in part)
+
+    def columns(values: tuple[Any, ...]) -> np.ndarray:
+        """Floats or arrays (T,) as the columns of an array (T, len(values))."""
+        return np.stack(np.broadcast_arrays(*(np.asarray(v, dtype=float).reshape(-1)
+                                              for v in values), np.zeros(T)), axis=1)[:, :-1]
+
+    num, den = (columns(part) for part in coefficients)
+    # the bounds (BLAS products, any rounding: PRUNE_RTOL leaves room)
+    num_c, den_c = num @ grid.features, den @ grid.features
     lam = np.max(num_c / den_c, axis=1, keepdims=True)
-    (m00, m01, m02, m11, m12, _), (n00, n01, n02, n11, n12, _) = (
-        [column(e) for e in part] for part in forms)
+    (m00, m01, m02, m11, m12, _), (n00, n01, n02, n11, n12, _) = forms
     if measurement == RANGE:         # h = u (two components): A = M_12,12, B = P_12,12 + R I
-        n00, n11 = n00 + column(R), n11 + column(R)
-        m02 = m12 = n02 = n12 = np.zeros_like(m00)
-    a0, a1 = grid.h
-    g0 = (m00 * a0 + m01 * a1 - m02) - lam * (n00 * a0 + n01 * a1 - n02)
-    g1 = (m01 * a0 + m11 * a1 - m12) - lam * (n01 * a0 + n11 * a1 - n12)
-    k00, k01, k11 = m00 - lam * n00, m01 - lam * n01, m11 - lam * n11
+        n00, n11 = n00 + R, n11 + R
+        m02 = m12 = n02 = n12 = 0.0
+    K = (columns((m00, m01, -m02, m01, m11, -m12))
+         - lam * columns((n00, n01, -n02, n01, n11, -n12)))       # rows of (M - lam N)_12,:
+    g0, g1 = K[:, 0:3] @ grid.centre_h, K[:, 3:6] @ grid.centre_h
+    k00, k01, k11 = K[:, 0:1], K[:, 1:2], K[:, 4:5]
     curvature = np.maximum(0.0, 0.5 * (k00 + k11) + np.hypot(0.5 * (k00 - k11), k01))
     bound = (num_c - lam * den_c + 2.0 * grid.radius * np.hypot(g0, g1)
              + grid.radius * grid.radius * curvature)
     trial, block = np.nonzero(bound >= -PRUNE_RTOL * lam * den_c)
+    num_t, den_t = num.T, den.T
     # every point of the kept blocks, trial by trial
     count = grid.starts[block + 1] - grid.starts[block]
     first = np.repeat(grid.starts[block] - np.cumsum(count) + count, count)
     index = first + np.arange(int(count.sum()))
     owner = np.repeat(trial, count)
-    gains = (weighted_sum(tuple(c[owner, 0] for c in num[:-1]),
-                          tuple(m[index] for m in grid.monomials), num[-1][owner, 0])
-             / weighted_sum(tuple(c[owner, 0] for c in den[:-1]),
-                            tuple(m[index] for m in grid.monomials), den[-1][owner, 0]))
+    terms = tuple(m[index] for m in grid.monomials)
+    gains = (weighted_sum(tuple(c[owner] for c in num_t[:-1]), terms, num_t[-1][owner])
+             / weighted_sum(tuple(c[owner] for c in den_t[:-1]), terms, den_t[-1][owner]))
     segments = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
     best = np.maximum.reduceat(gains, segments)
     rank = np.where(gains == np.repeat(best, np.diff(np.r_[segments, len(gains)])),
                     grid.rank[index], np.iinfo(np.int64).max)
     best_rank = np.minimum.reduceat(rank, segments)
     return grid.position[best_rank]
-
-
-def _columns(value: Any) -> np.ndarray:
-    """A float or an array of shape (T,) as an array of shape (T, 1)."""
-    return np.atleast_1d(np.asarray(value, dtype=float))[:, None]
 
 
 class GridSearch(Strategy):

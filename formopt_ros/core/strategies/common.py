@@ -63,31 +63,38 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
                          details={'flat': False, 'theta': theta, **details}, gain=g)
 
 
-def poly_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Product of polynomials given by coefficient arrays (..., n) and (..., m), batched over
-    the leading axes, coefficients summed in a fixed order; shape (..., n + m - 1)."""
-    n, m = a.shape[-1], b.shape[-1]
-    out = np.zeros(np.broadcast_shapes(a.shape[:-1], b.shape[:-1]) + (n + m - 1,),
-                   dtype=np.result_type(a, b))
-    for i in range(n):
-        out[..., i:i + m] += a[..., i:i + 1] * b
-    return out
+#: A polynomial as the tuple of its coefficients, each a float or an array (T,) (a batch).
+Poly = tuple[Any, ...]
 
 
-def fourier(X: np.ndarray, a: np.ndarray, rho: Any) -> np.ndarray:
-    """Complex Fourier coefficients (k = -2..2) of t -> h(t)' X h(t), h = a + rho [cos, sin, 0],
-    for X (..., 3, 3), a (..., 3), rho (...); shape (..., 5).
+def poly_mul(a: Poly, b: Poly) -> Poly:
+    """Product of two polynomials given by coefficient tuples (coefficient k multiplies the
+    k-th monomial; floats or arrays), summed in a fixed order."""
+    return tuple(sum(a[i] * b[k - i]
+                     for i in range(max(0, k - len(b) + 1), min(k, len(a) - 1) + 1))
+                 for k in range(len(a) + len(b) - 1))
 
-    With b = rho e1 and c = rho e2: h'Xh = a'Xa + 2 a'Xb cos + 2 a'Xc sin + b'Xb cos^2
-    + 2 b'Xc cos sin + c'Xc sin^2, and a'Xb = rho (Xa)_0, a'Xc = rho (Xa)_1, b'Xb = rho^2 X_00.
+
+def poly_combine(*terms: tuple[Any, Poly]) -> Poly:
+    """sum_i weight_i poly_i for (weight, poly) pairs of polynomials of one length."""
+    return tuple(sum(w * p[k] for w, p in terms) for k in range(len(terms[0][1])))
+
+
+def fourier(X: Any, c0: Any, c1: Any, rho: Any) -> tuple[Any, Any, Any, Any, Any]:
+    """Real and imaginary parts of the Fourier coefficients of t -> h(t)' X h(t) on
+    h(t) = [c0 + rho cos t, c1 + rho sin t, -1], for X given by its six distinct entries
+    (floats or arrays): (K_0, Re K_1, Im K_1, Re K_2, Im K_2); K_-k = conj(K_k).
+
+    With a = [c0, c1, -1], b = rho e1 and c = rho e2: h'Xh = a'Xa + 2 a'Xb cos + 2 a'Xc sin
+    + b'Xb cos^2 + 2 b'Xc cos sin + c'Xc sin^2, and a'Xb = rho (Xa)_0, a'Xc = rho (Xa)_1,
+    b'Xb = rho^2 X_00, so K_1 = rho ((Xa)_0 - i (Xa)_1), K_2 = rho^2 ((X_00 - X_11)/4 - i X_01/2).
     """
-    Xa = np.matmul(X, a[..., None])[..., 0]
+    x00, x01, x02, x11, x12, x22 = X
+    xa0, xa1 = x00 * c0 + x01 * c1 - x02, x01 * c0 + x11 * c1 - x12
+    axa = c0 * xa0 + c1 * xa1 - (x02 * c0 + x12 * c1 - x22)
     r2 = rho * rho
-    c0 = np.matmul(a[..., None, :], Xa[..., None])[..., 0, 0] + 0.5 * r2 * (
-        X[..., 0, 0] + X[..., 1, 1])
-    c1 = rho * (Xa[..., 0] - 1j * Xa[..., 1])
-    c2 = 0.5 * r2 * (0.5 * (X[..., 0, 0] - X[..., 1, 1]) - 1j * X[..., 0, 1])
-    return np.stack([np.conj(c2), np.conj(c1), c0 + 0j, c1, c2], axis=-1)
+    return (axa + 0.5 * r2 * (x00 + x11), rho * xa0, -(rho * xa1),
+            0.5 * r2 * (0.5 * (x00 - x11)), -(0.5 * r2 * x01))
 
 
 def boundary_stationarity(problem: Problem | ProblemBatch) -> np.ndarray:
@@ -95,44 +102,60 @@ def boundary_stationarity(problem: Problem | ProblemBatch) -> np.ndarray:
     shape (7,) for a problem, (T, 7) for a batch.
 
     On the image circle q(t) = c_q + rho_q [cos t, sin t] of the disc boundary (bearing case),
-    num and den are trigonometric polynomials of degree 2, so their Wronskian has degree 4; its
-    k = +-4 harmonics are 2 i (n_2 d_-2 - ...) and cancel identically (checked in the tests),
-    leaving degree 3: at most 6 stationary points on the circle.
+    num and den are trigonometric polynomials of degree 2 (coefficients N_k, D_k, k = -2..2),
+    so their Wronskian has coefficients F_m = i sum_{j + l = m} (j - l) N_j D_l; its m = +-4
+    harmonics vanish identically (j = l = +-2; checked in the tests), leaving degree 3: at
+    most 6 stationary points on the circle. F_-m = conj(F_m) (the Wronskian is real). Real
+    arithmetic on floats or arrays, so a problem and its batch give the same bits.
     """
-    c0, c1, rho = (np.asarray(v, dtype=float) for v in problem.q_circle)
-    a = np.stack([c0, c1, -np.ones_like(c0)], axis=-1)
-    num, den = fourier(problem.M, a, rho), fourier(problem.N, a, rho)
-    k = np.arange(-2, 3)
-    wronskian = poly_mul(1j * k * num, den) - poly_mul(num, 1j * k * den)
-    return wronskian[..., 1:-1]
+    c0, c1, rho = problem.q_circle
+    M, N = problem.forms
+    n0, n1r, n1i, n2r, n2i = fourier(M, c0, c1, rho)
+    d0, d1r, d1i, d2r, d2i = fourier(N, c0, c1, rho)
+    # F3 = i (N2 D1 - N1 D2); F2 = 2 i (N2 D0 - N0 D2)
+    p_r = (n2r * d1r - n2i * d1i) - (n1r * d2r - n1i * d2i)
+    p_i = (n2r * d1i + n2i * d1r) - (n1r * d2i + n1i * d2r)
+    a_r, a_i = n2r * d0 - n0 * d2r, n2i * d0 - n0 * d2i
+    # F1 = i (3 (N2 conj(D1) - conj(N1) D2) + N1 D0 - N0 D1)
+    q_r = (3.0 * ((n2r * d1r + n2i * d1i) - (n1r * d2r + n1i * d2i))
+           + (n1r * d0 - n0 * d1r))
+    q_i = (3.0 * ((n2i * d1r - n2r * d1i) - (n1r * d2i - n1i * d2r))
+           + (n1i * d0 - n0 * d1i))
+    # F0 = i (4 (N2 conj(D2) - conj(N2) D2) + 2 (N1 conj(D1) - conj(N1) D1)), real
+    f0 = -8.0 * (n2i * d2r - n2r * d2i) - 4.0 * (n1i * d1r - n1r * d1i)
+    real = np.stack(np.broadcast_arrays(-q_i, -2.0 * a_i, -p_i, f0), axis=-1)
+    imag = np.stack(np.broadcast_arrays(q_r, 2.0 * a_r, p_r), axis=-1)
+    F = np.empty(real.shape[:-1] + (7,), dtype=complex)
+    F[..., 4:] = real[..., :3] + 1j * imag
+    F[..., 3] = real[..., 3]
+    F[..., :3] = np.conj(F[..., 6:3:-1])
+    return F
 
 
 def polish_boundary_angles(F: np.ndarray, t: np.ndarray, iterations: int = 2) -> np.ndarray:
     """Newton steps on the real trigonometric polynomial f(t) = sum_k F_k e^{ikt} (k = -3..3),
     for F (7,) and t (n,), or F (..., 7) and t (..., n); steps are clipped to 0.1 rad, and an
-    angle stops moving once its step is below 1e-15 rad (so each result depends on its own
-    start only).
+    angle stops moving after a step below 1e-13 rad (Newton has converged; each result
+    depends on its own start only).
 
     Start values from companion-matrix roots are accurate to ~1e-14 except near double roots
     (~1e-8), so two quadratically convergent steps suffice; RAM's seeds from clustered roots
-    need a few more. With F_-k = conj(F_k): f = F_0 + 2 sum_k (Re F_k cos kt - Im F_k sin kt).
+    need a few more. With F_-k = conj(F_k) and w = e^{it}: f = F_0 + 2 Re(w (F_1 + w (F_2 +
+    w F_3))) and f' = 2 Re(i w (F_1 + w (2 F_2 + w 3 F_3))) (Horner).
     """
     F = np.asarray(F)[..., None, :]
-    re, im = 2.0 * F.real[..., 4:], 2.0 * F.imag[..., 4:]
+    f0, f1, f2, f3 = F[..., 3].real, F[..., 4], F[..., 5], F[..., 6]
+    g2, g3 = 2.0 * f2, 3.0 * f3
     t = np.asarray(t, dtype=float).copy()
     moving = np.ones(t.shape, dtype=bool)
     for _ in range(iterations):
-        c1, s1 = np.cos(t), np.sin(t)
-        c2, s2 = c1 * c1 - s1 * s1, 2.0 * s1 * c1
-        c3, s3 = c2 * c1 - s2 * s1, s2 * c1 + c2 * s1
-        value = (F.real[..., 3] + re[..., 0] * c1 - im[..., 0] * s1 + re[..., 1] * c2
-                 - im[..., 1] * s2 + re[..., 2] * c3 - im[..., 2] * s3)
-        slope = -(re[..., 0] * s1 + im[..., 0] * c1 + 2.0 * (re[..., 1] * s2 + im[..., 1] * c2)
-                  + 3.0 * (re[..., 2] * s3 + im[..., 2] * c3))
+        w = np.exp(1j * t)
+        value = f0 + 2.0 * (w * (f1 + w * (f2 + w * f3))).real
+        slope = -2.0 * (w * (f1 + w * (g2 + w * g3))).imag
         with np.errstate(divide='ignore', invalid='ignore'):
             step = np.where(moving & (slope != 0.0), np.clip(value / slope, -0.1, 0.1), 0.0)
         t -= step
-        moving &= np.abs(step) > 1e-15
+        moving &= np.abs(step) > 1e-13
         if not moving.any():
             break
     return t

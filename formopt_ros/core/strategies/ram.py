@@ -66,15 +66,16 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.cost import Entries, Problem, ProblemBatch
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.certificate import PROVED, certify
 from formopt_ros.core.strategies.common import (
-    boundary_stationarity, gains_tie, poly_mul, polish_boundary_angles,
+    Poly, boundary_stationarity, gains_tie, poly_combine, poly_mul, polish_boundary_angles,
     range_plan_from_direction)
 from formopt_ros.core.strategies.rq import rq_optimum
 
@@ -83,8 +84,6 @@ RESIDUAL_TOLERANCE = 1e-4
 #: Roots of the eliminated polynomials (in 2 sigma - 1) up to this far from the real axis seed
 #: Newton's method (clustered roots are perturbed to complex pairs).
 ROOT_IMAG_TOLERANCE = 0.1
-#: Interior start points up to this many r from p_o are polished.
-POLISH_DISTANCE = 1.5
 #: Newton iterations of the interior and boundary polishing.
 INTERIOR_NEWTON = 8
 BOUNDARY_NEWTON = 6
@@ -125,70 +124,84 @@ def _plan_range(problem: Problem) -> Solution:
 
 # --- homogeneous bivariate polynomials in (c, s): coefficient k multiplies c^(n-k) s^k --------
 # Every polynomial carries a leading batch axis: shape (T, n + 1).
-def _beta(b: np.ndarray) -> np.ndarray:          # b' alpha,      alpha = [-s, c]
-    return np.stack([b[:, 1], -b[:, 0]], axis=-1)
-
-
-def _beta_t(b: np.ndarray) -> np.ndarray:        # d/dt b' alpha
-    return np.stack([-b[:, 0], -b[:, 1]], axis=-1)
-
-
-def _gamma(A: np.ndarray) -> np.ndarray:         # alpha' A alpha
-    return np.stack([A[:, 1, 1], -2 * A[:, 0, 1], A[:, 0, 0]], axis=-1)
-
-
-def _gamma_t(A: np.ndarray) -> np.ndarray:       # d/dt alpha' A alpha
-    return np.stack([-2 * A[:, 0, 1], 2 * (A[:, 0, 0] - A[:, 1, 1]), 2 * A[:, 0, 1]], axis=-1)
-
-
 Polynomials = list[np.ndarray]
 
 
-def kkt_batch(batch: ProblemBatch) -> tuple[Polynomials, Polynomials]:
+def kkt_coefficients(forms: tuple[Entries, Entries]) -> tuple[list[Poly], list[Poly]]:
     """Coefficients in d of F_d/2 (zeta2, zeta1, zeta0) and F_t (gamma3..gamma0), eqs. (33-34),
-    each of shape (T, degree + 1) (see module docstring)."""
-    M, P = batch.M, batch.P
-    cu, cv = M[:, 2, 2:3], P[:, 2, 2:3] + batch.R[:, None]
-    bu, bv = _beta(-M[:, :2, 2]), _beta(-P[:, :2, 2])
-    bu_t, bv_t = _beta_t(-M[:, :2, 2]), _beta_t(-P[:, :2, 2])
-    gu, gv = _gamma(M[:, :2, :2]), _gamma(P[:, :2, :2])
-    gu_t, gv_t = _gamma_t(M[:, :2, :2]), _gamma_t(P[:, :2, :2])
-    zeta = [cu * bv - cv * bu, cu * gv - cv * gu, poly_mul(bu, gv) - poly_mul(bv, gu)]
-    gamma = [2 * (cv * bu_t - cu * bv_t),
-             4 * (poly_mul(bu_t, bv) - poly_mul(bu, bv_t)) + cv * gu_t - cu * gv_t,
-             2 * (poly_mul(bu_t, gv) + poly_mul(gu_t, bv) - poly_mul(bu, gv_t)
-                  - poly_mul(gu, bv_t)),
-             poly_mul(gu_t, gv) - poly_mul(gu, gv_t)]
+    as coefficient tuples of homogeneous polynomials in (cos t, sin t) (module docstring),
+    from the entries of M and N (floats for a problem, arrays (T,) for a batch)."""
+    (m00, m01, m02, m11, m12, m22), (n00, n01, n02, n11, n12, n22) = forms
+    cu, cv = m22, n22                                    # n22 = P33 + R
+    bu, bv = (-m12, m02), (-n12, n02)                    # -X[:2, 2]' alpha, alpha = [-s, c]
+    bu_t, bv_t = (m02, m12), (n02, n12)                  # d/dt
+    gu, gv = (m11, -2 * m01, m00), (n11, -2 * n01, n00)  # alpha' X alpha
+    gu_t, gv_t = (-2 * m01, 2 * (m00 - m11), 2 * m01), (-2 * n01, 2 * (n00 - n11), 2 * n01)
+    zeta = [poly_combine((cu, bv), (-cv, bu)), poly_combine((cu, gv), (-cv, gu)),
+            poly_combine((1, poly_mul(bu, gv)), (-1, poly_mul(bv, gu)))]
+    gamma = [poly_combine((2 * cv, bu_t), (-2 * cu, bv_t)),
+             poly_combine((4, poly_mul(bu_t, bv)), (-4, poly_mul(bu, bv_t)), (cv, gu_t),
+                          (-cu, gv_t)),
+             poly_combine((2, poly_mul(bu_t, gv)), (2, poly_mul(gu_t, bv)),
+                          (-2, poly_mul(bu, gv_t)), (-2, poly_mul(gu, bv_t))),
+             poly_combine((1, poly_mul(gu_t, gv)), (-1, poly_mul(gu, gv_t)))]
     return zeta, gamma
 
 
-def active_batch(batch: ProblemBatch, kkt: tuple[Polynomials, Polynomials]
-                 ) -> tuple[Polynomials, Polynomials]:
-    """Coefficients in d of Q (degree 4, eq. 41) and of the homogenised constraint g (eq. 40)."""
+def active_coefficients(kkt: tuple[list[Poly], list[Poly]], x_o: Any, y_o: Any,
+                        k: Any) -> tuple[list[Poly], list[Poly]]:
+    """Coefficients in d of Q (degree 4, eq. 41) and of the homogenised constraint g (eq. 40),
+    for the slot (x_o, y_o) and k = |p_o|^2 - r^2 (floats or arrays)."""
     zeta, gamma = kkt
-    xo, yo = batch.p_o[:, 0:1], batch.p_o[:, 1:2]
-    ell = np.concatenate([xo, yo], axis=1)              # x_o c + y_o s
-    kappa = np.concatenate([-2 * yo, 2 * xo], axis=1)   # 2 (x_o s - y_o c): zeta holds F_d / 2
+    ell = (x_o, y_o)                              # x_o c + y_o s
+    kappa = (-2 * y_o, 2 * x_o)                   # 2 (x_o s - y_o c): zeta holds F_d / 2
     q = [gamma[0],
-         gamma[1] - poly_mul(ell, gamma[0]) - poly_mul(kappa, zeta[0]),
-         gamma[2] - poly_mul(ell, gamma[1]) - poly_mul(kappa, zeta[1]),
-         gamma[3] - poly_mul(ell, gamma[2]) - poly_mul(kappa, zeta[2]),
-         -poly_mul(ell, gamma[3])]
-    k = (batch.d_o * batch.d_o - batch.r * batch.r)[:, None]
-    g = [np.ones_like(xo), -2.0 * ell, np.concatenate([k, np.zeros_like(k), k], axis=1)]
+         poly_combine((1, gamma[1]), (-1, poly_mul(ell, gamma[0])),
+                      (-1, poly_mul(kappa, zeta[0]))),
+         poly_combine((1, gamma[2]), (-1, poly_mul(ell, gamma[1])),
+                      (-1, poly_mul(kappa, zeta[1]))),
+         poly_combine((1, gamma[3]), (-1, poly_mul(ell, gamma[2])),
+                      (-1, poly_mul(kappa, zeta[2]))),
+         tuple(-c for c in poly_mul(ell, gamma[3]))]
+    g = [(1.0 + 0.0 * k,), (-2.0 * x_o, -2.0 * y_o), (k, 0.0 * k, k)]
     return q, g
 
 
+def _rows(polys: list[Poly], T: int) -> Polynomials:
+    """Coefficient tuples (floats, or arrays (T,)) as arrays (T, n + 1)."""
+    if T == 1 and not any(isinstance(c, np.ndarray) for poly in polys for c in poly):
+        return [np.array([poly], dtype=float) for poly in polys]
+    return [np.stack(np.broadcast_arrays(*poly), axis=-1) for poly in polys]
+
+
+def _polynomials(source: Problem | ProblemBatch) -> tuple[Polynomials, Polynomials,
+                                                          Polynomials, Polynomials]:
+    """(zeta, gamma, q, g) of a problem (in Python floats, then rows (1, n + 1)) or of a batch
+    (in arrays (T,)): the same arithmetic either way."""
+    T = len(source) if isinstance(source, ProblemBatch) else 1
+    kkt = kkt_coefficients(source.forms)
+    x_o: Any
+    y_o: Any
+    k: Any
+    if isinstance(source, ProblemBatch):
+        x_o, y_o = source.p_o[:, 0], source.p_o[:, 1]
+        k = source.d_o * source.d_o - source.r * source.r
+    else:
+        (x_o, y_o), r = source.slot, float(source.r)
+        k = source.d_o * source.d_o - r * r
+    q, g = active_coefficients(kkt, x_o, y_o, k)
+    return _rows(kkt[0], T), _rows(kkt[1], T), _rows(q, T), _rows(g, T)
+
+
 def kkt_polynomials(problem: Problem) -> tuple[Polynomials, Polynomials]:
-    """:func:`kkt_batch` of one problem: lists of 1-D coefficient arrays."""
-    zeta, gamma = kkt_batch(ProblemBatch.stack([problem]))
+    """The KKT polynomials of one problem (:func:`kkt_coefficients`) as 1-D arrays."""
+    zeta, gamma, _, _ = _polynomials(problem)
     return [z[0] for z in zeta], [g[0] for g in gamma]
 
 
 def active_polynomials(problem: Problem) -> tuple[Polynomials, Polynomials]:
-    """:func:`active_batch` of one problem: lists of 1-D coefficient arrays."""
-    batch = ProblemBatch.stack([problem])
-    q, g = active_batch(batch, kkt_batch(batch))
+    """The active-constraint polynomials of one problem (:func:`active_coefficients`)."""
+    _, _, q, g = _polynomials(problem)
     return [x[0] for x in q], [x[0] for x in g]
 
 
@@ -202,19 +215,25 @@ def _monomial_table(c: np.ndarray, s: np.ndarray, max_degree: int = 5) -> list[n
     return table
 
 
-def _evaluate(poly: np.ndarray, table: list[np.ndarray]) -> np.ndarray:
-    """Values of a batch of polynomials (T, n + 1) at the points of a monomial table whose
-    entries have shape (T, K, n + 1) or (K, n + 1); shape (T, K). One matrix-vector product
-    per problem, so a problem's values do not depend on the rest of the batch."""
+def _at_nodes(poly: np.ndarray, table: list[np.ndarray]) -> np.ndarray:
+    """Values (T, K) of polynomials (T, n + 1) at the K points of a monomial table (entries
+    (K, n + 1)): one matrix-vector product per problem, so each problem's values are those it
+    gets alone."""
     return np.matmul(table[poly.shape[-1] - 1], poly[..., None])[..., 0]
+
+
+def _at_points(poly: np.ndarray, owner: np.ndarray, table: list[np.ndarray]) -> np.ndarray:
+    """Values (A,) of the polynomials of problems ``owner`` (A,) at A points (table entries
+    (A, n + 1)): one dot product per point."""
+    return np.matmul(table[poly.shape[-1] - 1][:, None, :], poly[owner][..., None])[:, 0, 0]
 
 
 def _sylvester(f: Polynomials, g: Polynomials, table: list[np.ndarray]) -> np.ndarray:
     """Sylvester matrices in d of f and g (coefficient lists, highest power first) at the
     points of a monomial table; shape (T, K, m + n, m + n). Rows 0..n-1 hold f shifted."""
     m, n = len(f) - 1, len(g) - 1
-    fv = np.stack([_evaluate(poly, table) for poly in f], axis=-1)
-    gv = np.stack([_evaluate(poly, table) for poly in g], axis=-1)
+    fv = np.stack([_at_nodes(poly, table) for poly in f], axis=-1)
+    gv = np.stack([_at_nodes(poly, table) for poly in g], axis=-1)
     S = np.zeros(fv.shape[:2] + (m + n, m + n))
     for row in range(n):
         S[:, :, row, row:row + m + 1] = fv
@@ -266,21 +285,28 @@ def eliminated_polynomial(f: Polynomials, g: Polynomials, degree: int) -> tuple[
     return series[0], float(aliasing[0])
 
 
+@lru_cache(maxsize=4)
+def _colleague_base(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The colleague matrix of degree n without its last column's correction, and the scale
+    of that correction (numpy's chebcompanion)."""
+    base = np.zeros((n, n))
+    diagonal = np.full(n - 1, 0.5)
+    diagonal[0] = math.sqrt(0.5)
+    base[np.arange(n - 1), np.arange(1, n)] = diagonal
+    base[np.arange(1, n), np.arange(n - 1)] = diagonal
+    scl = np.array([1.0] + [math.sqrt(0.5)] * (n - 1))
+    return base, scl / scl[-1] * 0.5
+
+
 def chebyshev_roots(series: np.ndarray) -> np.ndarray:
     """Complex roots in x = 2 sigma - 1 of Chebyshev series (T, n + 1): eigenvalues of the
     colleague matrices (numpy's chebcompanion, batched; NaN when the leading coefficient is 0),
     shape (T, n)."""
-    T, n = series.shape[0], series.shape[1] - 1
-    scl = np.array([1.0] + [math.sqrt(0.5)] * (n - 1))
-    mat = np.zeros((T, n, n))
-    diagonal = np.full(n - 1, 0.5)
-    diagonal[0] = math.sqrt(0.5)
-    mat[:, np.arange(n - 1), np.arange(1, n)] = diagonal
-    mat[:, np.arange(1, n), np.arange(n - 1)] = diagonal
+    base, scale = _colleague_base(series.shape[1] - 1)
+    mat = np.repeat(base[None], len(series), axis=0)
     lead = series[:, -1:]
     good = (lead[:, 0] != 0.0) & np.all(np.isfinite(series), axis=1)
-    safe = np.where(good[:, None], lead, 1.0)
-    mat[:, :, -1] -= (series[:, :-1] / safe) * (scl / scl[-1]) * 0.5
+    mat[:, :, -1] -= (series[:, :-1] / np.where(good[:, None], lead, 1.0)) * scale
     roots = np.linalg.eigvals(mat[:, ::-1, ::-1])
     roots[~good] = np.nan
     return roots
@@ -296,89 +322,94 @@ def sigma_roots(series: np.ndarray) -> np.ndarray:
 
 
 def _angles(roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(cos t, sin t, strict, usable) for every root and sign choice, shape (T, 4 n): strict
-    roots are real to 1e-6 (the paper's real roots), usable ones within ROOT_IMAG_TOLERANCE."""
+    """Bearings of the usable roots (within ROOT_IMAG_TOLERANCE of the real axis; strict ones,
+    real to 1e-6, are the paper's real roots): (owner, cos t, sin t, strict), flat arrays of
+    the four sign choices of every usable root of every problem."""
     x = roots.real
     usable = (np.abs(roots.imag) <= ROOT_IMAG_TOLERANCE) & (x >= -1.1) & (x <= 1.1)
     strict = (np.abs(roots.imag) <= 1e-6) & (x >= -1.0 - 2e-8) & (x <= 1.0 + 2e-8)
-    sigma = np.clip(0.5 * (np.where(usable, x, 0.0) + 1.0), 0.0, 1.0)
+    owner, index = np.nonzero(usable)
+    sigma = np.clip(0.5 * (x[owner, index] + 1.0), 0.0, 1.0)
     s, c = np.sqrt(sigma), np.sqrt(1.0 - sigma)
-    return (np.concatenate([c, -c, c, -c], axis=1), np.concatenate([s, s, -s, -s], axis=1),
-            np.tile(strict, 4), np.tile(usable, 4))
+    return (np.tile(owner, 4), np.concatenate([c, -c, c, -c]), np.concatenate([s, s, -s, -s]),
+            np.tile(strict[owner, index], 4))
 
 
-def _relative_residual(coeffs: Polynomials, d: np.ndarray, table: list[np.ndarray]) -> np.ndarray:
+def _relative_residual(coeffs: Polynomials, owner: np.ndarray, d: np.ndarray,
+                       table: list[np.ndarray]) -> np.ndarray:
     """|sum_i coeffs_i(c, s) d^(n-i)| / sum_i |...| at points given by a monomial table."""
-    terms = [_evaluate(poly, table) * d ** (len(coeffs) - 1 - i)
-             for i, poly in enumerate(coeffs)]
-    size = terms[0] * 0.0
-    total = terms[0] * 0.0
-    for term in terms:
-        total = total + term
-        size = size + np.abs(term)
+    total = size = np.zeros(len(d))
+    for i, poly in enumerate(coeffs):
+        term = _at_points(poly, owner, table) * d ** (len(coeffs) - 1 - i)
+        total, size = total + term, size + np.abs(term)
     return np.abs(total) / np.maximum(size, 1e-300)
 
 
+Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _better_of_pair(bearing: np.ndarray, residual: np.ndarray, count: int) -> np.ndarray:
+    """The start points to polish: of the two back-substituted points of one bearing (two roots
+    d; ``bearing`` indices < count), the one with the smaller residual, and any whose residual
+    passes RESIDUAL_TOLERANCE. Near-multiple roots are off by ~sqrt(eps) or more (1e-2 in
+    sigma was seen), so their points may lie far from the disc before Newton's method."""
+    best = np.full(count, np.inf)
+    np.minimum.at(best, bearing, residual)
+    return (residual <= best[bearing]) | (residual < RESIDUAL_TOLERANCE)
+
+
 def _interior_candidates(batch: ProblemBatch, zeta: Polynomials, gamma: Polynomials,
-                         roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         roots: np.ndarray) -> Candidates:
     """Interior critical points from the roots of S_u (d from F_d = 0, F_t checked).
 
     Returns:
-        (points (T, C, 2), accepted (T, C): real roots that pass the residual test inside the
-        disc, seeds (T, C): points near the disc to polish).
+        (owner (C,), points (C, 2), accepted (C,): real roots that pass the residual test
+        inside the disc, seeds (C,): points to polish).
     """
-    c, s, strict, usable = _angles(roots)
+    owner, c, s, strict = _angles(roots)
+    c_all = c
     table = _monomial_table(c, s, 4)
-    z2, z1, z0 = (_evaluate(poly, table) for poly in zeta)
+    z2, z1, z0 = (_at_points(poly, owner, table) for poly in zeta)
     disc = np.sqrt((z1 * z1 - 4 * z2 * z0).astype(complex))
-    d = np.concatenate([(-z1 + disc) / (2 * z2), (-z1 - disc) / (2 * z2)], axis=1)
-    real_d = np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0)
-    dd = np.where(real_d, d.real, 0.0)
-    cc, ss = np.concatenate([c, c], axis=1), np.concatenate([s, s], axis=1)
-    points = np.stack([dd * cc, dd * ss], axis=-1)
-    distance = np.hypot(points[..., 0] - batch.p_o[:, None, 0],
-                        points[..., 1] - batch.p_o[:, None, 1])
-    residual = _relative_residual(gamma, dd, [np.concatenate([t, t], axis=1) for t in table])
-    valid = real_d & np.concatenate([usable, usable], axis=1)
-    accepted = (valid & np.concatenate([strict, strict], axis=1)
-                & (distance < batch.r[:, None]) & (residual < RESIDUAL_TOLERANCE))
-    seeds = valid & (distance < POLISH_DISTANCE * batch.r[:, None])
-    return points, accepted, seeds
+    d = np.concatenate([(-z1 + disc) / (2 * z2), (-z1 - disc) / (2 * z2)])
+    keep = np.flatnonzero(np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0))
+    angle = keep % len(owner)
+    owner, d, c, s, strict = owner[angle], d.real[keep], c[angle], s[angle], strict[angle]
+    points = np.stack([d * c, d * s], axis=-1)
+    distance = np.hypot(points[:, 0] - batch.p_o[owner, 0], points[:, 1] - batch.p_o[owner, 1])
+    residual = _relative_residual(gamma, owner, d, [t[angle] for t in table])
+    accepted = strict & (distance < batch.r[owner]) & (residual < RESIDUAL_TOLERANCE)
+    return owner, points, accepted, _better_of_pair(angle, residual, len(c_all))
 
 
-def _active_candidates(batch: ProblemBatch, q: Polynomials,
-                       roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _active_candidates(batch: ProblemBatch, q: Polynomials, roots: np.ndarray) -> Candidates:
     """Boundary critical points from the roots of S_c (d from g = 0, Q checked).
 
     Returns:
-        (points (T, C, 2) on the circle, accepted (T, C): real roots that pass the residual
-        test, seeds (T, C): points to polish).
+        (owner (C,), points (C, 2) on the circle, accepted (C,): real roots that pass the
+        residual test, seeds (C,): points to polish).
     """
-    c, s, strict, usable = _angles(roots)
-    ell = batch.p_o[:, None, 0] * c + batch.p_o[:, None, 1] * s
-    k = (batch.d_o * batch.d_o - batch.r * batch.r)[:, None]
-    disc = ell * ell - k
-    hits = usable & (disc > -1e-12 * (batch.d_o ** 2)[:, None]) & (ell > 0)
-    root = np.sqrt(np.maximum(disc, 0.0))
-    d = np.where(np.concatenate([hits, hits], axis=1),
-                 np.concatenate([ell - root, ell + root], axis=1), 0.0)
-    cc, ss = np.concatenate([c, c], axis=1), np.concatenate([s, s], axis=1)
-    table = _monomial_table(cc, ss, 5)
-    good = _relative_residual(q, d, table) < RESIDUAL_TOLERANCE
-    points = np.stack([d * cc, d * ss], axis=-1)
-    seeds = np.concatenate([hits, hits], axis=1)
-    return points, seeds & np.concatenate([strict, strict], axis=1) & good, seeds
+    owner, c, s, strict = _angles(roots)
+    ell = batch.p_o[owner, 0] * c + batch.p_o[owner, 1] * s
+    d_o, r = batch.d_o[owner], batch.r[owner]
+    disc = ell * ell - (d_o * d_o - r * r)
+    hits = np.flatnonzero((disc > -1e-12 * d_o * d_o) & (ell > 0))
+    root = np.sqrt(np.maximum(disc[hits], 0.0))
+    d = np.concatenate([ell[hits] - root, ell[hits] + root])
+    angle = np.concatenate([hits, hits])
+    owner, c, s, strict = owner[angle], c[angle], s[angle], strict[angle]
+    residual = _relative_residual(q, owner, d, _monomial_table(c, s, 5))
+    return (owner, np.stack([d * c, d * s], axis=-1), strict & (residual < RESIDUAL_TOLERANCE),
+            _better_of_pair(angle, residual, len(ell)))
 
 
-def _polish_interior(batch: ProblemBatch, points: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Newton's method on m grad n - n grad m = 0 in q-coordinates (gain = n/m, h = [q, -1]),
-    from the seed points of ``points`` (T, C, 2); NaN at the other entries and where Newton
-    breaks down. A seed stops moving once its step falls below 1e-15 of |q|, so its result does
-    not depend on the other seeds of the batch."""
-    owner, column = np.nonzero(seeds)
+def _polish_interior(batch: ProblemBatch, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Newton's method on m grad n - n grad m = 0 in q-coordinates (gain = n/m, h = [q, -1])
+    from points (C, 2) of problems ``owner``; NaN where Newton breaks down. A point stops
+    moving after a step below 1e-13 of |q| (converged), so its result depends on itself only."""
     (m00, m01, m02, m11, m12, m22), (n00, n01, n02, n11, n12, n22) = (
         [e[owner] for e in part] for part in batch.forms)
-    x, y = points[owner, column, 0], points[owner, column, 1]
+    x, y = points[:, 0], points[:, 1]
     d2 = x * x + y * y
     q0, q1 = -y / d2, x / d2
     moving = np.ones(len(owner), dtype=bool)
@@ -397,102 +428,121 @@ def _polish_interior(batch: ProblemBatch, points: np.ndarray, seeds: np.ndarray)
         s0 = np.where(moving, (j11 * g0 - j01 * g1) / det, 0.0)
         s1 = np.where(moving, (j00 * g1 - j10 * g0) / det, 0.0)
         q0, q1 = q0 - s0, q1 - s1
-        moving &= np.abs(s0) + np.abs(s1) > 1e-15 * (np.abs(q0) + np.abs(q1))
+        moving &= np.abs(s0) + np.abs(s1) > 1e-13 * (np.abs(q0) + np.abs(q1))
         if not moving.any():
             break
     n2 = q0 * q0 + q1 * q1
-    out = np.full(points.shape, np.nan)
-    out[owner, column, 0], out[owner, column, 1] = q1 / n2, -q0 / n2
-    return out
+    return np.stack([q1 / n2, -q0 / n2], axis=-1)
 
 
-def _polish_boundary(batch: ProblemBatch, points: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Newton steps in the q-circle angle on the boundary stationarity condition, from the seed
-    points of ``points`` (T, C, 2) (on the circle); NaN at the other entries."""
-    owner, column = np.nonzero(seeds)
+def _polish_boundary(batch: ProblemBatch, F: np.ndarray, owner: np.ndarray,
+                     points: np.ndarray) -> np.ndarray:
+    """Newton steps in the q-circle angle on the boundary stationarity condition (Fourier
+    coefficients F, (T, 7)) from points (C, 2) on the circle of problems ``owner``."""
     c0, c1, rho = (v[owner] for v in batch.q_circle)
-    x, y = points[owner, column, 0], points[owner, column, 1]
+    x, y = points[:, 0], points[:, 1]
     d2 = x * x + y * y
     t = np.arctan2(x / d2 - c1, -y / d2 - c0)
-    F = boundary_stationarity(batch)[owner]
-    t = polish_boundary_angles(F, t[:, None], BOUNDARY_NEWTON)[:, 0]
+    t = polish_boundary_angles(F[owner], t[:, None], BOUNDARY_NEWTON)[:, 0]
     q0, q1 = c0 + rho * np.cos(t), c1 + rho * np.sin(t)
     n2 = q0 * q0 + q1 * q1
-    out = np.full(points.shape, np.nan)
-    out[owner, column, 0], out[owner, column, 1] = q1 / n2, -q0 / n2
-    return out
+    return np.stack([q1 / n2, -q0 / n2], axis=-1)
 
 
-def _feasible(batch: ProblemBatch, points: np.ndarray, slack: float) -> np.ndarray:
-    return np.hypot(points[..., 0] - batch.p_o[:, None, 0],
-                    points[..., 1] - batch.p_o[:, None, 1]) <= batch.r[:, None] * (1 + slack)
-
-
-def _bearing_batch(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
-    """The polynomial route for T bearing problems.
+def _bearing_batch(batch: ProblemBatch, single: Problem | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    """The polynomial route for T bearing problems (``single``: the one problem of a batch of
+    one, whose per-problem polynomials are then computed in Python floats, bit for bit as in
+    a batch but without numpy's per-call cost).
 
     Returns:
         (best points (T, 2), their gains (T,), per-problem failure reasons ('' when none),
         candidates per problem (T,)).
     """
-    zeta, gamma = kkt_batch(batch)
-    q, g = active_batch(batch, (zeta, gamma))
+    T = len(batch)
+    source = batch if single is None else single
+    zeta, gamma, q, g = _polynomials(source)
     inner_series, inner_alias = eliminated_batch(zeta, gamma, INACTIVE_DEGREE)
     outer_series, outer_alias = eliminated_batch(q, g, ACTIVE_DEGREE)
-    inner, inner_ok, inner_seeds = _interior_candidates(batch, zeta, gamma,
+    i_owner, inner, i_ok, i_seed = _interior_candidates(batch, zeta, gamma,
                                                         chebyshev_roots(inner_series))
-    outer, outer_ok, outer_seeds = _active_candidates(batch, q, chebyshev_roots(outer_series))
-    polished_inner = _polish_interior(batch, inner, inner_seeds)
-    polished_outer = _polish_boundary(batch, outer, outer_seeds)
-    points = np.concatenate([inner, polished_inner, outer, polished_outer], axis=1)
-    usable = np.concatenate([inner_ok, _feasible(batch, polished_inner, 0.0), outer_ok,
-                             outer_seeds], axis=1)
-    usable &= np.all(np.isfinite(points), axis=-1)
-    x, y = np.where(usable, points[..., 0], 1.0), np.where(usable, points[..., 1], 1.0)
-    gains = batch.gain_at(x, y)
-    gains = np.where(usable & np.isfinite(gains), gains, -np.inf)
-    best = np.argmax(gains, axis=1)
-    rows = np.arange(len(batch))
-    reasons = ['' for _ in range(len(batch))]
-    for t in range(len(batch)):
+    o_owner, outer, o_ok, o_seed = _active_candidates(batch, q, chebyshev_roots(outer_series))
+    # a polished point replaces its seed; a seed whose polishing failed stays if it passed
+    polished = _polish_interior(batch, i_owner[i_seed], inner[i_seed])
+    good = np.hypot(polished[:, 0] - batch.p_o[i_owner[i_seed], 0],
+                    polished[:, 1] - batch.p_o[i_owner[i_seed], 1]) <= batch.r[i_owner[i_seed]]
+    inner[np.flatnonzero(i_seed)[good]] = polished[good]
+    i_use = i_ok.copy()
+    i_use[np.flatnonzero(i_seed)[good]] = True
+    polished = _polish_boundary(batch, boundary_stationarity(source).reshape(T, 7),
+                                o_owner[o_seed], outer[o_seed])
+    good = np.all(np.isfinite(polished), axis=1)
+    outer[np.flatnonzero(o_seed)[good]] = polished[good]
+    o_use = o_ok | o_seed
+    owner = np.concatenate([i_owner[i_use], o_owner[o_use]])
+    points = np.concatenate([inner[i_use], outer[o_use]])
+    gains = batch.gains_of(owner, points[:, 0], points[:, 1])
+    gains[~np.isfinite(gains)] = -np.inf
+    order = np.lexsort((-gains, owner))          # by problem, best first, ties in order
+    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
+    best = np.full((T, 2), np.nan)
+    best_gain = np.full(T, -np.inf)
+    best[owner[first]], best_gain[owner[first]] = points[first], gains[first]
+    reasons = ['' for _ in range(T)]
+    for t in range(T):
         if not inner_alias[t] < ALIASING_TOLERANCE or not outer_alias[t] < ALIASING_TOLERANCE:
             reasons[t] = (f'elimination polynomial lost accuracy '
                           f'({max(inner_alias[t], outer_alias[t]):.2g})')
-        elif not np.isfinite(gains[t, best[t]]):
+        elif not np.isfinite(best_gain[t]):
             reasons[t] = 'no admissible critical point'
-    return points[rows, best], gains[rows, best], reasons, np.sum(usable, axis=1)
+    return best, best_gain, reasons, np.bincount(owner, minlength=T)
 
 
-def _settle(problem: Problem, point: np.ndarray, gain: float, reason: str, candidates: int,
-            fallback: bool) -> Solution:
-    """RAM's answer for one problem: its best critical point if certified, else RQ's (visibly,
-    ``Solution.fallback = 'rq'``), or FloatingPointError when ``fallback`` is False."""
+def _verdict(problem: Problem, point: np.ndarray, gain: float,
+             reason: str) -> tuple[str, str, dict[str, Any]]:
+    """('', certificate, proof details) when RAM's best critical point is certified, else
+    (the reason it is not, '', {})."""
     if not reason:
-        name, proof = certify(problem, point, gain)
+        name, proof = certify(problem, (float(point[0]), float(point[1])), gain)
         if name in PROVED:
-            x_o, y_o = problem.slot
-            on_boundary = math.hypot(point[0] - x_o, point[1] - y_o) >= problem.r * (1 - 1e-9)
-            return make_solution(problem, point, 'ram', on_boundary, candidates,
-                                 certificate=name, details=proof, gain=gain)
+            return '', name, proof
         reason = 'best critical point not certified'
+    return reason, '', {}
+
+
+def _fall_back(problem: Problem, reason: str, fallback: bool) -> Solution:
+    """The certified RQ optimum in RAM's place (``Solution.fallback = 'rq'``), or
+    FloatingPointError when ``fallback`` is False."""
     if not fallback:
         raise FloatingPointError(reason)
     exact = rq_optimum(problem, 'ram')
     return replace(exact, fallback='rq', details={**exact.details, 'reason': reason})
 
 
-def ram_batch(batch: ProblemBatch, fallback: bool = True) -> list[Solution]:
+def ram_batch(batch: ProblemBatch, fallback: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """RAM on T problems of one kind at once (the bearing route vectorised over the batch).
+
+    Returns:
+        (chosen points (T, 2), fallback flags (T,)); point t equals
+        ``ram_optimum(batch.problem(t)).p`` bit for bit.
 
     Raises:
         FloatingPointError: with ``fallback=False``, when a problem cannot be certified.
     """
+    T = len(batch)
     if batch.measurement == 'range':
-        return [ram_optimum(batch.problem(t), fallback) for t in range(len(batch))]
+        solutions = [ram_optimum(batch.problem(t), fallback) for t in range(T)]
+        return (np.array([s.p for s in solutions]),
+                np.array([s.fallback is not None for s in solutions]))
     with np.errstate(all='ignore'):
-        points, gains, reasons, counts = _bearing_batch(batch)
-    return [_settle(batch.problem(t), points[t], float(gains[t]), reasons[t], int(counts[t]),
-                    fallback) for t in range(len(batch))]
+        points, gains, reasons, _ = _bearing_batch(batch)
+    flags = np.zeros(T, dtype=bool)
+    for t in range(T):
+        problem = batch.problem(t)
+        reason, _, _ = _verdict(problem, points[t], float(gains[t]), reasons[t])
+        if reason:
+            points[t], flags[t] = _fall_back(problem, reason, fallback).p, True
+    return points, flags
 
 
 def ram_optimum(problem: Problem, fallback: bool = True) -> Solution:
@@ -503,13 +553,22 @@ def ram_optimum(problem: Problem, fallback: bool = True) -> Solution:
             return the certified RQ optimum (and name it in ``Solution.fallback``); with False,
             raise FloatingPointError instead.
     """
-    if problem.measurement != 'range':
-        return ram_batch(ProblemBatch.stack([problem]), fallback)[0]
-    solution = _plan_range(problem)
-    if solution.certificate in PROVED:
-        return solution
-    return _settle(problem, solution.p, 0.0, 'optimum not certified: rounding defeats the '
-                   'bound test', solution.candidates, fallback)
+    if problem.measurement == 'range':
+        solution = _plan_range(problem)
+        if solution.certificate in PROVED:
+            return solution
+        return _fall_back(problem, 'optimum not certified: rounding defeats the bound test',
+                          fallback)
+    with np.errstate(all='ignore'):
+        points, gains, reasons, counts = _bearing_batch(ProblemBatch.stack([problem]), problem)
+    point, gain = points[0], float(gains[0])
+    reason, name, proof = _verdict(problem, point, gain, reasons[0])
+    if reason:
+        return _fall_back(problem, reason, fallback)
+    x_o, y_o = problem.slot
+    on_boundary = math.hypot(point[0] - x_o, point[1] - y_o) >= problem.r * (1 - 1e-9)
+    return make_solution(problem, point, 'ram', on_boundary, int(counts[0]), certificate=name,
+                         details=proof, gain=gain)
 
 
 class RelaxedAlgebraicMethod(Strategy):
@@ -526,6 +585,4 @@ class RelaxedAlgebraicMethod(Strategy):
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
         """:func:`ram_batch`: the bearing route vectorised over the trials."""
-        solutions = ram_batch(problems, bool(self.settings['fallback']))
-        return BatchPlan(np.array([s.p for s in solutions]),
-                         np.array([s.fallback is not None for s in solutions]))
+        return BatchPlan(*ram_batch(problems, bool(self.settings['fallback'])))

@@ -40,7 +40,8 @@ NEWTON_ITERATIONS = 30
 NEWTON_STEP_TOLERANCE = 1e-13
 #: Largest Newton step on the boundary circle, rad.
 NEWTON_MAX_STEP = 0.5
-_SAMPLE_ANGLES = [2.0 * math.pi * k / BOUNDARY_SAMPLES for k in range(BOUNDARY_SAMPLES)]
+_SAMPLES = [(2.0 * math.pi * k / BOUNDARY_SAMPLES, math.cos(2.0 * math.pi * k / BOUNDARY_SAMPLES),
+             math.sin(2.0 * math.pi * k / BOUNDARY_SAMPLES)) for k in range(BOUNDARY_SAMPLES)]
 
 
 def generalized_eigh(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -146,12 +147,18 @@ def _q_point(c0: float, c1: float, rho: float, t: float) -> tuple[float, float]:
     return q1 / n2, -q0 / n2
 
 
+def _series_value(series: tuple[float, ...], c: float, s: float) -> float:
+    """A degree-2 trigonometric series (k0, k1c, k1s, k2c, k2s) at cos t = c, sin t = s."""
+    k0, k1c, k1s, k2c, k2s = series
+    return k0 + k1c * c + k1s * s + k2c * (c * c - s * s) + k2s * (2.0 * s * c)
+
+
 def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
     """The certified fast path (module docstring), or None when it cannot certify."""
     M, N = problem.forms
     c0, c1, rho = problem.q_circle
     top = top_generalized_eigenvector(M, N)
-    start = 0.0
+    starts = list(_SAMPLES)
     if top is not None:
         _, h = top
         if h[2] != 0.0:
@@ -164,27 +171,28 @@ def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
                 if name in PROVED:
                     return make_solution(problem, p, method, False, 1, certificate=name,
                                          details={'interior': True, **details})
-            start = math.atan2(e1, e0)
-        else:
-            start = math.atan2(h[1], h[0])
+            e = math.hypot(e0, e1)
+            starts.append((math.atan2(e1, e0), e0 / e, e1 / e))
     num, den = _circle_series(M, c0, c1, rho), _circle_series(N, c0, c1, rho)
-    t, _ = _boundary_newton(num, den, start)
-    p = _q_point(c0, c1, rho, t)
-    name, details = certify(problem, p)
-    candidates = 2
-    if name not in PROVED:
-        samples = []
-        for angle in _SAMPLE_ANGLES:
-            x, y = _q_point(c0, c1, rho, angle)
-            samples.append((problem.gain_at(x, y), angle))
-        t, _ = _boundary_newton(num, den, max(samples)[1])
+    ranked = sorted(((_series_value(num, c, s) / _series_value(den, c, s), t)
+                     for t, c, s in starts), reverse=True)
+    tried: list[tuple[float, float]] = []
+    for _, start in ranked[:2]:          # the best start, then the runner-up
+        t, _ = _boundary_newton(num, den, start)
         p = _q_point(c0, c1, rho, t)
-        name, details = certify(problem, p)
-        candidates += BOUNDARY_SAMPLES + 1
+        g = problem.gain_at(*p)
+        name, details = certify(problem, p, g, exact=False)
+        if name in PROVED:
+            return make_solution(problem, p, method, True, len(starts), certificate=name,
+                                 details={'interior': False, **details}, gain=g)
+        tried.append((g, t))
+    g, t = max(tried)
+    p = _q_point(c0, c1, rho, t)
+    name, details = certify(problem, p, g)
     if name not in PROVED:
         return None
-    return make_solution(problem, p, method, True, candidates, certificate=name,
-                         details={'interior': False, **details})
+    return make_solution(problem, p, method, True, len(starts), certificate=name,
+                         details={'interior': False, **details}, gain=g)
 
 
 def boundary_candidates(problem: Problem) -> np.ndarray:
