@@ -11,7 +11,7 @@ import numpy as np
 from formopt_ros.core.cost import Problem, weighted_trace
 from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
 from formopt_ros.core.protocol import (
-    SUBSTEPS, MotionCommand, Timebase, held_leader_motion, motion_commands)
+    SUBSTEPS, MotionCommand, Timebase, command_velocities, held_leader_motion, motion_commands)
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.solver import timed_plan
 from formopt_ros.core.stepper import ReadyStep, StepAssembler
@@ -29,6 +29,28 @@ class StepPlan:
     step: int
     solution: Solution
     command: MotionCommand
+
+
+def driven_prior(scenario: Scenario, x: np.ndarray, P: np.ndarray, target: np.ndarray,
+                 leader: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """Covariance after driving from (x, P) to ``target`` with the protocol's commands under the
+    leader velocities ``leader`` (one (v, omega) per sub-step), before the update.
+
+    Args:
+        scenario: dt and the odometry noise.
+        x, P: posterior pose (3,) and covariance (3, 3), or batches (T, 3) and (T, 3, 3).
+        target: position (2,) m, or one per pose (T, 2).
+        leader: expected (v_L m/s, omega_L rad/s) per sub-step.
+
+    Returns:
+        The prior covariance, shape of P.
+    """
+    s = scenario
+    speed, turn_rate = command_velocities(x, target, s.dt, leader[0][0], leader[0][1])
+    for j, (v, omega) in enumerate(((0.0, turn_rate), (speed, leader[0][1]))[:SUBSTEPS]):
+        x, P = propagate(x, P, v, omega, s.dt, leader[j][0], leader[j][1], s.sigma_v,
+                         s.sigma_omega)
+    return P
 
 
 class EstimatorPlanner:
@@ -54,13 +76,7 @@ class EstimatorPlanner:
                   leader: tuple[tuple[float, float], ...]) -> np.ndarray:
         """Covariance (3, 3) after driving to ``target`` (2,) with the protocol's commands under
         the leader velocities ``leader`` (one (v, omega) per sub-step), before the update."""
-        s = self.scenario
-        command = motion_commands(self.x, target, s.dt, leader[0][0], leader[0][1])
-        x, P = self.x, self.P
-        for j in range(SUBSTEPS):
-            x, P = propagate(x, P, command.linear[j], command.angular[j], s.dt, leader[j][0],
-                             leader[j][1], s.sigma_v, s.sigma_omega)
-        return P
+        return driven_prior(self.scenario, self.x, self.P, target, leader)
 
     def plan(self, step: int, leader: tuple[tuple[float, float], ...]) -> StepPlan:
         """Choose the position for measurement step ``step`` (1-based) and its commands.

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import propagate_state, wrap_angle
+from formopt_ros.core.model import elementwise, propagate_state, wrap_angle
 
 #: Sub-steps per measurement step: rotate, then translate.
 SUBSTEPS = 2
@@ -84,6 +85,17 @@ class MotionCommand:
     angular: tuple[float, ...]
 
 
+def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
+                       omega_l: float) -> tuple[Any, Any]:
+    """(translation speed m/s, rotation yaw rate rad/s) of :func:`motion_commands`, for one pose
+    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,)."""
+    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
+    dx = target[..., 0] - x1[..., 0] - omega_l * x1[..., 1] * dt + v_l * dt
+    dy = target[..., 1] - x1[..., 1] + omega_l * x1[..., 0] * dt
+    turn = wrap_angle(elementwise(math.atan2, dy, dx) - x[..., 2])
+    return elementwise(math.hypot, dx, dy) / dt, turn / dt + omega_l
+
+
 def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
                     omega_l: float) -> MotionCommand:
     """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m).
@@ -93,12 +105,8 @@ def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
     Euler-propagated pose (paper eq. 10) lands exactly on target while the leader moves at
     (v_l m/s, omega_l rad/s).
     """
-    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
-    dx = target[0] - x1[0] - omega_l * x1[1] * dt + v_l * dt
-    dy = target[1] - x1[1] + omega_l * x1[0] * dt
-    heading = math.atan2(dy, dx)
-    turn = float(wrap_angle(heading - x[2]))
-    return MotionCommand((0.0, math.hypot(dx, dy) / dt), (turn / dt + omega_l, omega_l))
+    speed, turn_rate = command_velocities(x, target, dt, v_l, omega_l)
+    return MotionCommand((0.0, float(speed)), (float(turn_rate), omega_l))
 
 
 def held_leader_motion(latest: tuple[float, float]) -> tuple[tuple[float, float], ...]:

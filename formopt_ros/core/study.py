@@ -1,7 +1,11 @@
 """Monte Carlo study of paper Sec. V: trials x strategies with common random numbers, summaries.
 
-Every (strategy, trial) task is seeded by (seed, trial) alone, so results do not depend on the
-number of worker processes or on the order in which tasks finish.
+Two engines give the same numbers (a test checks 1e-9; in practice they are identical):
+'batched' (default) advances all trials of a strategy together
+(:func:`~formopt_ros.core.batched.run_trials`), one task per (measurement, strategy);
+'per-trial' runs :func:`~formopt_ros.core.simulation.run_trial`, the reference the ROS nodes
+equal, one task per (measurement, strategy, trial). Every trial is seeded by (seed, trial)
+alone, so results depend neither on the engine nor on the number of worker processes.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+from formopt_ros.core.batched import run_trials
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
@@ -23,6 +28,8 @@ METHODS = tuple(STRATEGIES)
 #: Strategy options of the study where they differ from the library defaults: a GBS cell of
 #: 0.01 r (the library default is 0.005 r) keeps the study's grid search affordable.
 STUDY_OPTIONS: dict[str, dict[str, object]] = {'gbs': {'cell': 0.01}}
+#: Simulation engines.
+ENGINES = ('batched', 'per-trial')
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,7 @@ class StrategyRecord:
     weighted_trace: np.ndarray
     nees: np.ndarray
     decision_time: np.ndarray
+    fallback: np.ndarray
     example: TrialResult | None = None
 
 
@@ -83,55 +91,85 @@ class StudyResult:
     records: dict[str, StrategyRecord] = field(default_factory=dict)
 
 
-def _task(args: tuple[StudyConfig, str, int]) -> tuple[str, int, TrialResult]:
-    config, strategy, trial = args
+#: A unit of work: (config, strategy, trials).
+Task = tuple[StudyConfig, str, tuple[int, ...]]
+
+
+def _task(task: Task) -> tuple[StudyConfig, str, list[tuple[int, TrialResult]]]:
+    config, strategy, trials = task
     scenario = Scenario.paper(config.measurement)
-    return strategy, trial, run_trial(scenario, strategy, config.seed, trial, config.steps,
-                                      config.strategy_options(strategy))
+    options = config.strategy_options(strategy)
+    if len(trials) == 1:
+        return config, strategy, [(trials[0], run_trial(scenario, strategy, config.seed,
+                                                        trials[0], config.steps, options))]
+    batch = run_trials(scenario, strategy, config.seed, trials, config.steps, options)
+    return config, strategy, [(trial, batch.trial(i)) for i, trial in enumerate(trials)]
 
 
 def run_study(config: StudyConfig, jobs: int | None = None,
-              progress: Callable[[int], None] | None = None) -> StudyResult:
-    """Run every (strategy, trial) of ``config``, in ``jobs`` processes (default: all cores).
+              progress: Callable[[int], None] | None = None,
+              engine: str = 'batched') -> StudyResult:
+    """Run every (strategy, trial) of ``config``; see :func:`run_studies`."""
+    return run_studies([config], jobs, progress, engine)[0]
+
+
+def run_studies(configs: list[StudyConfig], jobs: int | None = None,
+                progress: Callable[[int], None] | None = None,
+                engine: str = 'batched') -> list[StudyResult]:
+    """Run every (strategy, trial) of every config, in ``jobs`` processes (default: all cores).
 
     Args:
-        config: the study.
-        jobs: worker processes; 1 runs in this process.
-        progress: called with 1 after each finished task.
+        configs: the studies (e.g. one per measurement kind); their tasks share one pool.
+        jobs: worker processes; 1 runs in this process. The numbers do not depend on it.
+        progress: called with the number of trials after each finished task.
+        engine: 'batched' (all trials of a strategy together) or 'per-trial' (the reference).
     """
+    if engine not in ENGINES:
+        raise ValueError(f'engine must be one of {ENGINES}, got {engine!r}')
     jobs = jobs or os.cpu_count() or 1
-    scenario = Scenario.paper(config.measurement)
-    shape = (config.trials, config.steps)
-    result = StudyResult(config, scenario, {
-        s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape))
-        for s in config.strategies})
-    # the slow strategies first, so that the pool's tail is short
-    tasks = [(config, s, t) for s in sorted(config.strategies, key=_expected_cost, reverse=True)
-             for t in range(config.trials)]
-    if jobs == 1:
-        outputs = map(_task, tasks)
-        _collect(result, outputs, progress)
+    results = []
+    tasks: list[Task] = []
+    for config in configs:
+        shape = (config.trials, config.steps)
+        results.append(StudyResult(config, Scenario.paper(config.measurement), {
+            s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape),
+                              np.zeros(shape, dtype=bool)) for s in config.strategies}))
+        groups = ([tuple(range(config.trials))] if engine == 'batched'
+                  else [(t,) for t in range(config.trials)])
+        tasks.extend((config, s, trials) for s in config.strategies for trials in groups)
+    # the slow tasks first, so that the pool's tail is short
+    tasks.sort(key=lambda task: _expected_cost(task[0].measurement, task[1]), reverse=True)
+    by_config = {id(config): result for config, result in zip(configs, results)}
+    if jobs == 1 or len(tasks) == 1:
+        _collect(by_config, map(_task, tasks), progress)
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            _collect(result, pool.map(_task, tasks, chunksize=2), progress)
-    return result
+        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
+            _collect(by_config, pool.map(_task, tasks, chunksize=1), progress)
+    return results
 
 
-def _expected_cost(strategy: str) -> int:
-    return {'ram': 3, 'gbs': 2, 'rq': 1}.get(strategy, 0)
+def _expected_cost(measurement: str, strategy: str) -> int:
+    return {'ram': 4 if measurement == 'bearing' else 2, 'gbs': 3, 'rq': 2}.get(strategy, 0)
 
 
-def _collect(result: StudyResult, outputs: Iterable[tuple[str, int, TrialResult]],
+def _collect(by_config: dict[int, StudyResult],
+             outputs: Iterable[tuple[StudyConfig, str, list[tuple[int, TrialResult]]]],
              progress: Callable[[int], None] | None) -> None:
-    for strategy, trial, out in outputs:
+    results = list(by_config.values())
+    for config, strategy, trials in outputs:
+        # configs come back pickled from worker processes: match them by value
+        result = by_config.get(id(config)) or next(r for r in results if r.config == config)
         record = result.records[strategy]
-        record.weighted_trace[trial] = out.weighted_trace
-        record.nees[trial] = out.nees
-        record.decision_time[trial] = out.decision_time
-        if trial == 0:
-            record.example = out
+        for trial, out in trials:
+            record.weighted_trace[trial] = out.weighted_trace
+            record.nees[trial] = out.nees
+            record.decision_time[trial] = out.decision_time
+            if out.fallback is not None:
+                record.fallback[trial] = out.fallback
+            if trial == 0:
+                record.example = out
         if progress:
-            progress(1)
+            progress(len(trials))
 
 
 def nees_band(trials: int, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:
@@ -147,7 +185,8 @@ def steady_window(steps: int) -> int:
 
 
 def summarize(result: StudyResult) -> dict[str, Any]:
-    """The summary.json content (see README): per strategy steady trace, NEES, timing."""
+    """The summary.json content (see README): per strategy steady trace, NEES, timing and the
+    number of (trial, step) decisions on which the strategy fell back (RAM to RQ)."""
     config = result.config
     lo, hi = nees_band(config.trials)
     window = steady_window(config.steps)
@@ -161,6 +200,7 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'nees_mean': float(record.nees.mean()),
             'nees_in_band': float(np.mean((mean_nees >= lo) & (mean_nees <= hi))),
             'decision_time_s': float(record.decision_time.mean()),
+            'fallback_steps': int(record.fallback.sum()),
         }
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
             'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],

@@ -106,7 +106,7 @@ def test_command_writes_outputs_and_figures(tmp_path) -> None:
     assert summary['options']['gbs'] == {'cell': 0.01}
     assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
                                                  'nees_mean', 'nees_in_band',
-                                                 'decision_time_s'}
+                                                 'decision_time_s', 'fallback_steps'}
     assert len((out / 'steps.csv').read_text().splitlines()) == 31
     for name in ('fig5_range_weighted_trace.png', 'fig4_trajectories.png', 'nees.png'):
         assert (out / name).stat().st_size > 10_000, name
