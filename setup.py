@@ -20,6 +20,7 @@ setup(
     extras_require={
         'tools': ['matplotlib', 'tqdm', 'mcap', 'rosbags'],
         'test': ['pytest'],
+        'peers': ['casadi'],
     },
     zip_safe=True,
     maintainer='formopt_ros developers',

@@ -6,6 +6,7 @@ import json
 import os
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +72,11 @@ def _progress(total: int, label: str):
         except ImportError:
             pass
     return None
+
+
+def write_into(folder: Path, figures: bool, result: StudyResult) -> None:
+    """:func:`write_outputs` into folder/<measurement>."""
+    write_outputs(result, folder / result.config.measurement, figures)
 
 
 def write_outputs(result: StudyResult, out: Path, figures: bool) -> dict[str, Any]:
@@ -157,13 +163,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:
         fail(parser.prog, f'--strategies: {error}')
     bar = _progress(args.trials * len(strategies) * len(kinds), ' + '.join(kinds))
-    results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine)
+    # each kind's outputs (figures take a second) are written as soon as its runs are in
+    results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,
+                          partial(write_into, args.out, not args.no_figures))
     if bar:
         bar.close()
     for result in results:
-        summary = write_outputs(result, args.out / result.config.measurement,
-                                not args.no_figures)
-        print(report_markdown(summary))
+        print(report_markdown(summarize(result)))
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
           f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')

@@ -112,7 +112,7 @@ def gain_coefficients(measurement: str, M: Entries, N: Entries,
             (n00, 2.0 * n01, n11, -2.0 * n02, -2.0 * n12, n22))
 
 
-def monomials(measurement: str, x: Value, y: Value) -> tuple[Value, ...]:
+def monomials(measurement: str, x: Any, y: Any) -> tuple[Any, ...]:
     """Monomials of the gain's quadratic forms at points (x, y) in {L} (m), floats or arrays."""
     d2 = x * x + y * y
     if measurement == RANGE:
@@ -121,17 +121,18 @@ def monomials(measurement: str, x: Value, y: Value) -> tuple[Value, ...]:
     return q0 * q0, q0 * q1, q1 * q1, q0, q1
 
 
-def weighted_sum(coefficients: tuple[Any, ...], terms: tuple[Value, ...], constant: Any) -> Any:
+def weighted_sum(coefficients: tuple[Any, ...], terms: tuple[Any, ...], constant: Any) -> Any:
     """constant + sum_k coefficients[k] terms[k], summed left to right (floats or arrays)."""
     return sum(map(operator.mul, coefficients, terms), constant)
 
 
 def quotient_gain(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[Any, ...]],
-                  x: Value, y: Value) -> Value:
+                  x: Any, y: Any) -> Any:
     """The gain at points (x, y) in {L} (m): the ratio of the two weighted sums of monomials.
 
     The coefficients broadcast against the points (floats, or e.g. arrays (T, 1) against
-    points (T, C) for a batch), and the arithmetic is the same element by element.
+    points (T, C) for a batch), and the arithmetic is the same element by element; any type
+    with + - * / works (CasADi symbols build the peers' objective from this formula).
     """
     num, den = coefficients
     terms = monomials(measurement, x, y)

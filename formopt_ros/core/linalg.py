@@ -19,7 +19,10 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
     q = tr C / 3, p = sqrt(tr((C - qI)^2) / 6) and B = (C - qI) / p, the largest eigenvalue is
     q + 2 p cos(acos(det(B) / 2) / 3); its absolute error is a few units of roundoff of |C|.
     Eigenvector: the longest cross product of two rows of C - lambda I (they span the
-    orthogonal complement of the eigenvector when lambda is simple).
+    orthogonal complement of the eigenvector when lambda is simple). The eigenvalue is then
+    re-read as the Rayleigh quotient v'Cv of that unit vector: the cubic's solution loses
+    precision near a double root (acos near +-1), the quotient only quadratically in the
+    vector's error.
     """
     c00, c01, c02 = C[0][0], C[0][1], C[0][2]
     c11, c12, c22 = C[1][1], C[1][2], C[2][2]
@@ -41,7 +44,20 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
         norm = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
         if norm > best_norm:
             best, best_norm = v, norm
+    row = max((r0, r1, r2), key=lambda x: x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+    row_norm = row[0] * row[0] + row[1] * row[1] + row[2] * row[2]
+    if best_norm <= 1e-24 * row_norm * row_norm:
+        # C - lambda I has rank <= 1 (a double top eigenvalue): any vector orthogonal to its
+        # row is an eigenvector; take the cross product with the axis least along the row
+        axis = min(range(3), key=lambda i: abs(row[i]))
+        e = [1.0 if i == axis else 0.0 for i in range(3)]
+        best = [row[1] * e[2] - row[2] * e[1], row[2] * e[0] - row[0] * e[2],
+                row[0] * e[1] - row[1] * e[0]]
+        best_norm = best[0] * best[0] + best[1] * best[1] + best[2] * best[2]
     if best_norm == 0.0:
-        return value, best
+        return value, [1.0, 0.0, 0.0]
     scale = 1.0 / math.sqrt(best_norm)
-    return value, [best[0] * scale, best[1] * scale, best[2] * scale]
+    v0, v1, v2 = best[0] * scale, best[1] * scale, best[2] * scale
+    rayleigh = (c00 * v0 * v0 + c11 * v1 * v1 + c22 * v2 * v2
+                + 2.0 * (c01 * v0 * v1 + c02 * v0 * v2 + c12 * v1 * v2))
+    return rayleigh, [v0, v1, v2]

@@ -31,6 +31,13 @@ def wrap_angle(angle: Any) -> Any:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
+#: The last few array arguments (as bytes) and results of each one-argument function given to
+#: elementwise(): one step of the batched engine takes cos and sin of the same headings
+#: several times. Bits in, the same bits out, so the memo changes no number.
+_RECENT: dict[Callable[..., float], dict[bytes, np.ndarray]] = {}
+_RECENT_SIZE = 4
+
+
 def elementwise(function: Callable[..., float], *args: Any) -> Any:
     """``function`` (a scalar libm function such as math.atan2) on floats, or element by element
     on arrays: numpy's vectorised atan2, hypot, ... may differ from libm in the last bit, and the
@@ -38,14 +45,25 @@ def elementwise(function: Callable[..., float], *args: Any) -> Any:
     arrays = [a for a in args if isinstance(a, np.ndarray)]
     if not arrays:
         return function(*args)
+    recent = _RECENT.setdefault(function, {}) if len(args) == 1 else None
+    if recent is not None:
+        key = args[0].tobytes() + repr(args[0].shape).encode()
+        hit = recent.get(key)
+        if hit is not None:
+            return hit.copy()
     shape = arrays[0].shape
     if any(a.shape != shape for a in arrays[1:]):
         args = tuple(np.broadcast_arrays(*args))
         shape = args[0].shape
     columns = [a.ravel().tolist() if isinstance(a, np.ndarray) else [a] * math.prod(shape)
                for a in args]
-    return np.fromiter(map(function, *columns), dtype=float,
-                       count=math.prod(shape)).reshape(shape)
+    out = np.fromiter(map(function, *columns), dtype=float,
+                      count=math.prod(shape)).reshape(shape)
+    if recent is not None:
+        if len(recent) >= _RECENT_SIZE:
+            del recent[next(iter(recent))]
+        recent[key] = out.copy()
+    return out
 
 
 def _components(x: np.ndarray) -> tuple[Any, Any, Any]:

@@ -10,15 +10,15 @@ alone, so results depend neither on the engine nor on the number of worker proce
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
 
-from formopt_ros.core.batched import run_trials
+from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
@@ -91,19 +91,40 @@ class StudyResult:
     records: dict[str, StrategyRecord] = field(default_factory=dict)
 
 
-#: A unit of work: (config, strategy, trials).
-Task = tuple[StudyConfig, str, tuple[int, ...]]
+#: A unit of work: (config, strategies advanced together, trials).
+Task = tuple[StudyConfig, tuple[str, ...], tuple[int, ...]]
+#: Rough relative cost of a strategy in the batched engine (to balance the worker processes).
+COST = {('bearing', 'ram'): 10.0, ('bearing', 'rq'): 3.0, ('bearing', 'gbs'): 3.0,
+        ('range', 'ram'): 3.0, ('range', 'gbs'): 2.0, ('range', 'rq'): 2.0}
 
 
-def _task(task: Task) -> tuple[StudyConfig, str, list[tuple[int, TrialResult]]]:
-    config, strategy, trials = task
+def _task(task: Task) -> tuple[StudyConfig, list[tuple[str, int, TrialResult]]]:
+    config, strategies, trials = task
     scenario = Scenario.paper(config.measurement)
-    options = config.strategy_options(strategy)
-    if len(trials) == 1:
-        return config, strategy, [(trials[0], run_trial(scenario, strategy, config.seed,
-                                                        trials[0], config.steps, options))]
-    batch = run_trials(scenario, strategy, config.seed, trials, config.steps, options)
-    return config, strategy, [(trial, batch.trial(i)) for i, trial in enumerate(trials)]
+    options = {name: config.strategy_options(name) for name in strategies}
+    if len(strategies) == 1 and len(trials) == 1:
+        name, trial = strategies[0], trials[0]
+        return config, [(name, trial, run_trial(scenario, name, config.seed, trial,
+                                                config.steps, options[name]))]
+    lanes = run_lanes(scenario, strategies, config.seed, trials, config.steps, options)
+    return config, [(name, trial, lanes[name].trial(i)) for name in strategies
+                    for i, trial in enumerate(trials)]
+
+
+def _cost(config: StudyConfig, strategy: str) -> float:
+    return COST.get((config.measurement, strategy), 0.5) * config.trials * config.steps
+
+
+def _lane_groups(config: StudyConfig, jobs: int) -> list[tuple[str, ...]]:
+    """The config's strategies split into at most ``jobs`` groups of similar cost (longest
+    first, each to the cheapest group): each group is one stacked run of all trials."""
+    groups: list[list[str]] = [[] for _ in range(min(jobs, len(config.strategies)))]
+    load = [0.0] * len(groups)
+    for name in sorted(config.strategies, key=lambda n: _cost(config, n), reverse=True):
+        cheapest = load.index(min(load))
+        groups[cheapest].append(name)
+        load[cheapest] += _cost(config, name)
+    return [tuple(group) for group in groups if group]
 
 
 def run_study(config: StudyConfig, jobs: int | None = None,
@@ -115,61 +136,82 @@ def run_study(config: StudyConfig, jobs: int | None = None,
 
 def run_studies(configs: list[StudyConfig], jobs: int | None = None,
                 progress: Callable[[int], None] | None = None,
-                engine: str = 'batched') -> list[StudyResult]:
+                engine: str = 'batched',
+                finish: Callable[[StudyResult], Any] | None = None) -> list[StudyResult]:
     """Run every (strategy, trial) of every config, in ``jobs`` processes (default: all cores).
 
     Args:
         configs: the studies (e.g. one per measurement kind); their tasks share one pool.
         jobs: worker processes; 1 runs in this process. The numbers do not depend on it.
-        progress: called with the number of trials after each finished task.
-        engine: 'batched' (all trials of a strategy together) or 'per-trial' (the reference).
+        progress: called with the number of finished (strategy, trial) runs after each task.
+        engine: 'batched' (all trials of groups of strategies advanced together, the groups
+            balanced over the workers) or 'per-trial' (the reference, one task per trial).
+        finish: a picklable function run on each config's result as soon as it is complete
+            (in the pool, so that e.g. drawing one kind's figures overlaps the other's
+            simulation); it must not change the result.
     """
     if engine not in ENGINES:
         raise ValueError(f'engine must be one of {ENGINES}, got {engine!r}')
     jobs = jobs or os.cpu_count() or 1
     results = []
-    tasks: list[Task] = []
+    tasks: list[tuple[float, Task]] = []
     for config in configs:
         shape = (config.trials, config.steps)
         results.append(StudyResult(config, Scenario.paper(config.measurement), {
             s: StrategyRecord(np.empty(shape), np.empty(shape), np.empty(shape),
                               np.zeros(shape, dtype=bool)) for s in config.strategies}))
-        groups = ([tuple(range(config.trials))] if engine == 'batched'
-                  else [(t,) for t in range(config.trials)])
-        tasks.extend((config, s, trials) for s in config.strategies for trials in groups)
+        every = tuple(range(config.trials))
+        if engine == 'batched':
+            tasks.extend((sum(_cost(config, s) for s in group), (config, group, every))
+                         for group in _lane_groups(config, jobs))
+        else:
+            tasks.extend((_cost(config, s) / config.trials, (config, (s,), (t,)))
+                         for s in config.strategies for t in every)
     # the slow tasks first, so that the pool's tail is short
-    tasks.sort(key=lambda task: _expected_cost(task[0].measurement, task[1]), reverse=True)
-    by_config = {id(config): result for config, result in zip(configs, results)}
-    if jobs == 1 or len(tasks) == 1:
-        _collect(by_config, map(_task, tasks), progress)
-    else:
-        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
-            _collect(by_config, pool.map(_task, tasks, chunksize=1), progress)
+    ordered = [task for _, task in sorted(tasks, key=lambda item: item[0], reverse=True)]
+    pending = {id(result): sum(1 for task in ordered if task[0] == result.config)
+               for result in results}
+    if jobs == 1 or len(ordered) == 1:
+        for output in map(_task, ordered):
+            done = _collect(results, output, progress, pending)
+            if done is not None and finish is not None:
+                finish(done)
+        return results
+    with ProcessPoolExecutor(max_workers=min(jobs, len(ordered))) as pool:
+        futures = {pool.submit(_task, task) for task in ordered}
+        finishing = []
+        while futures:
+            complete, futures = wait(futures, return_when=FIRST_COMPLETED)
+            for future in complete:
+                done = _collect(results, future.result(), progress, pending)
+                if done is not None and finish is not None:
+                    finishing.append(pool.submit(finish, done))
+        for future in finishing:
+            future.result()
     return results
 
 
-def _expected_cost(measurement: str, strategy: str) -> int:
-    return {'ram': 4 if measurement == 'bearing' else 2, 'gbs': 3, 'rq': 2}.get(strategy, 0)
-
-
-def _collect(by_config: dict[int, StudyResult],
-             outputs: Iterable[tuple[StudyConfig, str, list[tuple[int, TrialResult]]]],
-             progress: Callable[[int], None] | None) -> None:
-    results = list(by_config.values())
-    for config, strategy, trials in outputs:
-        # configs come back pickled from worker processes: match them by value
-        result = by_config.get(id(config)) or next(r for r in results if r.config == config)
+def _collect(results: list[StudyResult],
+             output: tuple[StudyConfig, list[tuple[str, int, TrialResult]]],
+             progress: Callable[[int], None] | None,
+             pending: dict[int, int]) -> StudyResult | None:
+    """Store one task's runs; the config's result once its last task is in, else None."""
+    config, runs = output
+    # configs come back pickled from worker processes: match them by value
+    result = next(r for r in results if r.config == config)
+    for strategy, trial, out in runs:
         record = result.records[strategy]
-        for trial, out in trials:
-            record.weighted_trace[trial] = out.weighted_trace
-            record.nees[trial] = out.nees
-            record.decision_time[trial] = out.decision_time
-            if out.fallback is not None:
-                record.fallback[trial] = out.fallback
-            if trial == 0:
-                record.example = out
-        if progress:
-            progress(len(trials))
+        record.weighted_trace[trial] = out.weighted_trace
+        record.nees[trial] = out.nees
+        record.decision_time[trial] = out.decision_time
+        if out.fallback is not None:
+            record.fallback[trial] = out.fallback
+        if trial == 0:
+            record.example = out
+    if progress:
+        progress(len(runs))
+    pending[id(result)] -= 1
+    return result if pending[id(result)] == 0 else None
 
 
 def nees_band(trials: int, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:

@@ -69,15 +69,22 @@ Poly = tuple[Any, ...]
 
 def poly_mul(a: Poly, b: Poly) -> Poly:
     """Product of two polynomials given by coefficient tuples (coefficient k multiplies the
-    k-th monomial; floats or arrays), summed in a fixed order."""
-    return tuple(sum(a[i] * b[k - i]
-                     for i in range(max(0, k - len(b) + 1), min(k, len(a) - 1) + 1))
-                 for k in range(len(a) + len(b) - 1))
+    k-th monomial; floats or arrays); each output coefficient sums its terms in the order of
+    a's index."""
+    out: list[Any] = [None] * (len(a) + len(b) - 1)
+    for i, ai in enumerate(a):
+        for j, bj in enumerate(b):
+            term = ai * bj
+            out[i + j] = term if out[i + j] is None else out[i + j] + term
+    return tuple(out)
 
 
 def poly_combine(*terms: tuple[Any, Poly]) -> Poly:
     """sum_i weight_i poly_i for (weight, poly) pairs of polynomials of one length."""
-    return tuple(sum(w * p[k] for w, p in terms) for k in range(len(terms[0][1])))
+    out = [terms[0][0] * c for c in terms[0][1]]
+    for weight, poly in terms[1:]:
+        out = [o + weight * c for o, c in zip(out, poly)]
+    return tuple(out)
 
 
 def fourier(X: Any, c0: Any, c1: Any, rho: Any) -> tuple[Any, Any, Any, Any, Any]:

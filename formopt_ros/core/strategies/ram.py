@@ -87,6 +87,9 @@ ROOT_IMAG_TOLERANCE = 0.1
 #: Newton iterations of the interior and boundary polishing.
 INTERIOR_NEWTON = 8
 BOUNDARY_NEWTON = 6
+#: Interior start points are taken from bearings up to asin(r/|p_o|) + BEARING_MARGIN (rad)
+#: from p_o's: a root off by 1e-2 in sigma = sin^2 t is off by up to ~0.1 rad in t.
+BEARING_MARGIN = 0.3
 #: Relative size of the interpolant's coefficients above the exact degree (zero in exact
 #: arithmetic) above which the polynomial route counts as inaccurate and RAM falls back.
 ALIASING_TOLERANCE = 1e-3
@@ -321,6 +324,38 @@ def sigma_roots(series: np.ndarray) -> np.ndarray:
     return np.sort(np.clip(sigma[(sigma >= -1e-8) & (sigma <= 1 + 1e-8)], 0.0, 1.0))
 
 
+class _Data:
+    """What the candidate stages read per problem, for the problems ``owner`` of the candidates:
+    Python floats for a single problem (no numpy per-call cost, no gathering), arrays gathered
+    by owner for a batch. Element by element the arithmetic is the same."""
+
+    NAMES = ('x_o', 'y_o', 'r', 'd_o', 'c0', 'c1', 'rho', 'm00', 'm01', 'm02', 'm11', 'm12',
+             'm22', 'n00', 'n01', 'n02', 'n11', 'n12', 'n22')
+
+    def __init__(self, source: Problem | ProblemBatch) -> None:
+        self.source = source
+        self.single = isinstance(source, Problem)
+        if isinstance(source, Problem):
+            geometry: tuple[Any, ...] = (*source.slot, float(source.r), source.d_o,
+                                         *source.q_circle)
+        else:
+            geometry = (source.p_o[:, 0], source.p_o[:, 1], source.r, source.d_o,
+                        *source.q_circle)
+        self.values = dict(zip(self.NAMES, (*geometry, *source.forms[0], *source.forms[1])))
+
+    def take(self, owner: np.ndarray, *names: str) -> list[Any]:
+        """The named values for every candidate (floats when single)."""
+        if self.single:
+            return [self.values[name] for name in names]
+        return [self.values[name][owner] for name in names]
+
+    def gains(self, owner: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The gains at candidate points (x, y) of problems ``owner``."""
+        if isinstance(self.source, Problem):
+            return np.asarray(self.source.gain_at(x, y))
+        return self.source.gains_of(owner, x, y)
+
+
 def _angles(roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bearings of the usable roots (within ROOT_IMAG_TOLERANCE of the real axis; strict ones,
     real to 1e-6, are the paper's real roots): (owner, cos t, sin t, strict), flat arrays of
@@ -345,9 +380,6 @@ def _relative_residual(coeffs: Polynomials, owner: np.ndarray, d: np.ndarray,
     return np.abs(total) / np.maximum(size, 1e-300)
 
 
-Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-
-
 def _better_of_pair(bearing: np.ndarray, residual: np.ndarray, count: int) -> np.ndarray:
     """The start points to polish: of the two back-substituted points of one bearing (two roots
     d; ``bearing`` indices < count), the one with the smaller residual, and any whose residual
@@ -358,7 +390,10 @@ def _better_of_pair(bearing: np.ndarray, residual: np.ndarray, count: int) -> np
     return (residual <= best[bearing]) | (residual < RESIDUAL_TOLERANCE)
 
 
-def _interior_candidates(batch: ProblemBatch, zeta: Polynomials, gamma: Polynomials,
+Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _interior_candidates(data: _Data, zeta: Polynomials, gamma: Polynomials,
                          roots: np.ndarray) -> Candidates:
     """Interior critical points from the roots of S_u (d from F_d = 0, F_t checked).
 
@@ -367,22 +402,28 @@ def _interior_candidates(batch: ProblemBatch, zeta: Polynomials, gamma: Polynomi
         inside the disc, seeds (C,): points to polish).
     """
     owner, c, s, strict = _angles(roots)
-    c_all = c
+    # bearings that could lead into the disc: within asin(r/|p_o|) + BEARING_MARGIN of p_o's
+    x_o, y_o, r, d_o = data.take(owner, 'x_o', 'y_o', 'r', 'd_o')
+    reach = np.cos(np.minimum(np.arcsin(r / d_o) + BEARING_MARGIN, math.pi)) * d_o
+    near = np.flatnonzero(c * x_o + s * y_o >= reach)
+    owner, c, s, strict = owner[near], c[near], s[near], strict[near]
+    bearings = len(c)
     table = _monomial_table(c, s, 4)
     z2, z1, z0 = (_at_points(poly, owner, table) for poly in zeta)
     disc = np.sqrt((z1 * z1 - 4 * z2 * z0).astype(complex))
     d = np.concatenate([(-z1 + disc) / (2 * z2), (-z1 - disc) / (2 * z2)])
     keep = np.flatnonzero(np.isfinite(d) & (np.abs(d.imag) <= 1e-8 * np.abs(d)) & (d.real > 0))
-    angle = keep % len(owner)
+    angle = keep % bearings if bearings else keep
     owner, d, c, s, strict = owner[angle], d.real[keep], c[angle], s[angle], strict[angle]
     points = np.stack([d * c, d * s], axis=-1)
-    distance = np.hypot(points[:, 0] - batch.p_o[owner, 0], points[:, 1] - batch.p_o[owner, 1])
+    x_o, y_o, r = data.take(owner, 'x_o', 'y_o', 'r')
+    distance = np.hypot(points[:, 0] - x_o, points[:, 1] - y_o)
     residual = _relative_residual(gamma, owner, d, [t[angle] for t in table])
-    accepted = strict & (distance < batch.r[owner]) & (residual < RESIDUAL_TOLERANCE)
-    return owner, points, accepted, _better_of_pair(angle, residual, len(c_all))
+    accepted = strict & (distance < r) & (residual < RESIDUAL_TOLERANCE)
+    return owner, points, accepted, _better_of_pair(angle, residual, bearings)
 
 
-def _active_candidates(batch: ProblemBatch, q: Polynomials, roots: np.ndarray) -> Candidates:
+def _active_candidates(data: _Data, q: Polynomials, roots: np.ndarray) -> Candidates:
     """Boundary critical points from the roots of S_c (d from g = 0, Q checked).
 
     Returns:
@@ -390,8 +431,8 @@ def _active_candidates(batch: ProblemBatch, q: Polynomials, roots: np.ndarray) -
         residual test, seeds (C,): points to polish).
     """
     owner, c, s, strict = _angles(roots)
-    ell = batch.p_o[owner, 0] * c + batch.p_o[owner, 1] * s
-    d_o, r = batch.d_o[owner], batch.r[owner]
+    x_o, y_o, r, d_o = data.take(owner, 'x_o', 'y_o', 'r', 'd_o')
+    ell = x_o * c + y_o * s
     disc = ell * ell - (d_o * d_o - r * r)
     hits = np.flatnonzero((disc > -1e-12 * d_o * d_o) & (ell > 0))
     root = np.sqrt(np.maximum(disc[hits], 0.0))
@@ -403,16 +444,19 @@ def _active_candidates(batch: ProblemBatch, q: Polynomials, roots: np.ndarray) -
             _better_of_pair(angle, residual, len(ell)))
 
 
-def _polish_interior(batch: ProblemBatch, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _polish_interior(data: _Data, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Newton's method on m grad n - n grad m = 0 in q-coordinates (gain = n/m, h = [q, -1])
     from points (C, 2) of problems ``owner``; NaN where Newton breaks down. A point stops
-    moving after a step below 1e-13 of |q| (converged), so its result depends on itself only."""
-    (m00, m01, m02, m11, m12, m22), (n00, n01, n02, n11, n12, n22) = (
-        [e[owner] for e in part] for part in batch.forms)
+    moving after a step below 1e-13 of |q| (converged), or one larger than its previous step
+    (not converging), so its result depends on itself only."""
+    m00, m01, m02, m11, m12, m22, n00, n01, n02, n11, n12, n22 = data.take(
+        owner, 'm00', 'm01', 'm02', 'm11', 'm12', 'm22', 'n00', 'n01', 'n02', 'n11', 'n12',
+        'n22')
     x, y = points[:, 0], points[:, 1]
     d2 = x * x + y * y
     q0, q1 = -y / d2, x / d2
     moving = np.ones(len(owner), dtype=bool)
+    last = np.full(len(owner), np.inf)
     for _ in range(INTERIOR_NEWTON):
         a0, a1 = m00 * q0 + m01 * q1 - m02, m01 * q0 + m11 * q1 - m12   # (M h)_12
         b0, b1 = n00 * q0 + n01 * q1 - n02, n01 * q0 + n11 * q1 - n12   # (N h)_12
@@ -422,66 +466,70 @@ def _polish_interior(batch: ProblemBatch, owner: np.ndarray, points: np.ndarray)
         cross = 2 * (a0 * b1 - b0 * a1)
         j00, j11 = den * m00 - num * n00, den * m11 - num * n11
         j01 = den * m01 - num * n01
-        j10 = j01 - cross
-        j01 = j01 + cross
-        det = j00 * j11 - j01 * j10
-        s0 = np.where(moving, (j11 * g0 - j01 * g1) / det, 0.0)
-        s1 = np.where(moving, (j00 * g1 - j10 * g0) / det, 0.0)
+        det = j00 * j11 - (j01 + cross) * (j01 - cross)
+        s0 = np.where(moving, (j11 * g0 - (j01 + cross) * g1) / det, 0.0)
+        s1 = np.where(moving, (j00 * g1 - (j01 - cross) * g0) / det, 0.0)
         q0, q1 = q0 - s0, q1 - s1
-        moving &= np.abs(s0) + np.abs(s1) > 1e-13 * (np.abs(q0) + np.abs(q1))
+        size = np.abs(s0) + np.abs(s1)
+        moving &= (size > 1e-13 * (np.abs(q0) + np.abs(q1))) & (size <= last)
+        last = size
         if not moving.any():
             break
     n2 = q0 * q0 + q1 * q1
     return np.stack([q1 / n2, -q0 / n2], axis=-1)
 
 
-def _polish_boundary(batch: ProblemBatch, F: np.ndarray, owner: np.ndarray,
+def _polish_boundary(data: _Data, F: np.ndarray, owner: np.ndarray,
                      points: np.ndarray) -> np.ndarray:
     """Newton steps in the q-circle angle on the boundary stationarity condition (Fourier
-    coefficients F, (T, 7)) from points (C, 2) on the circle of problems ``owner``."""
-    c0, c1, rho = (v[owner] for v in batch.q_circle)
+    coefficients F: (7,) for a single problem, (T, 7) for a batch) from points (C, 2) on the
+    circle of problems ``owner``."""
+    c0, c1, rho = data.take(owner, 'c0', 'c1', 'rho')
     x, y = points[:, 0], points[:, 1]
     d2 = x * x + y * y
     t = np.arctan2(x / d2 - c1, -y / d2 - c0)
-    t = polish_boundary_angles(F[owner], t[:, None], BOUNDARY_NEWTON)[:, 0]
+    F = F[None] if data.single else F[owner]
+    t = polish_boundary_angles(F, t[:, None], BOUNDARY_NEWTON)[:, 0]
     q0, q1 = c0 + rho * np.cos(t), c1 + rho * np.sin(t)
     n2 = q0 * q0 + q1 * q1
     return np.stack([q1 / n2, -q0 / n2], axis=-1)
 
 
-def _bearing_batch(batch: ProblemBatch, single: Problem | None = None
+def _bearing_route(source: Problem | ProblemBatch
                    ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
-    """The polynomial route for T bearing problems (``single``: the one problem of a batch of
-    one, whose per-problem polynomials are then computed in Python floats, bit for bit as in
-    a batch but without numpy's per-call cost).
+    """The polynomial route for T bearing problems, or for one problem (T = 1; its
+    per-problem quantities are then Python floats, bit for bit as in a batch but without
+    numpy's per-call cost).
 
     Returns:
         (best points (T, 2), their gains (T,), per-problem failure reasons ('' when none),
         candidates per problem (T,)).
     """
-    T = len(batch)
-    source = batch if single is None else single
+    T = len(source) if isinstance(source, ProblemBatch) else 1
+    data = _Data(source)
     zeta, gamma, q, g = _polynomials(source)
     inner_series, inner_alias = eliminated_batch(zeta, gamma, INACTIVE_DEGREE)
     outer_series, outer_alias = eliminated_batch(q, g, ACTIVE_DEGREE)
-    i_owner, inner, i_ok, i_seed = _interior_candidates(batch, zeta, gamma,
+    i_owner, inner, i_ok, i_seed = _interior_candidates(data, zeta, gamma,
                                                         chebyshev_roots(inner_series))
-    o_owner, outer, o_ok, o_seed = _active_candidates(batch, q, chebyshev_roots(outer_series))
+    o_owner, outer, o_ok, o_seed = _active_candidates(data, q, chebyshev_roots(outer_series))
     # a polished point replaces its seed; a seed whose polishing failed stays if it passed
-    polished = _polish_interior(batch, i_owner[i_seed], inner[i_seed])
-    good = np.hypot(polished[:, 0] - batch.p_o[i_owner[i_seed], 0],
-                    polished[:, 1] - batch.p_o[i_owner[i_seed], 1]) <= batch.r[i_owner[i_seed]]
-    inner[np.flatnonzero(i_seed)[good]] = polished[good]
+    seeds = np.flatnonzero(i_seed)
+    polished = _polish_interior(data, i_owner[seeds], inner[seeds])
+    x_o, y_o, r = data.take(i_owner[seeds], 'x_o', 'y_o', 'r')
+    good = np.hypot(polished[:, 0] - x_o, polished[:, 1] - y_o) <= r
+    inner[seeds[good]] = polished[good]
     i_use = i_ok.copy()
-    i_use[np.flatnonzero(i_seed)[good]] = True
-    polished = _polish_boundary(batch, boundary_stationarity(source).reshape(T, 7),
-                                o_owner[o_seed], outer[o_seed])
-    good = np.all(np.isfinite(polished), axis=1)
-    outer[np.flatnonzero(o_seed)[good]] = polished[good]
+    i_use[seeds[good]] = True
+    seeds = np.flatnonzero(o_seed)
+    polished = _polish_boundary(data, boundary_stationarity(source), o_owner[seeds],
+                                outer[seeds])
+    good = np.isfinite(polished[:, 0]) & np.isfinite(polished[:, 1])
+    outer[seeds[good]] = polished[good]
     o_use = o_ok | o_seed
     owner = np.concatenate([i_owner[i_use], o_owner[o_use]])
     points = np.concatenate([inner[i_use], outer[o_use]])
-    gains = batch.gains_of(owner, points[:, 0], points[:, 1])
+    gains = data.gains(owner, points[:, 0], points[:, 1])
     gains[~np.isfinite(gains)] = -np.inf
     order = np.lexsort((-gains, owner))          # by problem, best first, ties in order
     first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
@@ -535,7 +583,7 @@ def ram_batch(batch: ProblemBatch, fallback: bool = True) -> tuple[np.ndarray, n
         return (np.array([s.p for s in solutions]),
                 np.array([s.fallback is not None for s in solutions]))
     with np.errstate(all='ignore'):
-        points, gains, reasons, _ = _bearing_batch(batch)
+        points, gains, reasons, _ = _bearing_route(batch)
     flags = np.zeros(T, dtype=bool)
     for t in range(T):
         problem = batch.problem(t)
@@ -560,7 +608,7 @@ def ram_optimum(problem: Problem, fallback: bool = True) -> Solution:
         return _fall_back(problem, 'optimum not certified: rounding defeats the bound test',
                           fallback)
     with np.errstate(all='ignore'):
-        points, gains, reasons, counts = _bearing_batch(ProblemBatch.stack([problem]), problem)
+        points, gains, reasons, counts = _bearing_route(problem)
     point, gain = points[0], float(gains[0])
     reason, name, proof = _verdict(problem, point, gain, reasons[0])
     if reason:
