@@ -156,6 +156,20 @@ def test_ram_falls_back_visibly_when_it_cannot_certify(monkeypatch: pytest.Monke
         ram.ram_optimum(problem, fallback=False)
 
 
+def test_ram_without_admissible_candidate_falls_back() -> None:
+    """A tiny disc (r = 2e-6 |p_o|) on which no root survives back-substitution: RAM falls
+    back to RQ with the reason (a batch of one with no candidate used to raise IndexError)."""
+    P = np.array([[0.0009270791479223851, 0.00026386589850665304, 0.0003848453165774923],
+                  [0.00026386589850665304, 0.3525637262645308, 0.002561194735714226],
+                  [0.0003848453165774923, 0.002561194735714226, 0.001330527300091233]])
+    problem = Problem(P, np.array([0.23826981636501407, 8.511821813068753]),
+                      1.6109330596150364e-05, 0.0516700924645838, BEARING)
+    solution = ram.ram_optimum(problem)
+    assert solution.fallback == 'rq'
+    assert solution.details['reason'] == 'no admissible critical point'
+    assert solution.certificate in PROVED
+
+
 # --- RAM on a batch ----------------------------------------------------------------------------
 @pytest.mark.parametrize('kind', KINDS)
 def test_ram_batch_equals_single_problems(kind: str) -> None:
@@ -201,12 +215,14 @@ def test_pruned_gbs_equals_a_full_scan(kind: str, cell: float) -> None:
 def test_every_answer_is_certified_and_optimal(kind: str) -> None:
     """Every generator family (families() in test/harness/problems.py; 10,000+ problems per
     sensor): RQ's answers carry a proof (or, when rounding defeats it, the enumeration of all
-    critical points), RAM's answers carry a proof or are RQ's with ``fallback`` set, RAM in a
-    batch equals RAM alone, and every cost is within 1e-9 relative (plus the cost formula's own
-    rounding) of the independent quick reference. The clustered-interior family, where RAM
-    used to return wrong points, is also checked against the dense reference (40 problems)."""
+    critical points), RAM's answers carry a proof or are RQ's with ``fallback`` set, and every
+    cost is within 1e-9 relative (plus the cost formula's own rounding) of the independent
+    quick reference. The clustered-interior family, where RAM used to return wrong points, is
+    also checked against the dense reference (40 problems), and RAM's own route must stand on
+    all of it; overall it stands on 90 % or more (it falls back, visibly, where its
+    elimination polynomials lose accuracy: mostly condition numbers above 1e9)."""
     seed = {RANGE: 20, BEARING: 21}[kind]
-    total, failures, tally = 0, [], Counter()
+    total, failures, tally, proved = 0, [], Counter(), Counter()
     for name, (generator, count) in families(kind).items():
         rng = np.random.default_rng([seed, len(name)])
         problems = [generator(rng) for _ in range(count)]
@@ -224,6 +240,7 @@ def test_every_answer_is_certified_and_optimal(kind: str) -> None:
                     failures.append((name, index, 'ram fallback differs from rq'))
             else:
                 tally[('ram', 'proved')] += 1
+                proved[name] += 1
             reference = quick_reference(problem)
             if name == 'clustered interior' and index < 40:
                 reference = min(reference, dense_reference(problem))
@@ -232,5 +249,6 @@ def test_every_answer_is_certified_and_optimal(kind: str) -> None:
                     failures.append((name, index, label, cost / reference - 1))
     assert total >= 10_000
     assert not failures, (failures[:20], len(failures), tally)
-    # RAM's own route stands on at least 97 % of the problems
-    assert tally[('ram', 'proved')] >= 0.97 * total, tally
+    assert tally[('ram', 'proved')] >= 0.9 * total, (tally, proved)
+    if kind == BEARING:
+        assert proved['clustered interior'] == families(kind)['clustered interior'][1], proved

@@ -532,7 +532,7 @@ def _bearing_route(source: Problem | ProblemBatch
     gains = data.gains(owner, points[:, 0], points[:, 1])
     gains[~np.isfinite(gains)] = -np.inf
     order = np.lexsort((-gains, owner))          # by problem, best first, ties in order
-    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
+    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]] if len(order) else order
     best = np.full((T, 2), np.nan)
     best_gain = np.full(T, -np.inf)
     best[owner[first]], best_gain[owner[first]] = points[first], gains[first]

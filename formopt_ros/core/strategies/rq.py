@@ -23,9 +23,10 @@ import math
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, point_from_q
+from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
 from formopt_ros.core.linalg import top_eigenpair3
-from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, make_solution
+from formopt_ros.core.strategies.base import (
+    BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, NONE, PROVED, certify
 from formopt_ros.core.strategies.common import (
     boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
@@ -272,6 +273,11 @@ class RayleighQuotient(Strategy):
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
         """The exact greedy optimum."""
         return rq_optimum(problem, self.name)
+
+    def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
+        """Problem by problem (the fast path is plain Python; a batch gains nothing)."""
+        return BatchPlan(np.array([rq_optimum(problems.problem(t), self.name).p
+                                   for t in range(len(problems))]))
 
 
 __all__ = ['NONE', 'RayleighQuotient', 'boundary_candidates', 'generalized_eigh', 'rq_optimum',
