@@ -27,7 +27,7 @@ from typing import Any, Generic, TypeVar, overload
 
 import numpy as np
 
-from formopt_ros.core.model import MEASUREMENT_KINDS, RANGE
+from formopt_ros.core.model import MEASUREMENT_KINDS, RANGE, symmetric3
 
 #: Float, or numpy array of floats: the entry-wise formulas below accept either.
 Value = TypeVar('Value', float, np.ndarray)
@@ -190,8 +190,39 @@ def positive_definite_entries(entries: Entries) -> bool:
     return a22 - l20 * a02 - b12 * b12 / d1 > 0.0
 
 
+class _QuotientForms:
+    """The gain's quadratic forms, derived on first use from ``entries`` (P's six distinct
+    entries), ``d_o`` and ``R``: floats for a :class:`Problem`, arrays (T,) for a
+    :class:`ProblemBatch`, by the same formulas."""
+
+    measurement: str
+    entries: Entries
+    d_o: Any
+    R: Any
+
+    @lazy_property
+    def forms(self) -> tuple[Entries, Entries]:
+        """Entries of M = P W^2 P and N = P + R e3 e3'."""
+        return quotient_entries(self.entries, self.d_o * self.d_o, self.R)
+
+    @lazy_property
+    def M(self) -> np.ndarray:
+        """P W^2 P, shape (3, 3) (or (T, 3, 3) for a batch)."""
+        return symmetric3(self.forms[0])
+
+    @lazy_property
+    def N(self) -> np.ndarray:
+        """P + R e3 e3' (the bearing denominator), shape (3, 3) (or (T, 3, 3))."""
+        return symmetric3(self.forms[1])
+
+    @lazy_property
+    def coefficients(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """Coefficients of the gain's numerator and denominator (:func:`gain_coefficients`)."""
+        return gain_coefficients(self.measurement, *self.forms, self.R)
+
+
 @dataclass(frozen=True)
-class Problem:
+class Problem(_QuotientForms):
     """Problem Pi_1 of the paper: choose p with |p - p_o| <= r minimising tr(W P_post W).
 
     Attributes:
@@ -257,35 +288,15 @@ class Problem:
         return float(self.sigma) * float(self.sigma)
 
     @lazy_property
-    def forms(self) -> tuple[Entries, Entries]:
-        """Entries of M = P W^2 P and N = P + R e3 e3' as Python floats."""
-        return quotient_entries(self.entries, self.d_o * self.d_o, self.R)
-
-    @lazy_property
     def w(self) -> np.ndarray:
         """Diagonal of W, shape (3,)."""
         return np.array([1.0, 1.0, self.d_o])
-
-    @lazy_property
-    def M(self) -> np.ndarray:
-        """P W^2 P, shape (3, 3)."""
-        return symmetric(self.forms[0])
-
-    @lazy_property
-    def N(self) -> np.ndarray:
-        """P + R e3 e3' (the bearing denominator), shape (3, 3)."""
-        return symmetric(self.forms[1])
 
     @lazy_property
     def base_cost(self) -> float:
         """tr(W P W), m^2: the cost without a measurement."""
         p00, _, _, p11, _, p22 = self.entries
         return float(trace_entries(p00, p11, p22, self.d_o * self.d_o))
-
-    @lazy_property
-    def coefficients(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        """Coefficients of the gain's numerator and denominator (:func:`gain_coefficients`)."""
-        return gain_coefficients(self.measurement, *self.forms, self.R)
 
     @lazy_property
     def q_circle(self) -> tuple[float, float, float]:
@@ -332,13 +343,6 @@ class Problem:
         return np.array([c0, c1]), rho
 
 
-def symmetric(entries: Entries) -> np.ndarray:
-    """The symmetric (..., 3, 3) array with the given six distinct entries (floats or arrays)."""
-    a00, a01, a02, a11, a12, a22 = (np.asarray(e, dtype=float) for e in entries)
-    return np.stack([np.stack([a00, a01, a02], -1), np.stack([a01, a11, a12], -1),
-                     np.stack([a02, a12, a22], -1)], -2)
-
-
 def point_from_q(q: np.ndarray) -> np.ndarray:
     """Inverse of p -> q = (-y, x)/|p|^2: p = (q1, -q0)/|q|^2, for q of shape (..., 2)."""
     q = np.asarray(q, dtype=float)
@@ -347,7 +351,7 @@ def point_from_q(q: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class ProblemBatch:
+class ProblemBatch(_QuotientForms):
     """T problems of one measurement kind, stacked for vectorised strategies and tests.
 
     Every derived quantity uses the same entry-wise formulas as :class:`Problem`, so problem t
@@ -409,26 +413,6 @@ class ProblemBatch:
     def R(self) -> np.ndarray:
         """Noise variances, shape (T,)."""
         return self.sigma * self.sigma
-
-    @lazy_property
-    def forms(self) -> tuple[Entries, Entries]:
-        """Entries of M and N, each of shape (T,)."""
-        return quotient_entries(self.entries, self.d_o * self.d_o, self.R)
-
-    @lazy_property
-    def M(self) -> np.ndarray:
-        """P W^2 P per problem, shape (T, 3, 3)."""
-        return symmetric(self.forms[0])
-
-    @lazy_property
-    def N(self) -> np.ndarray:
-        """P + R e3 e3' per problem, shape (T, 3, 3)."""
-        return symmetric(self.forms[1])
-
-    @lazy_property
-    def coefficients(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
-        """The gain's coefficients (:func:`gain_coefficients`), each entry of shape (T,)."""
-        return gain_coefficients(self.measurement, *self.forms, self.R)
 
     def gains_of(self, owner: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gains (m^2) at points x, y (C,) (m) of the problems ``owner`` (C,); shape (C,).
