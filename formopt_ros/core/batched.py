@@ -1,7 +1,8 @@
-"""Batched Monte Carlo engine: all trials of one strategy advanced together as stacked arrays.
+"""Batched Monte Carlo engine: all trials of a strategy advanced together as stacked arrays.
 
 :func:`run_trials` is :func:`~formopt_ros.core.simulation.run_trial` (the per-trial reference,
-which the ROS nodes equal) for many trials at once:
+which the ROS nodes equal) for many trials at once, and :func:`run_lanes` the same for several
+strategies in one stack (every (strategy, trial) a lane, so numpy's per-call cost is shared):
 
 * the random numbers are drawn per trial from ``trial_streams(seed, trial)`` in the order
   run_trial draws them (3 for the start, then per step (v, omega) per sub-step and z; numpy's

@@ -235,9 +235,9 @@ class Problem(_QuotientForms):
             simulator, the nodes: :class:`~formopt_ros.core.scenario.Scenario` validates slot,
             r and sigma, and their own EKF makes P symmetric positive definite) pass False.
 
-    Derived on first use: ``entries`` (P's six distinct entries as floats), ``w`` (diagonal of
-    W), ``M`` = P W^2 P, ``N`` = P + R e3 e3', ``base_cost`` = tr(W P W), the gain's
-    coefficients, ``q_circle`` and ``arc``.
+    Derived on first use: ``entries`` (P's six distinct entries as floats), ``slot``, ``d_o``,
+    ``w`` (diagonal of W), ``forms`` (entries of M = P W^2 P and N = P + R e3 e3'), ``M``,
+    ``N``, ``base_cost`` = tr(W P W), the gain's ``coefficients`` and ``q_circle``.
     """
 
     P: np.ndarray

@@ -45,7 +45,9 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             ``STRATEGIES[method].OPTIONS`` lists them with ranges.
 
     Returns:
-        The :class:`Solution`; ``Solution.p`` has shape (2,), leader frame, metres.
+        The :class:`Solution`; ``Solution.p`` has shape (2,), leader frame, metres. RAM and RQ
+        fill ``Solution.certificate`` (what was proved about p) and, when RAM could not
+        certify its own answer, return RQ's with ``Solution.fallback = 'rq'``.
 
     Raises:
         ValueError: for a non-SPD or non-finite P, bad p_o, r <= 0 or r >= |p_o|, sigma <= 0,
