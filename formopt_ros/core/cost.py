@@ -393,6 +393,11 @@ class ProblemBatch(_QuotientForms):
     def __len__(self) -> int:
         return len(self.P)
 
+    def subset(self, index: np.ndarray) -> 'ProblemBatch':
+        """The batch of the problems ``index`` (an index array)."""
+        return ProblemBatch(self.P[index], self.p_o[index], self.r[index], self.sigma[index],
+                            self.measurement)
+
     def problem(self, t: int) -> Problem:
         """Problem t of the batch (not validated again)."""
         return Problem(self.P[t], self.p_o[t], float(self.r[t]), float(self.sigma[t]),

@@ -495,65 +495,110 @@ def _polish_boundary(data: _Data, F: np.ndarray, owner: np.ndarray,
     return np.stack([q1 / n2, -q0 / n2], axis=-1)
 
 
-def _bearing_route(source: Problem | ProblemBatch
-                   ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+def _best_per_owner(T: int, owner: np.ndarray, points: np.ndarray,
+                    gains: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The highest-gain candidate of each of T problems (ties: the first), (T, 2) and (T,);
+    NaN and -inf for a problem without candidates."""
+    gains = np.where(np.isfinite(gains), gains, -np.inf)
+    order = np.lexsort((-gains, owner))          # by problem, best first, ties in order
+    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]] if len(order) else order
+    best, best_gain = np.full((T, 2), np.nan), np.full(T, -np.inf)
+    best[owner[first]], best_gain[owner[first]] = points[first], gains[first]
+    return best, best_gain
+
+
+#: RAM's best point of a problem, its gain, the reason it failed ('' if none), the number of
+#: candidates, and the proof when a floating-point certificate was already checked.
+Route = tuple[np.ndarray, np.ndarray, list[str], np.ndarray,
+              list[tuple[str, dict[str, Any]] | None]]
+
+
+def _bearing_route(source: Problem | ProblemBatch) -> Route:
     """The polynomial route for T bearing problems, or for one problem (T = 1; its
     per-problem quantities are then Python floats, bit for bit as in a batch but without
     numpy's per-call cost).
 
+    Boundary critical points first (the active-constraint resultant S_c). The best of them is
+    tested with the floating-point certificate, whose multiplier proof covers the whole disc:
+    where it holds, that point is the optimum and the interior route is skipped. For the other
+    problems the interior critical points (S_u) join, and the best of all is returned.
+
     Returns:
         (best points (T, 2), their gains (T,), per-problem failure reasons ('' when none),
-        candidates per problem (T,)).
+        candidates per problem (T,), proofs (or None) per problem).
     """
-    T = len(source) if isinstance(source, ProblemBatch) else 1
+    T = 1 if isinstance(source, Problem) else len(source)
     data = _Data(source)
     zeta, gamma, q, g = _polynomials(source)
-    inner_series, inner_alias = eliminated_batch(zeta, gamma, INACTIVE_DEGREE)
-    outer_series, outer_alias = eliminated_batch(q, g, ACTIVE_DEGREE)
-    i_owner, inner, i_ok, i_seed = _interior_candidates(data, zeta, gamma,
-                                                        chebyshev_roots(inner_series))
-    o_owner, outer, o_ok, o_seed = _active_candidates(data, q, chebyshev_roots(outer_series))
-    # a polished point replaces its seed; a seed whose polishing failed stays if it passed
-    seeds = np.flatnonzero(i_seed)
-    polished = _polish_interior(data, i_owner[seeds], inner[seeds])
-    x_o, y_o, r = data.take(i_owner[seeds], 'x_o', 'y_o', 'r')
-    good = np.hypot(polished[:, 0] - x_o, polished[:, 1] - y_o) <= r
-    inner[seeds[good]] = polished[good]
-    i_use = i_ok.copy()
-    i_use[seeds[good]] = True
+    series, outer_alias = eliminated_batch(q, g, ACTIVE_DEGREE)
+    o_owner, outer, o_ok, o_seed = _active_candidates(data, q, chebyshev_roots(series))
     seeds = np.flatnonzero(o_seed)
     polished = _polish_boundary(data, boundary_stationarity(source), o_owner[seeds],
                                 outer[seeds])
     good = np.isfinite(polished[:, 0]) & np.isfinite(polished[:, 1])
     outer[seeds[good]] = polished[good]
-    o_use = o_ok | o_seed
-    owner = np.concatenate([i_owner[i_use], o_owner[o_use]])
-    points = np.concatenate([inner[i_use], outer[o_use]])
-    gains = data.gains(owner, points[:, 0], points[:, 1])
-    gains[~np.isfinite(gains)] = -np.inf
-    order = np.lexsort((-gains, owner))          # by problem, best first, ties in order
-    first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]] if len(order) else order
-    best = np.full((T, 2), np.nan)
-    best_gain = np.full(T, -np.inf)
-    best[owner[first]], best_gain[owner[first]] = points[first], gains[first]
+    use = o_ok | o_seed
+    o_owner, outer = o_owner[use], outer[use]
+    o_gains = data.gains(o_owner, outer[:, 0], outer[:, 1])
+    best, best_gain = _best_per_owner(T, o_owner, outer, o_gains)
+    proofs: list[tuple[str, dict[str, Any]] | None] = [None] * T
+    counts = np.bincount(o_owner, minlength=T)
     reasons = ['' for _ in range(T)]
+    need = []
     for t in range(T):
-        if not inner_alias[t] < ALIASING_TOLERANCE or not outer_alias[t] < ALIASING_TOLERANCE:
-            reasons[t] = (f'elimination polynomial lost accuracy '
-                          f'({max(inner_alias[t], outer_alias[t]):.2g})')
+        if outer_alias[t] < ALIASING_TOLERANCE and np.isfinite(best_gain[t]):
+            problem = source if isinstance(source, Problem) else source.problem(t)
+            name, proof = certify(problem, (float(best[t, 0]), float(best[t, 1])),
+                                  float(best_gain[t]), exact=False)
+            if name in PROVED:
+                proofs[t] = (name, proof)
+                continue
+        need.append(t)
+    if not need:
+        return best, best_gain, reasons, counts, proofs
+    # the interior route for the problems not settled on the boundary
+    rows = np.array(need)
+    sub = source if isinstance(source, Problem) else source.subset(rows)
+    sub_data = _Data(sub)
+    zeta, gamma = [z[rows] for z in zeta], [x[rows] for x in gamma]
+    series, inner_alias = eliminated_batch(zeta, gamma, INACTIVE_DEGREE)
+    i_owner, inner, i_ok, i_seed = _interior_candidates(sub_data, zeta, gamma,
+                                                        chebyshev_roots(series))
+    # a polished point replaces its seed; a seed whose polishing failed stays if it passed
+    seeds = np.flatnonzero(i_seed)
+    polished = _polish_interior(sub_data, i_owner[seeds], inner[seeds])
+    x_o, y_o, r = sub_data.take(i_owner[seeds], 'x_o', 'y_o', 'r')
+    good = np.hypot(polished[:, 0] - x_o, polished[:, 1] - y_o) <= r
+    inner[seeds[good]] = polished[good]
+    i_use = i_ok.copy()
+    i_use[seeds[good]] = True
+    i_owner, inner = rows[i_owner[i_use]], inner[i_use]
+    i_gains = sub_data.gains(np.searchsorted(rows, i_owner), inner[:, 0], inner[:, 1])
+    taken = np.isin(o_owner, rows)
+    owner = np.concatenate([i_owner, o_owner[taken]])
+    both, both_gain = _best_per_owner(T, owner, np.concatenate([inner, outer[taken]]),
+                                      np.concatenate([i_gains, o_gains[taken]]))
+    best[rows], best_gain[rows] = both[rows], both_gain[rows]
+    counts = counts + np.bincount(i_owner, minlength=T)
+    for k, t in enumerate(need):
+        alias = max(inner_alias[k], outer_alias[t])
+        if not alias < ALIASING_TOLERANCE:
+            reasons[t] = f'elimination polynomial lost accuracy ({alias:.2g})'
         elif not np.isfinite(best_gain[t]):
             reasons[t] = 'no admissible critical point'
-    return best, best_gain, reasons, np.bincount(owner, minlength=T)
+    return best, best_gain, reasons, counts, proofs
 
 
-def _verdict(problem: Problem, point: np.ndarray, gain: float,
-             reason: str) -> tuple[str, str, dict[str, Any]]:
-    """('', certificate, proof details) when RAM's best critical point is certified, else
-    (the reason it is not, '', {})."""
+def _verdict(problem: Problem, point: np.ndarray, gain: float, reason: str,
+             proof: tuple[str, dict[str, Any]] | None) -> tuple[str, str, dict[str, Any]]:
+    """('', certificate, proof details) when RAM's best critical point is certified (``proof``
+    when the route already holds one), else (the reason it is not, '', {})."""
+    if proof is not None:
+        return '', proof[0], proof[1]
     if not reason:
-        name, proof = certify(problem, (float(point[0]), float(point[1])), gain)
+        name, details = certify(problem, (float(point[0]), float(point[1])), gain)
         if name in PROVED:
-            return '', name, proof
+            return '', name, details
         reason = 'best critical point not certified'
     return reason, '', {}
 
@@ -583,11 +628,11 @@ def ram_batch(batch: ProblemBatch, fallback: bool = True) -> tuple[np.ndarray, n
         return (np.array([s.p for s in solutions]),
                 np.array([s.fallback is not None for s in solutions]))
     with np.errstate(all='ignore'):
-        points, gains, reasons, _ = _bearing_route(batch)
+        points, gains, reasons, _, proofs = _bearing_route(batch)
     flags = np.zeros(T, dtype=bool)
     for t in range(T):
         problem = batch.problem(t)
-        reason, _, _ = _verdict(problem, points[t], float(gains[t]), reasons[t])
+        reason, _, _ = _verdict(problem, points[t], float(gains[t]), reasons[t], proofs[t])
         if reason:
             points[t], flags[t] = _fall_back(problem, reason, fallback).p, True
     return points, flags
@@ -608,9 +653,9 @@ def ram_optimum(problem: Problem, fallback: bool = True) -> Solution:
         return _fall_back(problem, 'optimum not certified: rounding defeats the bound test',
                           fallback)
     with np.errstate(all='ignore'):
-        points, gains, reasons, counts = _bearing_route(problem)
+        points, gains, reasons, counts, proofs = _bearing_route(problem)
     point, gain = points[0], float(gains[0])
-    reason, name, proof = _verdict(problem, point, gain, reasons[0])
+    reason, name, proof = _verdict(problem, point, gain, reasons[0], proofs[0])
     if reason:
         return _fall_back(problem, reason, fallback)
     x_o, y_o = problem.slot
