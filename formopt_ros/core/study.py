@@ -94,8 +94,8 @@ class StudyResult:
 #: A unit of work: (config, strategies advanced together, trials).
 Task = tuple[StudyConfig, tuple[str, ...], tuple[int, ...]]
 #: Rough relative cost of a strategy in the batched engine (to balance the worker processes).
-COST = {('bearing', 'ram'): 10.0, ('bearing', 'rq'): 3.0, ('bearing', 'gbs'): 3.0,
-        ('range', 'ram'): 3.0, ('range', 'gbs'): 2.0, ('range', 'rq'): 2.0}
+COST = {('bearing', 'ram'): 5.0, ('bearing', 'rq'): 4.5, ('bearing', 'gbs'): 2.5,
+        ('range', 'ram'): 3.0, ('range', 'rq'): 2.5, ('range', 'gbs'): 2.0}
 
 
 def _task(task: Task) -> tuple[StudyConfig, list[tuple[str, int, TrialResult]]]:
