@@ -11,11 +11,11 @@ p -> (-y, x)/|p|^2) it is the global optimum; otherwise the optimum lies on the 
 circle q(t) = c + rho [cos t, sin t], where num and den are trigonometric polynomials of degree
 2. The fast path, in Python floats: the top eigenpair in closed form (Cholesky reduction, the
 trigonometric solution of the cubic); on the boundary, Newton's method on the stationarity
-condition n'd - nd' = 0 from the circle point nearest the eigenvector, else from the best of
-12 samples. Every answer must pass :func:`~.certificate.certify`; when it does not, the
-exhaustive route runs: numpy's generalised eigenvector and every root of the degree-6
-stationarity polynomial in z = e^{it} (companion matrix), each polished by Newton steps; its
-best point is certified again, or named 'all-critical-points'.
+condition n'd - nd' = 0 from the best, then the second best, of 12 samples and the circle
+point nearest the eigenvector. Every answer must pass :func:`~.certificate.certify`; when it
+does not, the exhaustive route runs: numpy's generalised eigenvector and every root of the
+degree-6 stationarity polynomial in z = e^{it} (companion matrix), each polished by Newton
+steps; its best point is certified again, or named 'all-critical-points'.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
 from formopt_ros.core.linalg import top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, NONE, PROVED, certify
+from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED, certify
 from formopt_ros.core.strategies.common import (
     boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
     range_plan_from_direction)
@@ -291,5 +291,5 @@ class RayleighQuotient(Strategy):
                                    for t in range(len(problems))]))
 
 
-__all__ = ['NONE', 'RayleighQuotient', 'boundary_candidates', 'generalized_eigh', 'rq_optimum',
+__all__ = ['RayleighQuotient', 'boundary_candidates', 'generalized_eigh', 'rq_optimum',
            'top_generalized_eigenvector']
