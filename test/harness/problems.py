@@ -278,6 +278,7 @@ QUICK_BOUNDARY = 2048
 QUICK_RADII = 24
 QUICK_ANGLES = 96
 QUICK_STARTS = 3
+QUICK_POLISHED = 1
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
@@ -299,8 +300,8 @@ def quick_reference(problem: Problem) -> float:
     Boundary: 2048 equally spaced angles; the 3 best local maxima are refined by 50 steps of
     golden-section search on their bracket (to ~1e-13 rad). Interior (bearing only: the range
     gain depends on the bearing alone, which the boundary covers): p_o and a 24 x 96 polar
-    grid; when the grid's best comes within 1 % of the cost of the boundary's best, its 3 best
-    points are polished by L-BFGS-B on (u, t) as in dense_reference.
+    grid; when the grid's best comes within 1 % of the cost of the boundary's best, its best
+    point is polished by L-BFGS-B on (u, t) as in dense_reference.
     """
     t = np.linspace(-math.pi, math.pi, QUICK_BOUNDARY, endpoint=False)
     g = _boundary_gain(problem, t)
@@ -322,7 +323,7 @@ def quick_reference(problem: Problem) -> float:
         if float(np.max(g)) >= best - 0.01 * (problem.base_cost - best):
             def cost(z: np.ndarray) -> float:
                 return float(problem.base_cost - _disc_gain(problem, z[:1], z[1:])[0])
-            for index in np.argsort(g)[::-1][:QUICK_STARTS]:
+            for index in np.argsort(g)[::-1][:QUICK_POLISHED]:
                 result = minimize(cost, [u[index], a[index]], method='L-BFGS-B',
                                   bounds=[(0.0, 1.0), (None, None)],
                                   options={'ftol': 1e-15, 'gtol': 1e-14, 'maxiter': 100})
