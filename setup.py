@@ -20,6 +20,7 @@ setup(
     extras_require={
         'tools': ['matplotlib', 'tqdm'],
         'test': ['pytest', 'flake8', 'mypy'],
+        'peers': ['casadi'],
     },
     zip_safe=True,
     maintainer='formopt_ros developers',

@@ -1,20 +1,27 @@
-"""formopt-bench: time the planners (RAM, RQ, GBS, ...) on seeded random problems.
+"""formopt-bench: time the planners and the general-purpose peers on seeded random problems.
 
 For each measurement kind the command draws ``--problems`` moderate random problems (prior
 covariance with condition number up to 1e4 and overall scale 1e-4..1, slot distance
 0.5-10 m in a random direction, allowed deviation r = 5-30 % of the slot distance, noise
-0.01-0.5 m for range or 0.002-0.1 rad for bearing). Every call ``solve(...)`` is timed with
-``time.perf_counter`` and the best of ``--repeats`` calls is kept per problem and method; the
-methods are interleaved problem by problem so that machine load affects them alike.
+0.01-0.5 m for range or 0.002-0.1 rad for bearing). Each problem's reference is the certified
+RQ optimum (every one must carry a proof; the table header says how many do).
 
-Every problem has its own geometry, so grid-based search (GBS) cannot reuse its grid across
-problems: the GBS grid cache (``baselines._GRID_CACHE``) is cleared before each GBS call, so
-a one-off solve, grid construction included, is what is measured.
+Methods:
 
-The table reports per kind and method: median and 99th-percentile time (microseconds), the
-speed-up over GBS (median over problems of t_gbs / t_method), the largest relative cost excess
-over the best method on the same problem, and how often RAM fell back to RQ. Only numpy (and
-the package's own core) is needed. Run as ``formopt-bench``.
+* ram, rq, mtf, crm, mme: ``solve(...)`` (input validation included);
+* gbs: one-off grid search at cell 0.005 r on a new geometry (the grid cache is cleared before
+  each call, so building the grid is included); gbs-cached: the same call again, grid reused;
+* peers (:mod:`formopt_ros.analysis.peers`): slsqp (SciPy SLSQP from p_o, default options),
+  slsqp-8 (8 starts), and with CasADi installed (``pip install .[peers]``) ipopt (from p_o,
+  IPOPT defaults), ipopt-tuned (tightened tolerances) and ipopt-8 (tuned, 8 starts); the
+  peers' times include building the validated Problem.
+
+Every call is timed with ``time.perf_counter``; the best of ``--repeats`` calls (peers:
+``--peer-repeats``) is kept per problem and method, and the methods are interleaved problem by
+problem so that machine load affects them alike. The table reports per kind and method: median
+and 99th-percentile time (microseconds), the speed-up over one-off and cached GBS (median over
+problems of the time ratio), how often the method missed the certified optimum (cost above it
+by more than 1e-9 relative), the largest relative excess, and how often RAM fell back to RQ.
 """
 from __future__ import annotations
 
@@ -25,19 +32,30 @@ import os
 import platform
 import sys
 import time
-from typing import Sequence
+from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
+from formopt_ros.analysis.peers import casadi_available, peer_methods
 from formopt_ros.cli.common import ArgumentParser, integer, new_file
-from formopt_ros.core import METHODS, Solution, solve
+from formopt_ros.core import METHODS, Problem, solve
 from formopt_ros.core.strategies import baselines
+from formopt_ros.core.strategies.certificate import PROVED
 
 KINDS = ('range', 'bearing')
+#: Relative cost excess over the certified optimum that counts as a miss.
+MISS_RTOL = 1e-9
+#: GBS cell of the one-off and cached rows, fraction of r (the library default).
+GBS_CELL = baselines.DEFAULT_GBS_CELL
+PEERS = ('slsqp', 'slsqp-8', 'ipopt', 'ipopt-tuned', 'ipopt-8')
+ALL_METHODS = (*METHODS, 'gbs-cached', *PEERS)
+DEFAULT_METHODS = ('ram', 'rq', 'gbs', 'gbs-cached', *PEERS)
+
+ProblemData = tuple[np.ndarray, np.ndarray, float, float]
 
 
-def random_problem(rng: np.random.Generator,
-                   kind: str) -> tuple[np.ndarray, np.ndarray, float, float]:
+def random_problem(rng: np.random.Generator, kind: str) -> ProblemData:
     """One moderate random problem (P, p_o, r, sigma) of the given measurement kind."""
     q, upper = np.linalg.qr(rng.standard_normal((3, 3)))
     q = q * np.sign(np.diag(upper))
@@ -52,58 +70,107 @@ def random_problem(rng: np.random.Generator,
     return P, p_o, r, sigma
 
 
-def time_solve(problem: tuple[np.ndarray, np.ndarray, float, float], kind: str, method: str,
-               repeats: int, seed: int = 0) -> tuple[float, Solution]:
-    """Best wall time (s) of ``repeats`` calls of solve(), and the last Solution.
+#: A timed call: problem data -> (cost m^2, RAM fell back).
+Runner = Callable[[ProblemData], tuple[float, bool]]
 
-    ``seed`` seeds the generator handed to the random strategy (CRM) so runs repeat.
-    """
-    P, p_o, r, sigma = problem
-    best = math.inf
-    solution = None
-    for _ in range(repeats):
-        rng = np.random.default_rng(seed) if method == 'crm' else None
-        if method == 'gbs':
-            baselines._GRID_CACHE.clear()   # a fresh geometry: no grid to reuse
-        start = time.perf_counter()
+
+def runners(kind: str, methods: Sequence[str]) -> dict[str, Runner]:
+    """name -> timed call for every requested method available here."""
+    peers = peer_methods(kind) if any(m in PEERS for m in methods) else {}
+    out: dict[str, Runner] = {}
+    for method in methods:
+        if method in PEERS:
+            if method in peers:
+                out[method] = _peer(kind, peers[method])
+        elif method in ('gbs', 'gbs-cached'):
+            out[method] = _gbs(kind, cached=method == 'gbs-cached')
+        else:
+            out[method] = _solver(kind, method)
+    return out
+
+
+def _solver(kind: str, method: str) -> Runner:
+    def run(data: ProblemData) -> tuple[float, bool]:
+        P, p_o, r, sigma = data
+        rng = np.random.default_rng(0) if method == 'crm' else None
         solution = solve(P, p_o, r, sigma, measurement=kind, method=method, rng=rng)
+        return solution.cost, solution.fallback is not None
+    return run
+
+
+def _gbs(kind: str, cached: bool) -> Runner:
+    def run(data: ProblemData) -> tuple[float, bool]:
+        P, p_o, r, sigma = data
+        if not cached:
+            baselines._GRID_CACHE.clear()      # a fresh geometry: no grid to reuse
+        return solve(P, p_o, r, sigma, measurement=kind, method='gbs', cell=GBS_CELL).cost, False
+    return run
+
+
+def _peer(kind: str, solver: Callable[[Problem], np.ndarray]) -> Runner:
+    def run(data: ProblemData) -> tuple[float, bool]:
+        problem = Problem(*data, kind)
+        return float(problem.cost(solver(problem))), False
+    return run
+
+
+def time_call(run: Runner, data: ProblemData, repeats: int) -> tuple[float, float, bool]:
+    """(best wall time s of ``repeats`` calls, cost, fallback) of one method on one problem."""
+    best = math.inf
+    cost, fallback = math.nan, False
+    for _ in range(repeats):
+        start = time.perf_counter()
+        cost, fallback = run(data)
         best = min(best, time.perf_counter() - start)
-    assert solution is not None                  # repeats >= 1
-    return best, solution
+    return best, cost, fallback
 
 
-def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int,
-             rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
-    """Times (s), costs (m^2) and fallback flags, arrays of shape (problems,) per method."""
+Results = dict[str, dict[str, np.ndarray]]
+
+
+def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, peer_repeats: int,
+             rng: np.random.Generator) -> tuple[Results, np.ndarray, int]:
+    """Times (s), costs (m^2) and fallback flags per method, arrays of shape (problems,); the
+    certified optimum per problem; and how many optima carry a proof."""
+    calls = runners(kind, methods)
     results = {m: {'time': np.zeros(problems), 'cost': np.zeros(problems),
-                   'fallback': np.zeros(problems, dtype=bool)} for m in methods}
-    for method in methods:                # warm-up: lazy imports, problem-independent caches
-        time_solve(random_problem(np.random.default_rng(0), kind), kind, method, 1)
+                   'fallback': np.zeros(problems, dtype=bool)} for m in calls}
+    warm = random_problem(np.random.default_rng(0), kind)
+    for run in calls.values():        # warm-up: lazy imports, problem-independent caches
+        run(warm)
+    optimum = np.zeros(problems)
+    proved = 0
     for index in range(problems):
-        problem = random_problem(rng, kind)
-        for method in methods:
-            elapsed, solution = time_solve(problem, kind, method, repeats, index)
+        data = random_problem(rng, kind)
+        reference = solve(*data, measurement=kind, method='rq')
+        optimum[index] = reference.cost
+        proved += reference.certificate in PROVED
+        for method, run in calls.items():
+            if method == 'gbs-cached':
+                run(data)                       # builds this geometry's grid
+            elapsed, cost, fallback = time_call(
+                run, data, peer_repeats if method in PEERS else repeats)
             results[method]['time'][index] = elapsed
-            results[method]['cost'][index] = solution.cost
-            results[method]['fallback'][index] = solution.fallback is not None
-    return results
+            results[method]['cost'][index] = cost
+            results[method]['fallback'][index] = fallback
+    return results, optimum, proved
 
 
-def summarise(kind: str, results: dict[str, dict[str, np.ndarray]]) -> list[list[str]]:
+def summarise(kind: str, results: Results, optimum: np.ndarray) -> list[list[str]]:
     """Table rows (as strings) for one measurement kind."""
-    costs = np.vstack([r['cost'] for r in results.values()])
-    best = costs.min(axis=0)
     rows = []
     for method, r in results.items():
         micro = r['time'] * 1e6
-        if 'gbs' in results:
-            speed_up = f"{np.median(results['gbs']['time'] / r['time']):.1f}x"
-        else:
-            speed_up = '-'
-        excess = float(np.max((r['cost'] - best) / best))
+        speed = []
+        for base in ('gbs', 'gbs-cached'):
+            speed.append(f"{np.median(results[base]['time'] / r['time']):.1f}x"
+                         if base in results else '-')
+        excess = (r['cost'] - optimum) / optimum
+        misses = int(np.sum(excess > MISS_RTOL))
         fallbacks = str(int(r['fallback'].sum())) if method == 'ram' else '-'
         rows.append([kind, method, f'{np.median(micro):.1f}', f'{np.percentile(micro, 99):.1f}',
-                     speed_up, f'{excess:.2e}', fallbacks])
+                     *speed, f'{misses} ({100 * misses / len(excess):.1f} %)',
+                     f'{max(float(np.max(excess)), 0.0):.2e}', fallbacks])
     return rows
 
 
@@ -119,29 +186,29 @@ def format_table(header: list[str], rows: list[list[str]]) -> str:
     return '\n'.join(lines)
 
 
-def write_csv(path: str, all_results: dict[str, dict[str, dict[str, np.ndarray]]]) -> None:
-    """One row per (kind, problem, method): time in microseconds, cost, excess, fallback."""
-    with open(path, 'w', newline='', encoding='utf-8') as handle:
+def write_csv(path: Path, all_results: dict[str, tuple[Results, np.ndarray]]) -> None:
+    """One row per (kind, problem, method): time (us), cost, excess over the certified
+    optimum, miss flag and fallback flag."""
+    with open(path, 'x', newline='', encoding='utf-8') as handle:
         writer = csv.writer(handle)
-        writer.writerow(['kind', 'problem', 'method', 'time_us', 'cost_m2', 'excess',
+        writer.writerow(['kind', 'problem', 'method', 'time_us', 'cost_m2', 'excess', 'miss',
                          'fallback'])
-        for kind, results in all_results.items():
-            best = np.vstack([r['cost'] for r in results.values()]).min(axis=0)
+        for kind, (results, optimum) in all_results.items():
             for method, r in results.items():
                 for index in range(len(r['time'])):
+                    excess = (r['cost'][index] - optimum[index]) / optimum[index]
                     writer.writerow([kind, index, method, f"{r['time'][index] * 1e6:.3f}",
-                                     repr(float(r['cost'][index])),
-                                     repr(float((r['cost'][index] - best[index]) / best[index])),
-                                     int(r['fallback'][index])])
+                                     repr(float(r['cost'][index])), repr(float(excess)),
+                                     int(excess > MISS_RTOL), int(r['fallback'][index])])
 
 
 def parse_methods(text: str) -> list[str]:
-    """Comma-separated method names, validated against core.METHODS."""
+    """Comma-separated method names among ALL_METHODS."""
     methods = [m.strip() for m in text.split(',') if m.strip()]
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m not in ALL_METHODS]
     if not methods or unknown:
         raise argparse.ArgumentTypeError(
-            f'methods must be a comma list of {", ".join(METHODS)}; got {text!r}')
+            f'methods must be a comma list of {", ".join(ALL_METHODS)}; got {text!r}')
     return list(dict.fromkeys(methods))
 
 
@@ -149,18 +216,20 @@ def build_parser() -> ArgumentParser:
     """The command-line interface."""
     parser = ArgumentParser(
         prog='formopt-bench',
-        description='Time the motion planners on seeded random problems (one new geometry per '
-                    'problem; the GBS grid cache is cleared before every GBS call, so each GBS '
-                    'time includes building its grid).')
+        description='Time the motion planners and general-purpose optimisers (SciPy SLSQP, '
+                    'CasADi + IPOPT when installed) on seeded random problems, with their miss '
+                    'rate against the certified optimum.')
     parser.add_argument('--problems', type=integer(1, 10**7), default=300,
                         help='random problems per measurement kind (default: 300)')
-    parser.add_argument('--repeats', type=integer(1, 10**7), default=5,
-                        help='calls per problem and method; the best time is kept (default: 5)')
+    parser.add_argument('--repeats', type=integer(1, 10**7), default=3,
+                        help='calls per problem and method; the best time is kept (default: 3)')
+    parser.add_argument('--peer-repeats', type=integer(1, 10**7), default=1,
+                        help='calls per problem of the (slow) peers (default: 1)')
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of the problem generator (default: 0)')
-    parser.add_argument('--methods', type=parse_methods, default=['ram', 'rq', 'gbs'],
-                        help=f'comma-separated methods among {",".join(METHODS)} '
-                             '(default: ram,rq,gbs)')
+    parser.add_argument('--methods', type=parse_methods, default=list(DEFAULT_METHODS),
+                        help=f'comma-separated methods among {",".join(ALL_METHODS)} '
+                             f'(default: {",".join(DEFAULT_METHODS)})')
     parser.add_argument('--measurement', choices=('range', 'bearing', 'both'), default='both',
                         help='measurement kind(s) to benchmark (default: both)')
     parser.add_argument('--csv', metavar='PATH', type=new_file, default=None,
@@ -172,17 +241,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print the table; returns the process exit status."""
     args = build_parser().parse_args(argv)
     kinds = KINDS if args.measurement == 'both' else (args.measurement,)
+    if any(m.startswith('ipopt') for m in args.methods) and not casadi_available():
+        print('note: casadi is not installed, so the ipopt rows are skipped '
+              '(pip install casadi, or the package extra [peers])')
     all_results = {}
     rows: list[list[str]] = []
+    proved_text = []
     for kind in kinds:
         rng = np.random.default_rng([args.seed, KINDS.index(kind)])
-        all_results[kind] = run_kind(kind, args.methods, args.problems, args.repeats, rng)
-        rows.extend(summarise(kind, all_results[kind]))
-    header = ['kind', 'method', 'median us', 'p99 us', 'vs gbs', 'max excess', 'fallbacks']
-    print(f'{args.problems} problems per kind, best of {args.repeats} calls, seed {args.seed}')
+        results, optimum, proved = run_kind(kind, args.methods, args.problems, args.repeats,
+                                            args.peer_repeats, rng)
+        all_results[kind] = (results, optimum)
+        rows.extend(summarise(kind, results, optimum))
+        proved_text.append(f'{kind} {proved}/{args.problems}')
+    header = ['kind', 'method', 'median us', 'p99 us', 'vs gbs', 'vs gbs-cached',
+              'missed optimum', 'max excess', 'fallbacks']
+    print(f'{args.problems} problems per kind, best of {args.repeats} calls '
+          f'({args.peer_repeats} for the peers), seed {args.seed}; GBS cell {GBS_CELL} r; '
+          f'reference: the certified RQ optimum (proved: {", ".join(proved_text)})')
     print(format_table(header, rows))
     print(f'numpy {np.__version__}, python {platform.python_version()} '
-          f'({sys.implementation.name}), {os.cpu_count()} CPUs')
+          f'({sys.implementation.name}), {os.cpu_count()} CPUs, load average '
+          f'{", ".join(f"{x:.2f}" for x in os.getloadavg())}')
     if args.csv:
         write_csv(args.csv, all_results)
         print(f'wrote {args.csv}')

@@ -6,6 +6,7 @@ import csv
 import os
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,8 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.strategies.periodic_design import SteadyConditions, design_pattern
 from formopt_ros.core.study import (
-    METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_study, summarize)
+    ENGINES, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_studies,
+    summarize)
 from formopt_ros.wire.jsonfile import write_json
 
 FIGURE_NAMES = {'range': 'fig5_range_weighted_trace.png',
@@ -55,6 +57,10 @@ def build_parser() -> ArgumentParser:
                              f"(default: {STUDY_OPTIONS['gbs']['cell']}; the library default "
                              'is 0.005)')
     add_scenario_options(parser)
+    parser.add_argument('--engine', choices=ENGINES, default='batched',
+                        help='batched: all trials of a strategy advanced together (fast); '
+                             'per-trial: the reference engine the ROS nodes equal; both give '
+                             'the same numbers (default: batched)')
     parser.add_argument('--out', type=new_folder, default=Path('runs/montecarlo'),
                         help='output folder, new or empty; results go to OUT/<measurement>/ '
                              '(default: runs/montecarlo)')
@@ -72,6 +78,11 @@ def _progress(total: int, label: str):
         except ImportError:
             pass
     return None
+
+
+def write_into(folder: Path, figures: bool, result: StudyResult) -> None:
+    """:func:`write_outputs` into folder/<measurement>."""
+    write_outputs(result, folder / result.config.measurement, figures)
 
 
 def write_outputs(result: StudyResult, out: Path, figures: bool) -> dict[str, Any]:
@@ -152,8 +163,8 @@ def report_markdown(summary: dict[str, Any]) -> str:
              '',
              '| strategy | steady tr(W P W) [m^2] | vs RAM | std over trials | mean tr(W P W) '
              '[m^2] | vs RAM | mean NEES | steps in NEES band | decision time mean / median '
-             '[ms] |',
-             '|---|---|---|---|---|---|---|---|---|']
+             '[ms] | fallbacks |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     ram = summary['strategies'].get('ram')
 
     def versus(row: dict[str, float], key: str) -> str:
@@ -165,7 +176,7 @@ def report_markdown(summary: dict[str, Any]) -> str:
                      f"{row['mean_trace']:.6g} | {versus(row, 'mean_trace')} | "
                      f"{row['nees_mean']:.3f} | {100 * row['nees_in_band']:.1f} % | "
                      f"{1e3 * row['decision_time_s']:.3f} / "
-                     f"{1e3 * row['decision_time_median_s']:.3f} |")
+                     f"{1e3 * row['decision_time_median_s']:.3f} | {row['fallback_steps']} |")
     rows = summary['strategies'].values()
     updates = summary['trials'] * summary['steps'] * len(summary['strategies'])
     gated = sum(r['gated_updates'] for r in rows)
@@ -247,25 +258,26 @@ def main(argv: list[str] | None = None) -> int:
     strategies = tuple(s.strip() for s in args.strategies.split(',') if s.strip())
     kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
     start = time.perf_counter()
-    for kind in kinds:
-        try:
-            config = StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
-                                 {'gbs': {'cell': args.gbs_cell}},
-                                 scenario_overrides(kind, args))
-        except ValueError as error:
-            fail(parser.prog, str(error))
-        bar = _progress(args.trials * len(strategies), kind)
-        result = run_study(config, args.jobs, bar.update if bar else None)
-        if bar:
-            bar.close()
-        summary = write_outputs(result, args.out / kind, not args.no_figures)
-        print(report_markdown(summary))
+    try:
+        configs = [StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
+                               {'gbs': {'cell': args.gbs_cell}}, scenario_overrides(kind, args))
+                   for kind in kinds]
+    except ValueError as error:
+        fail(parser.prog, str(error))
+    bar = _progress(args.trials * len(strategies) * len(kinds), ' + '.join(kinds))
+    # each kind's outputs (figures take a second) are written as soon as its runs are in
+    results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,
+                          partial(write_into, args.out, not args.no_figures))
+    if bar:
+        bar.close()
+    for config, result in zip(configs, results):
+        print(report_markdown(summarize(result)))
         if 'periodic' in strategies:
             print(describe_periodic_design(result.scenario, config.strategy_options('periodic')))
             print()
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
-          f'{args.steps} steps, {args.jobs} jobs); results in {args.out}')
+          f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')
     return 0
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -95,6 +96,33 @@ class InputBounds:
         return None
 
 
+def innovation_gate(innovation: Any, S: Any, variance: float,
+                    gated_in_a_row: Any) -> tuple[Any, Any, Any]:
+    """The gate's decision (module docstring) for one measurement or a batch (arrays (T,)).
+
+    Args:
+        innovation: z - h(x), m or rad; S: its variance H P H' + R.
+        variance: the measurement noise variance R.
+        gated_in_a_row: measurements gated in a row before this one.
+
+    Returns:
+        (nis, use, inflation): the normalised innovation squared; whether the measurement is
+        used; the factor to scale P by before using it (1 unless the filter re-opens).
+    """
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        nis = innovation * innovation / S
+        projected = S - variance
+        reopen = (np.asarray(gated_in_a_row) >= GATE_PATIENCE) & np.isfinite(nis) & \
+            (projected > 0.0)
+        passes = nis <= INNOVATION_GATE
+        inflation = np.where(reopen & ~passes, np.maximum(
+            (innovation * innovation / REOPEN_NIS - variance) / projected, 1.0), 1.0)
+    use = passes | reopen
+    if np.ndim(use) == 0:
+        return float(nis), bool(use), float(inflation)
+    return nis, use, inflation
+
+
 @dataclass(frozen=True)
 class UpdateResult:
     """What one measurement did to the filter.
@@ -121,6 +149,15 @@ class StepPlan:
     command: MotionCommand
 
 
+def driven_prior(scenario: Scenario, x: np.ndarray, P: np.ndarray, target: np.ndarray,
+                 leader: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """Covariance after driving from (x, P) to ``target`` with the protocol's commands under the
+    leader velocities ``leader``, before the update: :func:`predict_move` with the scenario's
+    dt and odometry noise; one pose or a batch (shapes as there), returns the shape of P."""
+    return predict_move(x, P, target, leader, scenario.dt, scenario.sigma_v,
+                        scenario.sigma_omega)[1]
+
+
 class EstimatorPlanner:
     """The follower's EKF and motion strategy.
 
@@ -145,8 +182,7 @@ class EstimatorPlanner:
                   leader: tuple[tuple[float, float], ...]) -> np.ndarray:
         """Covariance (3, 3) after driving to ``target`` (2,) with the protocol's commands under
         the leader velocities ``leader`` (one (v, omega) per sub-step), before the update."""
-        s = self.scenario
-        return predict_move(self.x, self.P, target, leader, s.dt, s.sigma_v, s.sigma_omega)[1]
+        return driven_prior(self.scenario, self.x, self.P, target, leader)
 
     def plan(self, step: int, leader: tuple[tuple[float, float], ...]) -> StepPlan:
         """Choose the position for measurement step ``step`` (1-based) and its commands.
@@ -179,23 +215,17 @@ class EstimatorPlanner:
         s = self.scenario
         variance = s.sigma ** 2 if variance is None else variance
         x, P, innovation, S = ekf_update(self.x, self.P, z, s.measurement, variance)
-        nis = innovation * innovation / S
-        inflation = 1.0
-        if not nis <= INNOVATION_GATE:
+        nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row)
+        if not use:
             self.gated_in_a_row += 1
-            if self.gated_in_a_row <= GATE_PATIENCE or not np.isfinite(nis):
-                return UpdateResult(innovation, nis, False)
-            # lost: scale P so that this innovation lies at 3 standard deviations
-            projected = S - variance
-            if not projected > 0.0:
-                return UpdateResult(innovation, nis, False)
-            inflation = max((innovation * innovation / REOPEN_NIS - variance) / projected, 1.0)
+            return UpdateResult(innovation, nis, False)
+        if inflation > 1.0:
             x, P, innovation, S = ekf_update(self.x, inflation * self.P, z, s.measurement,
                                              variance)
         self.gated_in_a_row = 0
         self.x, self.P = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))
-        return UpdateResult(innovation, nis, True, inflation)
+        return UpdateResult(innovation, nis, True, float(inflation))
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import propagate, propagate_state, wrap_angle
+from formopt_ros.core.model import elementwise, propagate, propagate_state, wrap_angle
 
 #: Sub-steps per measurement step: rotate, then translate.
 SUBSTEPS = 2
@@ -84,6 +85,17 @@ class MotionCommand:
     angular: tuple[float, ...]
 
 
+def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
+                       omega_l: float) -> tuple[Any, Any]:
+    """(translation speed m/s, rotation yaw rate rad/s) of :func:`motion_commands`, for one pose
+    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,)."""
+    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
+    dx = target[..., 0] - x1[..., 0] - omega_l * x1[..., 1] * dt + v_l * dt
+    dy = target[..., 1] - x1[..., 1] + omega_l * x1[..., 0] * dt
+    turn = wrap_angle(elementwise(math.atan2, dy, dx) - x[..., 2])
+    return elementwise(math.hypot, dx, dy) / dt, turn / dt + omega_l
+
+
 def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
                     omega_l: float) -> MotionCommand:
     """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m).
@@ -93,26 +105,30 @@ def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
     Euler-propagated pose (paper eq. 10) lands exactly on target while the leader moves at
     (v_l m/s, omega_l rad/s).
     """
-    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
-    dx = target[0] - x1[0] - omega_l * x1[1] * dt + v_l * dt
-    dy = target[1] - x1[1] + omega_l * x1[0] * dt
-    heading = math.atan2(dy, dx)
-    turn = float(wrap_angle(heading - x[2]))
-    return MotionCommand((0.0, math.hypot(dx, dy) / dt), (turn / dt + omega_l, omega_l))
+    speed, turn_rate = command_velocities(x, target, dt, v_l, omega_l)
+    return MotionCommand((0.0, float(speed)), (float(turn_rate), omega_l))
 
 
 def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,
                  leader: tuple[tuple[float, float], ...], dt: float, sigma_v: float,
                  sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
-    """The EKF's prediction (x (3,), P (3, 3)) after driving from pose x to position ``target``
-    (2,), m, with :func:`motion_commands` as odometry, under the leader velocities ``leader``
-    (one (v m/s, omega rad/s) per sub-step); the estimate lands on target. This is the exact,
+    """The EKF's prediction after driving from pose x to position ``target`` with
+    :func:`motion_commands` as odometry, under the leader velocities ``leader`` (one (v m/s,
+    omega rad/s) per sub-step); the estimate lands on target. This is the exact,
     move-dependent prior of the next measurement (the paper approximates it by target = p_o).
+
+    Args:
+        x, P: pose (3,) and covariance (3, 3), or batches (T, 3) and (T, 3, 3).
+        target: position (2,) m, or one per pose (T, 2).
+        leader: expected (v_L, omega_L) per sub-step; dt: sub-step, s.
+        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+
+    Returns:
+        (x, P) before the update, shapes of the inputs.
     """
-    command = motion_commands(x, target, dt, leader[0][0], leader[0][1])
-    for j in range(SUBSTEPS):
-        x, P = propagate(x, P, command.linear[j], command.angular[j], dt, leader[j][0],
-                         leader[j][1], sigma_v, sigma_omega)
+    speed, turn_rate = command_velocities(x, target, dt, leader[0][0], leader[0][1])
+    for j, (v, omega) in enumerate(((0.0, turn_rate), (speed, leader[0][1]))):
+        x, P = propagate(x, P, v, omega, dt, leader[j][0], leader[j][1], sigma_v, sigma_omega)
     return x, P
 
 

@@ -20,6 +20,7 @@ strategy sees the same noise in a trial (common random numbers).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -38,22 +39,48 @@ def trial_streams(seed: int, trial: int) -> tuple[np.random.Generator, np.random
     return np.random.default_rng(noise), np.random.default_rng(planner)
 
 
+#: Normal draws of the noise stream per measurement step: (v, omega) per sub-step, then z.
+DRAWS_PER_STEP = 2 * SUBSTEPS + 1
+
+
+def initial_truth(scenario: Scenario, draw: np.ndarray) -> np.ndarray:
+    """True start pose (3,) from three standard normal draws: x_1|1 + chol(P_1|1) draw."""
+    x0, P0 = scenario.initial_estimate()
+    x = x0 + np.linalg.cholesky(P0) @ draw
+    x[2] = wrap_angle(x[2])
+    return x
+
+
+def true_motion(scenario: Scenario, x: np.ndarray, v_cmd: Any, omega_cmd: Any, w: np.ndarray,
+                v_l: float, omega_l: float) -> np.ndarray:
+    """One sub-step of eq. (9) with true velocities = commands + sigma * w (standard normal w,
+    shape (2,), or (T, 2) for poses x of shape (T, 3))."""
+    s = scenario
+    return propagate_state(x, v_cmd + s.sigma_v * w[..., 0], omega_cmd + s.sigma_omega * w[..., 1],
+                           s.dt, v_l, omega_l)
+
+
+def true_measurement(scenario: Scenario, x: np.ndarray, w: Any) -> Any:
+    """Range (m) or bearing (rad, wrapped) of the true pose(s) plus sigma * w (standard normal)."""
+    s = scenario
+    z = predict_measurement(s.measurement, x) + s.sigma * w
+    if s.measurement != BEARING:
+        return z
+    return float(wrap_angle(z)) if np.ndim(z) == 0 else wrap_angle(z)
+
+
 class FollowerTruth:
     """The real follower: true pose in {L}, noisy execution of commands, noisy measurements."""
 
     def __init__(self, scenario: Scenario, noise: np.random.Generator) -> None:
         self.scenario = scenario
         self.noise = noise
-        x0, P0 = scenario.initial_estimate()
-        self.x = x0 + np.linalg.cholesky(P0) @ noise.normal(size=3)
-        self.x[2] = wrap_angle(self.x[2])
+        self.x = initial_truth(scenario, noise.normal(size=3))
 
     def execute(self, v_cmd: float, omega_cmd: float, v_l: float, omega_l: float) -> None:
         """One sub-step of eq. (9) with true velocities = commands + N(0, sigma^2) noise."""
-        s = self.scenario
-        w = self.noise.normal(size=2)
-        self.x = propagate_state(self.x, v_cmd + s.sigma_v * w[0],
-                                 omega_cmd + s.sigma_omega * w[1], s.dt, v_l, omega_l)
+        self.x = true_motion(self.scenario, self.x, v_cmd, omega_cmd, self.noise.normal(size=2),
+                             v_l, omega_l)
 
     def park(self, v_l: float, omega_l: float) -> None:
         """One sub-step standing still (the driver is down: no command, no noise) while the
@@ -62,9 +89,7 @@ class FollowerTruth:
 
     def measure(self) -> float:
         """Range (m) or bearing (rad, wrapped) of the true pose plus N(0, sigma^2) noise."""
-        s = self.scenario
-        z = predict_measurement(s.measurement, self.x) + s.sigma * self.noise.normal()
-        return float(wrap_angle(z)) if s.measurement == BEARING else z
+        return float(true_measurement(self.scenario, self.x, self.noise.normal()))
 
 
 def leader_poses(scenario: Scenario, steps: int) -> np.ndarray:
@@ -92,11 +117,13 @@ class TrialResult:
     covariance: np.ndarray         # (steps, 3, 3) P_k|k
     waypoints: np.ndarray          # (steps, 2) chosen positions, m
     decision_time: np.ndarray      # (steps,) strategy wall time, s
-    commands: np.ndarray           # (steps, SUBSTEPS, 2) odometry (v m/s, omega rad/s)
-    leader: np.ndarray             # (steps, SUBSTEPS, 2) leader (v m/s, omega rad/s)
-    measurements: np.ndarray       # (steps,) range (m) or bearing (rad)
     innovation_nis: np.ndarray     # (steps,) normalised innovation squared of each update
     gated: np.ndarray              # (steps,) True where the innovation gate refused it
+    fallback: np.ndarray | None = None      # (steps,) the strategy fell back (RAM to RQ)
+    # run_trial only (the inputs a node would receive):
+    commands: np.ndarray | None = None      # (steps, SUBSTEPS, 2) odometry (v m/s, omega rad/s)
+    leader: np.ndarray | None = None        # (steps, SUBSTEPS, 2) leader (v m/s, omega rad/s)
+    measurements: np.ndarray | None = None  # (steps,) range (m) or bearing (rad)
 
 
 def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: int,
@@ -111,11 +138,13 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
     estimator = EstimatorPlanner(scenario, make_strategy(strategy, **(options or {})),
                                  planner_rng)
     latest = scenario.leader.velocity(0, scenario.dt)
+    fallback = np.zeros(steps, dtype=bool)
+    commands, leader = np.empty((steps, SUBSTEPS, 2)), np.empty((steps, SUBSTEPS, 2))
+    measurements = np.empty(steps)
     out = TrialResult(np.empty(steps), np.empty(steps), np.empty((steps, 3)),
                       np.empty((steps, 3)), np.empty((steps, 3, 3)), np.empty((steps, 2)),
-                      np.empty(steps), np.empty((steps, SUBSTEPS, 2)),
-                      np.empty((steps, SUBSTEPS, 2)), np.empty(steps), np.empty(steps),
-                      np.zeros(steps, dtype=bool))
+                      np.empty(steps), np.empty(steps), np.zeros(steps, dtype=bool), fallback,
+                      commands, leader, measurements)
     for k in range(steps):
         plan = estimator.plan(k + 1, held_leader_motion(latest))
         for j, substep in enumerate(step_substeps(k + 1)):
@@ -123,15 +152,16 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
             v, omega = plan.command.linear[j], plan.command.angular[j]
             truth.execute(v, omega, v_l, omega_l)
             estimator.propagate(v, omega, v_l, omega_l)
-            out.commands[k, j], out.leader[k, j] = (v, omega), latest
-        out.measurements[k] = truth.measure()
-        update = estimator.update(k + 1, out.measurements[k])
+            commands[k, j], leader[k, j] = (v, omega), latest
+        measurements[k] = truth.measure()
+        update = estimator.update(k + 1, measurements[k])
         out.innovation_nis[k], out.gated[k] = update.nis, not update.used
         out.weighted_trace[k] = estimator.weighted_trace()
         out.nees[k] = normalized_estimation_error(truth.x, estimator.x, estimator.P)
         out.estimate[k], out.truth[k], out.covariance[k] = estimator.x, truth.x, estimator.P
         out.waypoints[k] = plan.solution.p
         out.decision_time[k] = plan.solution.solve_time_s
+        fallback[k] = plan.solution.fallback is not None
     return out
 
 
@@ -142,5 +172,6 @@ def run_formation(formation: Formation, steps: int) -> dict[str, TrialResult]:
             for f in formation.followers}
 
 
-__all__ = ['SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult', 'leader_poses',
-           'run_formation', 'run_trial', 'trial_streams']
+__all__ = ['DRAWS_PER_STEP', 'SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult',
+           'initial_truth', 'leader_poses', 'run_formation', 'run_trial', 'trial_streams',
+           'true_measurement', 'true_motion']

@@ -11,13 +11,15 @@ from formopt_ros.core.strategies import STRATEGIES, PlanContext, Solution, Strat
 
 #: Names accepted by ``solve(method=...)``.
 METHODS = tuple(STRATEGIES)
+#: Context of a one-off problem: step 1, leader straight at 1 m/s.
+DEFAULT_CONTEXT = PlanContext()
 
 
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
     """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``."""
     start = time.perf_counter()
     solution = strategy.plan(problem, context)
-    return replace(solution, solve_time_s=time.perf_counter() - start)
+    return solution.with_solve_time(time.perf_counter() - start)
 
 
 def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement: str,
@@ -45,14 +47,16 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             ``STRATEGIES[method].OPTIONS`` lists them with ranges.
 
     Returns:
-        The :class:`Solution`; ``Solution.p`` has shape (2,), leader frame, metres.
+        The :class:`Solution`; ``Solution.p`` has shape (2,), leader frame, metres. RAM and RQ
+        fill ``Solution.certificate`` (what was proved about p) and, when RAM could not
+        certify its own answer, return RQ's with ``Solution.fallback = 'rq'``.
 
     Raises:
         ValueError: for a non-SPD or non-finite P, bad p_o, r <= 0 or r >= |p_o|, sigma <= 0,
             or an unknown measurement, method or option.
     """
     strategy = make_strategy(method, **options)
-    context = context or PlanContext()
+    context = context or DEFAULT_CONTEXT
     if rng is not None:
         context = replace(context, rng=rng)
     return timed_plan(strategy, Problem(P, p_o, r, sigma, measurement), context)

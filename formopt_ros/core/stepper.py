@@ -17,11 +17,12 @@ Inputs are keyed by integer nanosecond stamps. Two modes:
   odometry stamped at or before it. Stamps more than ``future_tolerance_ns`` after the
   caller's clock are refused, so one bad stamp cannot block the later real messages; so are
   inputs stamped at or before the last processed measurement (already accounted for) and
-  duplicate stamps. Inputs may come in any order otherwise (a follower that repeats its last step's messages after a
-  restart of the estimator is heard). A lost measurement is skipped (the next one carries the
-  odometry since) and counted. After a resume (:meth:`StepAssembler.open_gap`) the follower
-  odometry lost while the estimator was down is replaced by the protocol's hold sub-steps (v = 0,
-  omega = omega_L: what a follower without a waypoint does), one per missing dt, and counted.
+  duplicate stamps. Inputs may come in any order otherwise (a follower that repeats its last
+  step's messages after a restart of the estimator is heard). A lost measurement is skipped
+  (the next one carries the odometry since) and counted. After a resume
+  (:meth:`StepAssembler.open_gap`) the follower odometry lost while the estimator was down is
+  replaced by the protocol's hold sub-steps (v = 0, omega = omega_L: what a follower without a
+  waypoint does), one per missing dt, and counted.
 
 Every refusal returns a reason (a short text) to count.
 """

@@ -5,12 +5,14 @@ import math
 
 import numpy as np
 import pytest
-from scipy.optimize import minimize
 
 from formopt_ros.core import PlanContext, Problem, solve
 from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.strategies import baselines, common, make_strategy, ram
 from formopt_ros.core.strategies.ram import ram_optimum
+from harness.problems import (
+    dense_reference, flat_range_problem, hard_covariance, hard_problem, interior_bearing_problem,
+    nearly_flat_range_problem, random_geometry, random_rotation, random_sigma)
 
 KINDS = (RANGE, BEARING)
 #: Allowed relative cost excess of RAM / RQ over an independent reference (the brief's 1e-9).
@@ -22,132 +24,6 @@ FEASIBILITY_RTOL = 1e-9
 #: GBS cell (fraction of r) used in the 1000-problem cross check; any grid is an upper bound on
 #: the optimum, the coarser one keeps the suite fast (the dense reference is much finer).
 CROSS_CHECK_CELL = 0.02
-
-
-# --- problem generators --------------------------------------------------------------------------
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A Haar-distributed random rotation matrix, shape (3, 3)."""
-    Q, R = np.linalg.qr(rng.standard_normal((3, 3)))
-    Q = Q * np.sign(np.diag(R))
-    if np.linalg.det(Q) < 0:
-        Q[:, 0] = -Q[:, 0]
-    return Q
-
-
-def random_geometry(rng: np.random.Generator, r_low: float = 0.01,
-                    r_high: float = 0.5) -> tuple[np.ndarray, float]:
-    """p_o with 0.5 m <= |p_o| <= 10 m in a random direction, r in [r_low, r_high] |p_o|."""
-    d_o = rng.uniform(0.5, 10.0)
-    angle = rng.uniform(-math.pi, math.pi)
-    return d_o * np.array([math.cos(angle), math.sin(angle)]), d_o * rng.uniform(r_low, r_high)
-
-
-def random_sigma(rng: np.random.Generator, kind: str) -> float:
-    """Range noise 0.01-0.5 m, bearing noise 0.002-0.1 rad."""
-    return rng.uniform(0.01, 0.5) if kind == RANGE else rng.uniform(0.002, 0.1)
-
-
-def hard_covariance(rng: np.random.Generator, max_log_condition: float = 9.0) -> np.ndarray:
-    """Random rotation of eigenvalues spanning condition numbers up to 10**max_log_condition,
-    then a per-axis rescaling by 10**U(-1, 1) (mixed units) and an overall scale 10**U(-4, 0)."""
-    log_condition = rng.uniform(0.0, max_log_condition)
-    eigenvalues = 10.0 ** -np.array([0.0, rng.uniform(0.0, log_condition), log_condition])
-    Q = random_rotation(rng)
-    D = np.diag(10.0 ** rng.uniform(-1.0, 1.0, 3))
-    P = D @ (Q @ np.diag(eigenvalues) @ Q.T) @ D * 10.0 ** rng.uniform(-4.0, 0.0)
-    return 0.5 * (P + P.T)
-
-
-def hard_problem(rng: np.random.Generator, kind: str) -> Problem:
-    """A hard random problem of the given measurement kind (see hard_covariance)."""
-    p_o, r = random_geometry(rng)
-    return Problem(hard_covariance(rng), p_o, r, random_sigma(rng, kind), kind)
-
-
-def interior_bearing_problem(rng: np.random.Generator) -> Problem:
-    """A bearing problem built so that its optimum is (very likely) inside the disc.
-
-    For R -> 0 the gain h'Mh / h'Nh is maximised by the top eigenvector of W^2 P; with
-    P = W^-1 B W^-1 that is W times the top eigenvector of B. So B gets the top eigenvector
-    W^-1 h* for h* = [q*, -1] of a random target p* inside the disc, and sigma is made small
-    (1e-3 to 1e-1 of the heading standard deviation) so the target stays near the optimum.
-    """
-    p_o, r = random_geometry(rng, 0.05, 0.5)
-    rho, angle = r * math.sqrt(rng.uniform(0.0, 0.8)), rng.uniform(-math.pi, math.pi)
-    target = p_o + rho * np.array([math.cos(angle), math.sin(angle)])
-    h = np.array([-target[1], target[0], -float(target @ target)])     # proportional to [q, -1]
-    w = np.array([1.0, 1.0, math.hypot(*p_o)])
-    Q = random_rotation(rng)
-    Q[:, 0] = h / w / np.linalg.norm(h / w)
-    Q, _ = np.linalg.qr(Q)
-    B = Q @ np.diag([1.0, *10.0 ** -rng.uniform(0.3, 3.0, 2)]) @ Q.T
-    P = B / np.outer(w, w) * 10.0 ** rng.uniform(-4.0, 0.0)
-    P = 0.5 * (P + P.T)
-    sigma = math.sqrt(P[2, 2]) * 10.0 ** rng.uniform(-3.0, -1.0)
-    return Problem(P, p_o, r, sigma, BEARING)
-
-
-def flat_range_problem(rng: np.random.Generator) -> Problem:
-    """A range problem with P[:2, :2] = a I and P[0, 2] = P[1, 2] = 0: every direction ties."""
-    a = 10.0 ** rng.uniform(-4.0, 0.0)
-    P = np.diag([a, a, a * 10.0 ** rng.uniform(-3.0, 1.0)])
-    p_o, r = random_geometry(rng)
-    return Problem(P, p_o, r, random_sigma(rng, RANGE), RANGE)
-
-
-def nearly_flat_range_problem(rng: np.random.Generator) -> Problem:
-    """A flat range problem whose position block is perturbed by a relative 10**U(-14, -6)."""
-    flat = flat_range_problem(rng)
-    P = flat.P.copy()
-    a = P[0, 0]
-    eps = 10.0 ** rng.uniform(-14.0, -6.0)
-    E = rng.standard_normal((2, 2))
-    P[:2, :2] += a * eps * (E + E.T) / 2
-    P[0, 2] = P[2, 0] = a * eps * rng.standard_normal()
-    return Problem(P, flat.p_o, flat.r, flat.sigma, RANGE)
-
-
-# --- the independent dense reference -------------------------------------------------------------
-REFERENCE_RADII = 200
-REFERENCE_ANGLES = 720
-REFERENCE_BOUNDARY = 20000
-REFERENCE_STARTS = 3
-
-
-def dense_reference(problem: Problem) -> float:
-    """Best cost found by a fine polar grid and local polishing, using Problem.cost only.
-
-    Grid: p_o, 200 radii x 720 angles and 20000 boundary angles. Polishing: L-BFGS-B in
-    (radius fraction u in [0, 1], angle) from the 3 best mutually distant grid points; every
-    evaluated point is feasible by construction, so the result is an upper bound on the optimum.
-    """
-    r = problem.r
-    radii = r * np.arange(1, REFERENCE_RADII + 1) / REFERENCE_RADII
-    angles = np.linspace(-math.pi, math.pi, REFERENCE_ANGLES, endpoint=False)
-    boundary = np.linspace(-math.pi, math.pi, REFERENCE_BOUNDARY, endpoint=False)
-    rr = np.concatenate([[0.0], np.repeat(radii, REFERENCE_ANGLES),
-                         np.full(REFERENCE_BOUNDARY, r)])
-    aa = np.concatenate([[0.0], np.tile(angles, REFERENCE_RADII), boundary])
-    costs = problem.cost(problem.p_o + rr[:, None] * np.stack([np.cos(aa), np.sin(aa)], axis=1))
-    best = float(np.min(costs))
-
-    def cost(z: np.ndarray) -> float:
-        u = min(max(float(z[0]), 0.0), 1.0)
-        return problem.cost(problem.p_o + u * r * np.array([math.cos(z[1]), math.sin(z[1])]))
-
-    starts: list[np.ndarray] = []
-    for index in np.argsort(costs)[:5000]:
-        z = np.array([rr[index] / r, aa[index]])
-        if all(abs(z[0] - s[0]) + abs(math.remainder(z[1] - s[1], 2 * math.pi)) > 0.05
-               for s in starts):
-            starts.append(z)
-        if len(starts) == REFERENCE_STARTS:
-            break
-    for z in starts:
-        result = minimize(cost, z, method='L-BFGS-B', bounds=[(0.0, 1.0), (None, None)],
-                          options={'ftol': 1e-15, 'gtol': 1e-14, 'maxiter': 100})
-        best = min(best, float(result.fun))
-    return best
 
 
 def assert_feasible(problem: Problem, p: np.ndarray, label: str) -> None:
@@ -418,7 +294,7 @@ def test_active_polynomial_vanishes_at_rq_boundary_optimum() -> None:
 
 def test_boundary_wronskian_degree_four_harmonics_cancel() -> None:
     """On the q-circle the Wronskian of the gain's numerator and denominator has no k = +-4
-    harmonics; common._fourier is checked against direct evaluation first."""
+    harmonics; common.fourier is checked against direct evaluation first."""
     rng = np.random.default_rng(7200)
     for _ in range(200):
         problem = hard_problem(rng, BEARING)
@@ -427,8 +303,10 @@ def test_boundary_wronskian_degree_four_harmonics_cancel() -> None:
         t = rng.uniform(-math.pi, math.pi, 20)
         k = np.arange(-2, 3)
         spectra = []
-        for X in (problem.M, problem.N):
-            coefficients = common._fourier(X, a, rho)
+        for X, entries in zip((problem.M, problem.N), problem.forms):
+            k0, k1r, k1i, k2r, k2i = common.fourier(entries, centre[0], centre[1], rho)
+            k1, k2 = k1r + 1j * k1i, k2r + 1j * k2i
+            coefficients = np.array([np.conj(k2), np.conj(k1), k0, k1, k2])
             h = a + rho * np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
             direct = np.einsum('ij,jk,ik->i', h, X, h)
             series = (np.exp(1j * np.outer(t, k)) @ coefficients).real
@@ -604,7 +482,7 @@ def test_gbs_grid(cell: float) -> None:
     of points, and GBS returns its best point."""
     problem = Problem(np.diag([0.01, 0.02, 0.003]), np.array([1.5, 0.5]), 0.4, 0.01, BEARING)
     baselines._GRID_CACHE.clear()
-    points, _ = baselines.grid_monomials(problem, cell)
+    points = baselines.grid_for(BEARING, problem.slot, problem.r, cell).points
     offsets = (points - problem.p_o) / (problem.r * cell)
     # Lattice coordinates are integers (1e-9 absolute) and the lattice includes p_o itself.
     np.testing.assert_allclose(offsets, np.round(offsets), rtol=0, atol=1e-9)

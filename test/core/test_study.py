@@ -6,11 +6,19 @@ import json
 import numpy as np
 import pytest
 
+from formopt_ros.core import Problem
+from formopt_ros.core.batched import run_lanes
+from formopt_ros.core.cost import weighted_trace
 from formopt_ros.core.model import propagate_state
 from formopt_ros.core.protocol import motion_commands
-from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
+from formopt_ros.core.strategies import (
+    STRATEGIES, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.study import StudyConfig, nees_band, run_study, summarize
+
+#: Agreement of the batched engine with the per-trial reference (relative; the issue's 1e-9).
+ENGINE_RTOL = 1e-9
 
 
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
@@ -40,14 +48,71 @@ def test_common_random_numbers_across_strategies() -> None:
     assert np.abs(first - other).max() > 1e-6
 
 
-def test_study_is_independent_of_jobs() -> None:
-    """Same seed, same numbers, whatever the number of worker processes (bit for bit)."""
+def test_study_is_independent_of_jobs_and_engine() -> None:
+    """Same seed, same numbers, whatever the number of worker processes (bit for bit) and
+    whichever engine (1e-9 relative; identical in practice)."""
     config = StudyConfig('bearing', trials=3, steps=25, seed=5)
     serial, parallel = run_study(config, jobs=1), run_study(config, jobs=2)
+    reference = run_study(config, jobs=2, engine='per-trial')
     for name in config.strategies:
         np.testing.assert_array_equal(serial.records[name].weighted_trace,
                                       parallel.records[name].weighted_trace)
         np.testing.assert_array_equal(serial.records[name].nees, parallel.records[name].nees)
+        np.testing.assert_allclose(serial.records[name].weighted_trace,
+                                   reference.records[name].weighted_trace, rtol=ENGINE_RTOL)
+        np.testing.assert_allclose(serial.records[name].nees, reference.records[name].nees,
+                                   rtol=ENGINE_RTOL)
+    with pytest.raises(ValueError, match='engine'):
+        run_study(config, engine='fast')
+
+
+class Lookahead(Strategy):
+    """A stateful test strategy without plan_batch, as a long-horizon planner would be: it
+    counts its calls, reads the estimator's history and compares the exact move-dependent
+    prior of a few targets."""
+
+    name = 'test-lookahead'
+
+    def __init__(self, **options: object) -> None:
+        super().__init__(**options)
+        self.calls = 0
+
+    def plan(self, problem: Problem, context: PlanContext) -> Solution:
+        self.calls += 1
+        view = context.estimator
+        assert view is not None
+        side = 1.0 if (self.calls + len(view.history)) % 3 else -1.0
+        normal = np.array([-problem.p_o[1], problem.p_o[0]]) / problem.d_o
+        targets = [problem.p_o + side * problem.r * normal, problem.p_o - 0.5 * problem.r
+                   * normal, problem.p_o]
+        costs = [weighted_trace(view.prior_for(t), problem.p_o) for t in targets]
+        return make_solution(problem, targets[int(np.argmin(costs))], self.name)
+
+
+@pytest.mark.parametrize('kind', ['range', 'bearing'])
+@pytest.mark.parametrize('leader', ['straight', 's-curve'])
+def test_batched_engine_equals_per_trial_engine(kind: str, leader: str,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every strategy (and a stateful one without plan_batch) advanced together in one stack
+    gives each trial what run_trial gives it: all records within 1e-9 relative (identical in
+    practice), for both sensors and a straight and a turning (S-curve) leader."""
+    monkeypatch.setitem(STRATEGIES, Lookahead.name, Lookahead)
+    path = LeaderPath() if leader == 'straight' else LeaderPath('s-curve', 1.0, 0.0, 0.4, 6.0)
+    scenario = Scenario.paper(kind, leader=path)
+    names = (*STRATEGIES,)
+    options = {'gbs': {'cell': 0.02}}
+    trials, steps = (0, 1, 4), 40
+    lanes = run_lanes(scenario, names, 7, trials, steps, options)
+    for name in names:
+        for index, trial in enumerate(trials):
+            reference = run_trial(scenario, name, 7, trial, steps, options.get(name))
+            batched = lanes[name].trial(index)
+            for field in ('weighted_trace', 'nees', 'estimate', 'truth', 'covariance',
+                          'waypoints'):
+                np.testing.assert_allclose(getattr(batched, field), getattr(reference, field),
+                                           rtol=ENGINE_RTOL, atol=1e-300,
+                                           err_msg=f'{name} trial {trial} {field}')
+            np.testing.assert_array_equal(batched.fallback, reference.fallback)
 
 
 @pytest.fixture(scope='module', params=['range', 'bearing'])
@@ -93,7 +158,7 @@ def test_mtf_uncertainty_grows_in_range_case() -> None:
     assert trace[-1] > 1.3 * trace[50]
 
 
-def test_command_writes_outputs_and_figures(tmp_path) -> None:
+def test_command_writes_outputs_and_figures(tmp_path, capsys: pytest.CaptureFixture) -> None:
     """formopt-montecarlo writes summary.json, steps.csv, report.md and non-empty PNGs."""
     pytest.importorskip('matplotlib')
     from formopt_ros.cli.montecarlo import main
@@ -104,10 +169,12 @@ def test_command_writes_outputs_and_figures(tmp_path) -> None:
     assert summary['trials'] == 2 and summary['steps'] == 30
     assert set(summary['strategies']) == {'mtf', 'gbs', 'ram'}
     assert summary['options']['gbs'] == {'cell': 0.01}
+    assert 'batched engine' in capsys.readouterr().out
     assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
                                                  'mean_trace', 'nees_mean', 'nees_in_band',
                                                  'decision_time_s', 'decision_time_median_s',
-                                                 'max_innovation_nis', 'gated_updates'}
+                                                 'max_innovation_nis', 'gated_updates',
+                                                 'fallback_steps'}
     assert summary['strategies']['ram']['gated_updates'] == 0
     assert summary['scenario']['r'] == pytest.approx(0.1 * 5 ** 0.5, rel=1e-12)
     assert len((out / 'steps.csv').read_text().splitlines()) == 31
@@ -131,12 +198,33 @@ def test_command_scenario_options(tmp_path, capsys: pytest.CaptureFixture) -> No
     assert 'periodic: cycle of 4 boundary points' in out and 'designed offline in' in out
 
 
+def test_command_per_trial_engine(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """--engine per-trial runs the reference engine and writes the same summary numbers."""
+    from formopt_ros.cli.montecarlo import main
+    summaries = {}
+    for engine in ('per-trial', 'batched'):
+        out = tmp_path / engine
+        assert main(['--measurement', 'bearing', '--trials', '2', '--steps', '15', '--jobs',
+                     '2', '--strategies', 'mtf,ram,rq', '--no-figures', '--engine', engine,
+                     '--out', str(out)]) == 0
+        assert f'{engine} engine' in capsys.readouterr().out
+        summaries[engine] = json.loads((out / 'bearing' / 'summary.json').read_text())
+    for name, row in summaries['batched']['strategies'].items():
+        other = summaries['per-trial']['strategies'][name]
+        assert row['steady_trace'] == pytest.approx(other['steady_trace'], rel=ENGINE_RTOL)
+        assert row['nees_mean'] == pytest.approx(other['nees_mean'], rel=ENGINE_RTOL)
+        assert row['max_innovation_nis'] == pytest.approx(other['max_innovation_nis'],
+                                                          rel=ENGINE_RTOL)
+        assert row['gated_updates'] == other['gated_updates']
+
+
 def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
     """Unknown strategies and bad counts stop with exit code 2 and a message."""
     from formopt_ros.cli.montecarlo import main
     for argv in (['--strategies', 'ram,foo'], ['--trials', '0'], ['--jobs', '0'],
                  ['--gbs-cell', '2'], ['--gbs-cell', '1e-9'], ['--seed', '-1'],
-                 ['--r-fraction', '1'], ['--r-fraction', '0'], ['--sigma-scale', '0']):
+                 ['--r-fraction', '1'], ['--r-fraction', '0'], ['--sigma-scale', '0'],
+                 ['--engine', 'fast']):
         with pytest.raises(SystemExit) as stop:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2

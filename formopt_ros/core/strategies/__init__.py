@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 from formopt_ros.core.strategies.base import (
-    EstimatorView, OptionSpec, PlanContext, Solution, StepRecord, Strategy, make_solution)
+    BatchContext, BatchPlan, EstimatorView, OptionSpec, PlanContext, Solution, StepRecord,
+    Strategy, make_solution)
 from formopt_ros.core.strategies.baselines import (
     ActiveSideSteps, ConstrainedRandomMotion, GridSearch, MaintainFormation)
 from formopt_ros.core.strategies.periodic import PeriodicPattern
@@ -23,5 +24,5 @@ def make_strategy(name: str, **options: object) -> Strategy:
     return STRATEGIES[name](**options)
 
 
-__all__ = ['EstimatorView', 'OptionSpec', 'PlanContext', 'STRATEGIES', 'Solution',
-           'StepRecord', 'Strategy', 'make_solution', 'make_strategy']
+__all__ = ['BatchContext', 'BatchPlan', 'EstimatorView', 'OptionSpec', 'PlanContext',
+           'STRATEGIES', 'Solution', 'StepRecord', 'Strategy', 'make_solution', 'make_strategy']

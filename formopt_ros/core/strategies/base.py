@@ -17,12 +17,12 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem
+from formopt_ros.core.cost import Problem, ProblemBatch
 
 
 @dataclass(frozen=True)
 class Solution:
-    """The chosen next position, what it costs and how it was found.
+    """The chosen next position, what it costs, how it was found and what was proved about it.
 
     Attributes:
         p: chosen position in the leader frame, shape (2,), m.
@@ -34,7 +34,13 @@ class Solution:
         candidates: number of critical or grid points examined.
         solve_time_s: wall time of the strategy, s (set by the solver).
         fallback: method used when the primary route could not certify its answer, else None.
-        details: method-specific diagnostics.
+        certificate: what was proved about p (RAM and RQ; 'none' for the other strategies):
+            'interior-eigenvector' or 'boundary-bound' for a floating-point-checked proof that
+            no feasible point is cheaper by more than ``details['certificate_gap']`` (relative),
+            'all-critical-points' when every stationary point was enumerated by a polynomial
+            root finder and p is the best of them, 'none' when nothing was proved (see
+            :mod:`formopt_ros.core.strategies.certificate`).
+        details: method-specific diagnostics (the certificate's gap, multiplier and residual).
     """
 
     p: np.ndarray
@@ -46,17 +52,36 @@ class Solution:
     candidates: int = 1
     solve_time_s: float = 0.0
     fallback: str | None = None
+    certificate: str = 'none'
     details: dict[str, Any] = field(default_factory=dict)
 
+    def with_solve_time(self, seconds: float) -> 'Solution':
+        """A copy with ``solve_time_s`` set (``dataclasses.replace`` costs microseconds)."""
+        copy = object.__new__(Solution)
+        copy.__dict__.update(self.__dict__, solve_time_s=seconds)
+        return copy
 
-def make_solution(problem: Problem, p: np.ndarray, method: str, on_boundary: bool = False,
-                  candidates: int = 1, fallback: str | None = None,
-                  details: dict[str, Any] | None = None) -> Solution:
-    """A :class:`Solution` for point p (2,) with its cost and the cost at the slot."""
-    costs = problem.base_cost - problem.gain(np.vstack([p, problem.p_o]))
-    return Solution(p=p, cost=float(costs[0]), cost_at_slot=float(costs[1]), method=method,
-                    measurement=problem.measurement, on_boundary=on_boundary,
-                    candidates=candidates, fallback=fallback, details=details or {})
+
+def make_solution(problem: Problem, p: np.ndarray | Sequence[float], method: str,
+                  on_boundary: bool = False, candidates: int = 1, fallback: str | None = None,
+                  details: dict[str, Any] | None = None, certificate: str = 'none',
+                  gain: float | None = None) -> Solution:
+    """A :class:`Solution` for point p (2,) with its cost and the cost at the slot.
+
+    ``gain`` is the gain at p when the caller has it already (it must come from
+    ``problem.gain_at``, so that ``cost`` equals ``problem.cost(p)``).
+    """
+    x, y = float(p[0]), float(p[1])
+    base = problem.base_cost
+    g = problem.gain_at(x, y) if gain is None else gain
+    # every field given: fill the frozen record directly (its __init__ costs 1.5 us)
+    solution = object.__new__(Solution)
+    solution.__dict__.update(
+        p=np.array([x, y]), cost=base - g, cost_at_slot=base - problem.gain_at(*problem.slot),
+        method=method, measurement=problem.measurement, on_boundary=on_boundary,
+        candidates=candidates, solve_time_s=0.0, fallback=fallback, certificate=certificate,
+        details=details or {})
+    return solution
 
 
 @dataclass(frozen=True)
@@ -114,6 +139,47 @@ class PlanContext:
 
 
 @dataclass(frozen=True)
+class BatchContext:
+    """Per-step information for :meth:`Strategy.plan_batch`: a :class:`PlanContext` for T trials
+    advanced together (same step and leader motion; one random stream per trial).
+
+    Attributes:
+        step: the measurement step (1-based) the motion leads to.
+        leader_velocities: expected (v_L m/s, omega_L rad/s) of the leader per sub-step.
+        rngs: the random stream of each trial (CRM draws from them as :meth:`Strategy.plan`
+            would, trial by trial).
+        dt: sub-step length, s.
+        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+    """
+
+    step: int
+    leader_velocities: tuple[tuple[float, float], ...]
+    rngs: Sequence[np.random.Generator]
+    dt: float = 0.05
+    sigma_v: float = 0.2
+    sigma_omega: float = 0.1
+
+    def trial(self, t: int, estimator: 'EstimatorView | None' = None) -> PlanContext:
+        """The :class:`PlanContext` of trial t."""
+        return PlanContext(self.step, self.leader_velocities, self.rngs[t], estimator,
+                           self.dt, self.sigma_v, self.sigma_omega)
+
+
+@dataclass(frozen=True)
+class BatchPlan:
+    """The decisions of :meth:`Strategy.plan_batch` for T trials.
+
+    Attributes:
+        p: chosen positions, shape (T, 2), m.
+        fallback: per trial, True when the primary route could not certify its answer (RAM),
+            shape (T,); None when the strategy has no fallback.
+    """
+
+    p: np.ndarray
+    fallback: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class OptionSpec:
     """One strategy option: default, meaning with unit, admissible closed range [low, high]."""
 
@@ -155,17 +221,36 @@ class Strategy:
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {}
 
     def __init__(self, **options: object) -> None:
+        self.settings: dict[str, float | int | bool] = {}
+        if not options and not self.OPTIONS:
+            return
         unknown = sorted(set(options) - set(self.OPTIONS))
         if unknown:
             raise ValueError(f'method {self.name!r} accepts options {sorted(self.OPTIONS)}, '
                              f'got unknown {unknown}')
-        self.settings: dict[str, float | int | bool] = {
+        self.settings = {
             key: spec.check(self.name, key, options.get(key, spec.default))
             for key, spec in self.OPTIONS.items()}
 
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
         """The next position for ``problem`` (a :class:`Solution`, solve_time_s unset)."""
         raise NotImplementedError
+
+    def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
+        """The next positions of T trials advanced together (the batched Monte Carlo engine).
+
+        Optional. A strategy that overrides it promises that one object may serve all trials
+        and that ``plan_batch(...).p[t]`` equals ``plan(problems.problem(t),
+        context.trial(t)).p`` bit for bit (the engines' agreement test checks it). Strategies
+        that do not override it (e.g. stateful ones that read ``context.estimator``) are run by
+        the engine with one object per trial through :meth:`plan`.
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def vectorised(cls) -> bool:
+        """True when the class overrides :meth:`plan_batch`."""
+        return cls.plan_batch is not Strategy.plan_batch
 
     def __repr__(self) -> str:
         settings = ', '.join(f'{k}={v!r}' for k, v in self.settings.items())

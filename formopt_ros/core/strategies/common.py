@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, point_from_q
+from formopt_ros.core.cost import Problem, ProblemBatch, point_from_q
 from formopt_ros.core.strategies.base import Solution, make_solution
+from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED, certify
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
@@ -24,7 +26,10 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     The range gain depends on the bearing theta only, is pi-periodic and unimodal per period.
     If the unconstrained maximiser ``theta_star`` (mod pi) lies inside the arc of bearings
     ``theta_o +- delta`` under which the disc is seen, it is optimal; otherwise one of the arc's
-    end points is. On the chosen ray the point nearest p_o is ``(u . p_o) u``.
+    end points is. On the chosen ray the point nearest p_o is ``(u . p_o) u``. The answer is
+    certified (:func:`~formopt_ros.core.strategies.certificate.certify`); when rounding defeats
+    the proof, it is named 'all-critical-points' (the critical directions are known in closed
+    form and all were examined).
 
     Args:
         problem: a range problem.
@@ -33,67 +38,133 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
         candidates: critical points the caller already examined.
         method: name of the calling strategy.
     """
+    x_o, y_o = problem.slot
     if flat:
-        return make_solution(problem, problem.p_o.copy(), method, False, candidates,
-                             details={'flat': True})
+        name, details = certify(problem, (x_o, y_o))
+        return make_solution(problem, problem.p_o, method, False, candidates,
+                             certificate=name if name in PROVED else CRITICAL_POINTS,
+                             details={'flat': True, **details})
     theta_o, delta = problem.bearing_arc()
     offset = (theta_star - theta_o + 0.5 * math.pi) % math.pi - 0.5 * math.pi
-    if abs(offset) <= delta:
-        thetas = [theta_o + offset]
-    else:
-        thetas = [theta_o - delta, theta_o + delta]
-    units = np.array([[math.cos(t), math.sin(t)] for t in thetas])
-    points = (units @ problem.p_o)[:, None] * units
-    best = int(np.argmax(problem.gain(points))) if len(thetas) > 1 else 0
-    return make_solution(problem, points[best], method, len(thetas) > 1,
-                         candidates + len(thetas), details={'flat': False, 'theta': thetas[best]})
+    thetas = [theta_o + offset] if abs(offset) <= delta else [theta_o - delta, theta_o + delta]
+    best: tuple[float, float, float, float] | None = None
+    for theta in thetas:
+        c, s = math.cos(theta), math.sin(theta)
+        along = c * x_o + s * y_o
+        x, y = along * c, along * s
+        g = problem.gain_at(x, y)
+        if best is None or g > best[0]:
+            best = (g, x, y, theta)
+    assert best is not None
+    g, x, y, theta = best
+    name, details = certify(problem, (x, y), g)
+    return make_solution(problem, (x, y), method, len(thetas) > 1, candidates + len(thetas),
+                         certificate=name if name in PROVED else CRITICAL_POINTS,
+                         details={'flat': False, 'theta': theta, **details}, gain=g)
 
 
-def _fourier(X: np.ndarray, a: np.ndarray, rho: float) -> np.ndarray:
-    """Complex Fourier coefficients (k = -2..2) of t -> h(t)' X h(t), h = a + rho [cos, sin, 0].
+#: A polynomial as the tuple of its coefficients, each a float or an array (T,) (a batch).
+Poly = tuple[Any, ...]
 
-    With b = rho e1 and c = rho e2: h'Xh = a'Xa + 2 a'Xb cos + 2 a'Xc sin + b'Xb cos^2
-    + 2 b'Xc cos sin + c'Xc sin^2, and a'Xb = rho (Xa)_0, a'Xc = rho (Xa)_1, b'Xb = rho^2 X_00.
+
+def poly_mul(a: Poly, b: Poly) -> Poly:
+    """Product of two polynomials given by coefficient tuples (coefficient k multiplies the
+    k-th monomial; floats or arrays); each output coefficient sums its terms in the order of
+    a's index."""
+    out: list[Any] = [None] * (len(a) + len(b) - 1)
+    for i, ai in enumerate(a):
+        for j, bj in enumerate(b):
+            term = ai * bj
+            out[i + j] = term if out[i + j] is None else out[i + j] + term
+    return tuple(out)
+
+
+def poly_combine(*terms: tuple[Any, Poly]) -> Poly:
+    """sum_i weight_i poly_i for (weight, poly) pairs of polynomials of one length."""
+    out = [terms[0][0] * c for c in terms[0][1]]
+    for weight, poly in terms[1:]:
+        out = [o + weight * c for o, c in zip(out, poly)]
+    return tuple(out)
+
+
+def fourier(X: Any, c0: Any, c1: Any, rho: Any) -> tuple[Any, Any, Any, Any, Any]:
+    """Real and imaginary parts of the Fourier coefficients of t -> h(t)' X h(t) on
+    h(t) = [c0 + rho cos t, c1 + rho sin t, -1], for X given by its six distinct entries
+    (floats or arrays): (K_0, Re K_1, Im K_1, Re K_2, Im K_2); K_-k = conj(K_k).
+
+    With a = [c0, c1, -1], b = rho e1 and c = rho e2: h'Xh = a'Xa + 2 a'Xb cos + 2 a'Xc sin
+    + b'Xb cos^2 + 2 b'Xc cos sin + c'Xc sin^2, and a'Xb = rho (Xa)_0, a'Xc = rho (Xa)_1,
+    b'Xb = rho^2 X_00, so K_1 = rho ((Xa)_0 - i (Xa)_1), K_2 = rho^2 ((X_00 - X_11)/4 - i X_01/2).
     """
-    Xa = X @ a
+    x00, x01, x02, x11, x12, x22 = X
+    xa0, xa1 = x00 * c0 + x01 * c1 - x02, x01 * c0 + x11 * c1 - x12
+    axa = c0 * xa0 + c1 * xa1 - (x02 * c0 + x12 * c1 - x22)
     r2 = rho * rho
-    c0 = a @ Xa + 0.5 * r2 * (X[0, 0] + X[1, 1])
-    c1 = rho * (Xa[0] - 1j * Xa[1])
-    c2 = 0.5 * r2 * (0.5 * (X[0, 0] - X[1, 1]) - 1j * X[0, 1])
-    return np.array([np.conj(c2), np.conj(c1), c0, c1, c2])
+    return (axa + 0.5 * r2 * (x00 + x11), rho * xa0, -(rho * xa1),
+            0.5 * r2 * (0.5 * (x00 - x11)), -(0.5 * r2 * x01))
 
 
-def boundary_stationarity(problem: Problem) -> np.ndarray:
-    """Fourier coefficients F_k, k = -3..3, of num'(t) den(t) - num(t) den'(t) on the q-circle.
+def boundary_stationarity(problem: Problem | ProblemBatch) -> np.ndarray:
+    """Fourier coefficients F_k, k = -3..3, of num'(t) den(t) - num(t) den'(t) on the q-circle;
+    shape (7,) for a problem, (T, 7) for a batch.
 
     On the image circle q(t) = c_q + rho_q [cos t, sin t] of the disc boundary (bearing case),
-    num and den are trigonometric polynomials of degree 2, so their Wronskian has degree 4; its
-    k = +-4 harmonics are 2 i (n_2 d_-2 - ...) and cancel identically (checked in the tests),
-    leaving degree 3: at most 6 stationary points on the circle.
+    num and den are trigonometric polynomials of degree 2 (coefficients N_k, D_k, k = -2..2),
+    so their Wronskian has coefficients F_m = i sum_{j + l = m} (j - l) N_j D_l; its m = +-4
+    harmonics vanish identically (j = l = +-2; checked in the tests), leaving degree 3: at
+    most 6 stationary points on the circle. F_-m = conj(F_m) (the Wronskian is real). Real
+    arithmetic on floats or arrays, so a problem and its batch give the same bits.
     """
-    centre, rho = problem.q_disc()
-    a = np.array([centre[0], centre[1], -1.0])
-    num = _fourier(problem.M, a, rho)
-    den = _fourier(problem.N, a, rho)
-    k = np.arange(-2, 3)
-    wronskian = np.convolve(1j * k * num, den) - np.convolve(num, 1j * k * den)
-    return wronskian[1:-1]
+    c0, c1, rho = problem.q_circle
+    M, N = problem.forms
+    n0, n1r, n1i, n2r, n2i = fourier(M, c0, c1, rho)
+    d0, d1r, d1i, d2r, d2i = fourier(N, c0, c1, rho)
+    # F3 = i (N2 D1 - N1 D2); F2 = 2 i (N2 D0 - N0 D2)
+    p_r = (n2r * d1r - n2i * d1i) - (n1r * d2r - n1i * d2i)
+    p_i = (n2r * d1i + n2i * d1r) - (n1r * d2i + n1i * d2r)
+    a_r, a_i = n2r * d0 - n0 * d2r, n2i * d0 - n0 * d2i
+    # F1 = i (3 (N2 conj(D1) - conj(N1) D2) + N1 D0 - N0 D1)
+    q_r = (3.0 * ((n2r * d1r + n2i * d1i) - (n1r * d2r + n1i * d2i))
+           + (n1r * d0 - n0 * d1r))
+    q_i = (3.0 * ((n2i * d1r - n2r * d1i) - (n1r * d2i - n1i * d2r))
+           + (n1i * d0 - n0 * d1i))
+    # F0 = i (4 (N2 conj(D2) - conj(N2) D2) + 2 (N1 conj(D1) - conj(N1) D1)), real
+    f0 = -8.0 * (n2i * d2r - n2r * d2i) - 4.0 * (n1i * d1r - n1r * d1i)
+    real = np.stack(np.broadcast_arrays(-q_i, -2.0 * a_i, -p_i, f0), axis=-1)
+    imag = np.stack(np.broadcast_arrays(q_r, 2.0 * a_r, p_r), axis=-1)
+    F = np.empty(real.shape[:-1] + (7,), dtype=complex)
+    F[..., 4:] = real[..., :3] + 1j * imag
+    F[..., 3] = real[..., 3]
+    F[..., :3] = np.conj(F[..., 6:3:-1])
+    return F
 
 
 def polish_boundary_angles(F: np.ndarray, t: np.ndarray, iterations: int = 2) -> np.ndarray:
-    """Newton steps on the real trigonometric polynomial sum_k F_k e^{ikt} = 0 (k = -3..3).
+    """Newton steps on the real trigonometric polynomial f(t) = sum_k F_k e^{ikt} (k = -3..3),
+    for F (7,) and t (n,), or F (..., 7) and t (..., n); steps are clipped to 0.1 rad, and an
+    angle stops moving after a step below 1e-13 rad (Newton has converged; each result
+    depends on its own start only).
 
-    The start values are angles of companion-matrix roots, accurate to ~1e-14 except near
-    double roots (~1e-8), so two quadratically convergent steps suffice.
+    Start values from companion-matrix roots are accurate to ~1e-14 except near double roots
+    (~1e-8), so two quadratically convergent steps suffice; RAM's seeds from clustered roots
+    need a few more. With F_-k = conj(F_k) and w = e^{it}: f = F_0 + 2 Re(w (F_1 + w (F_2 +
+    w F_3))) and f' = 2 Re(i w (F_1 + w (2 F_2 + w 3 F_3))) (Horner).
     """
-    k = np.arange(-3, 4)
+    F = np.asarray(F)[..., None, :]
+    f0, f1, f2, f3 = F[..., 3].real, F[..., 4], F[..., 5], F[..., 6]
+    g2, g3 = 2.0 * f2, 3.0 * f3
     t = np.asarray(t, dtype=float).copy()
+    moving = np.ones(t.shape, dtype=bool)
     for _ in range(iterations):
-        e = np.exp(1j * np.outer(t, k))
-        value = (e @ F).real
-        slope = (e @ (1j * k * F)).real
-        step = np.where(np.abs(slope) > 0, value / np.where(slope == 0, 1.0, slope), 0.0)
-        t -= np.clip(step, -0.1, 0.1)
+        w = np.exp(1j * t)
+        value = f0 + 2.0 * (w * (f1 + w * (f2 + w * f3))).real
+        slope = -2.0 * (w * (f1 + w * (g2 + w * g3))).imag
+        with np.errstate(divide='ignore', invalid='ignore'):
+            step = np.where(moving & (slope != 0.0), np.clip(value / slope, -0.1, 0.1), 0.0)
+        t -= step
+        moving &= np.abs(step) > 1e-13
+        if not moving.any():
+            break
     return t
 
 
@@ -102,9 +173,3 @@ def boundary_points(problem: Problem, t: np.ndarray) -> np.ndarray:
     centre, rho = problem.q_disc()
     q = centre + rho * np.stack([np.cos(t), np.sin(t)], axis=-1)
     return point_from_q(q)
-
-
-def best_of(problem: Problem, points: np.ndarray) -> tuple[int, np.ndarray]:
-    """Index of the highest-gain point among points (n, 2), and all gains (n,)."""
-    gains = problem.gain(points)
-    return int(np.argmax(gains)), gains

@@ -1,0 +1,70 @@
+"""formopt-bench and the general-purpose peers (SciPy SLSQP, CasADi + IPOPT when installed)."""
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from formopt_ros.analysis import peers
+from formopt_ros.cli import bench
+from formopt_ros.core.model import BEARING, RANGE
+from formopt_ros.core.strategies.rq import rq_optimum
+from harness.problems import hard_problem
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_peers_never_beat_the_certified_optimum(kind: str) -> None:
+    """On 15 hard problems per kind every peer returns a feasible point whose cost is not below
+    the certified RQ optimum (1e-12 relative): an outside check of the certificates."""
+    rng = np.random.default_rng(31)
+    methods = peers.peer_methods(kind)
+    for _ in range(15):
+        problem = hard_problem(rng, kind)
+        optimum = rq_optimum(problem).cost
+        for name, method in methods.items():
+            p = method(problem)
+            assert np.hypot(*(p - problem.p_o)) <= problem.r * (1 + 1e-9), name
+            assert problem.cost(p) >= optimum * (1 - 1e-12), name
+
+
+def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """A small run prints one row per kind and method with the miss columns; the CSV has one
+    row per (kind, problem, method) and refuses to overwrite an existing file."""
+    path = tmp_path / 'bench.csv'
+    methods = 'ram,rq,gbs,gbs-cached,slsqp'
+    assert bench.main(['--problems', '3', '--repeats', '1', '--methods', methods,
+                       '--csv', str(path)]) == 0
+    out = capsys.readouterr().out
+    assert 'proved: range 3/3, bearing 3/3' in out
+    for kind in ('range', 'bearing'):
+        for method in methods.split(','):
+            assert any(line.split()[:2] == [kind, method] for line in out.splitlines())
+    with open(path, newline='') as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 2 * 3 * 5
+    assert {row['miss'] for row in rows if row['method'] in ('ram', 'rq')} == {'0'}
+    with pytest.raises(SystemExit) as stop:
+        bench.main(['--problems', '1', '--csv', str(path)])
+    assert stop.value.code == 2
+    assert 'refusing to overwrite' in capsys.readouterr().err
+
+
+def test_bench_skips_ipopt_without_casadi(monkeypatch: pytest.MonkeyPatch,
+                                          capsys: pytest.CaptureFixture) -> None:
+    """Without CasADi the ipopt rows are skipped with a one-line note."""
+    monkeypatch.setattr(peers, 'casadi_available', lambda: False)
+    monkeypatch.setattr(bench, 'casadi_available', lambda: False)
+    assert bench.main(['--problems', '1', '--repeats', '1', '--measurement', 'range',
+                       '--methods', 'rq,ipopt,ipopt-8']) == 0
+    out = capsys.readouterr().out
+    assert 'casadi is not installed' in out
+    assert not any(line.startswith('range    ipopt') for line in out.splitlines())
+
+
+def test_bench_rejects_unknown_methods(capsys: pytest.CaptureFixture) -> None:
+    """An unknown method stops with exit code 2 and names the accepted ones."""
+    with pytest.raises(SystemExit) as stop:
+        bench.main(['--methods', 'rq,simplex'])
+    assert stop.value.code == 2
+    assert 'ipopt-tuned' in capsys.readouterr().err

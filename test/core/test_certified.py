@@ -1,0 +1,254 @@
+"""Certificates, the RQ fast path, the exact pruned GBS and RAM on batches; the slow tier runs
+more than 10,000 problems per sensor of every generator family through RAM and RQ against an
+independent reference (test/harness/problems.py)."""
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from formopt_ros.core import Problem
+from formopt_ros.core.cost import ProblemBatch
+from formopt_ros.core.linalg import EPS, top_eigenpair3
+from formopt_ros.core.model import BEARING, RANGE
+from formopt_ros.core.strategies import baselines, certificate, ram, rq
+from formopt_ros.core.strategies.certificate import (
+    BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix)
+from harness.problems import (
+    clustered_interior_problem, dense_reference, families, hard_problem,
+    interior_bearing_problem, quick_reference, top_vector_inside)
+
+KINDS = (RANGE, BEARING)
+#: Allowed relative cost excess over a reference (the issue's 1e-9) ...
+REFERENCE_RTOL = 1e-9
+#: ... plus the rounding of the cost formula itself: cost = tr(W P W) - gain, both ~tr(W P W),
+#: so two evaluations of nearly equal costs differ by a few units of roundoff of tr(W P W).
+FORMULA_ROUNDING = 16 * EPS
+
+
+def allowed_cost(problem: Problem, reference: float) -> float:
+    """The largest cost that still counts as the optimum next to an upper-bound reference."""
+    return reference * (1 + REFERENCE_RTOL) + FORMULA_ROUNDING * problem.base_cost
+
+
+# --- plain-Python linear algebra ---------------------------------------------------------------
+def test_top_eigenpair3_matches_numpy() -> None:
+    """2000 random symmetric 3x3 matrices (scales 1e-8..1e8, clustered spectra): wherever the
+    largest eigenvalue is separated from the next by more than 1e-6 |C|, it is right to 1e-13
+    of |C| and the eigenvector's residual is below 1e-12 |C|; otherwise (a near-double top
+    eigenvalue: the vector is a mix of the top two) the value lies between the top two, to
+    1e-9 of |C|."""
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+        values = rng.choice([1.0, 1.0 + 1e-9, -0.5, 1e-8, 0.3], 3) * rng.uniform(0.5, 2, 3)
+        C = (Q * values) @ Q.T * 10.0 ** rng.uniform(-8, 8)
+        C = 0.5 * (C + C.T)
+        value, vector = top_eigenpair3(C.tolist())
+        exact = np.linalg.eigvalsh(C)
+        size = np.abs(exact).max()
+        if exact[-1] - exact[-2] > 1e-6 * size:
+            assert abs(value - exact[-1]) <= 1e-13 * size
+            assert np.linalg.norm(C @ vector - value * np.array(vector)) <= 1e-12 * size
+        else:
+            assert exact[-2] - 1e-9 * size <= value <= exact[-1] + 1e-13 * size
+
+
+def test_top_generalized_eigenvector_matches_scipy() -> None:
+    """RQ's closed-form top eigenpair of (M, N) equals scipy.linalg.eigh's on 1000 hard bearing
+    problems: eigenvalue to 1e-10 relative, residual |(M - lambda N) h| to 1e-9 of |M| |h|."""
+    rng = np.random.default_rng(12)
+    for _ in range(1000):
+        problem = hard_problem(rng, BEARING)
+        value, h = rq.top_generalized_eigenvector(*problem.forms)
+        exact = scipy.linalg.eigh(problem.M, problem.N, eigvals_only=True)[-1]
+        assert value == pytest.approx(exact, rel=1e-10)
+        residual = np.linalg.norm((problem.M - value * problem.N) @ h)
+        assert residual <= 1e-9 * np.abs(problem.M).max() * np.linalg.norm(h)
+
+
+# --- certificates ------------------------------------------------------------------------------
+@pytest.mark.parametrize('kind', KINDS)
+def test_certificate_proves_optima_and_refuses_other_points(kind: str) -> None:
+    """RQ's answers on 400 hard problems carry a proof; points whose cost is above it by more
+    than 1e-8 relative (another boundary point, the slot) never pass the test."""
+    rng = np.random.default_rng(13 + KINDS.index(kind))
+    refused = 0
+    for _ in range(400):
+        problem = hard_problem(rng, kind)
+        solution = rq.rq_optimum(problem)
+        assert solution.certificate in PROVED, solution.details
+        assert solution.details['certificate_gap'] <= 1e-10
+        offset = solution.p - problem.p_o
+        turn = math.atan2(offset[1], offset[0]) + 0.4
+        others = [problem.p_o, problem.p_o + problem.r * np.array([math.cos(turn),
+                                                                   math.sin(turn)])]
+        for other in others:
+            if problem.cost(other) > solution.cost * (1 + 1e-8):
+                name, details = certify(problem, other)
+                assert name == NONE, (name, details)
+                refused += 1
+    assert refused > 400
+
+
+def test_certificate_names_interior_and_boundary_optima() -> None:
+    """Interior optima (the top generalised eigenvector is feasible) are certified
+    'interior-eigenvector' (mu = 0), boundary optima 'boundary-bound' (mu > 0)."""
+    rng = np.random.default_rng(14)
+    names = Counter()
+    for _ in range(300):
+        problem = interior_bearing_problem(rng)
+        solution = rq.rq_optimum(problem)
+        expected = INTERIOR if top_vector_inside(problem) else BOUNDARY
+        assert solution.certificate == expected
+        assert (solution.details['certificate_multiplier'] == 0.0) == (expected == INTERIOR)
+        names[expected] += 1
+    assert names[INTERIOR] > 150 and names[BOUNDARY] > 10
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_exact_bound_matrix_matches_floating_point(kind: str) -> None:
+    """The exact rational S = lambda B - A + mu G equals the floating-point one (Jacobi-scaled
+    entries, 1e-12 of the largest)."""
+    rng = np.random.default_rng(15 + KINDS.index(kind))
+    for _ in range(100):
+        problem = hard_problem(rng, kind)
+        solution = rq.rq_optimum(problem)
+        g = problem.gain_at(*solution.p)
+        mu = solution.details['certificate_multiplier']
+        A, B, G, _ = certificate.quotient_system(problem)
+        exact = exact_bound_matrix(problem, g, mu)
+        d = [1 / math.sqrt(B[i]) for i in (0, 3, 5)]
+        pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        scaled = [float(e) * d[i] * d[j] for e, (i, j) in zip(exact, pairs)]
+        floating = [(g * b - a + mu * c) * d[i] * d[j]
+                    for a, b, c, (i, j) in zip(A, B, G, pairs)]
+        size = max(g, max(A[0] * d[0] ** 2, A[3] * d[1] ** 2, A[5] * d[2] ** 2))
+        np.testing.assert_allclose(scaled, floating, rtol=0, atol=1e-12 * size)
+
+
+def test_rq_exhaustive_route_agrees_with_fast_path() -> None:
+    """With the fast path switched off, the companion-matrix route finds the same cost (1e-12
+    relative) and certifies it on 300 hard bearing problems."""
+    rng = np.random.default_rng(16)
+    for _ in range(300):
+        problem = hard_problem(rng, BEARING)
+        fast = rq.rq_optimum(problem)
+        slow = rq._plan_bearing_exhaustive(problem, 'rq')
+        assert slow.certificate in (*PROVED, CRITICAL_POINTS)
+        assert slow.cost == pytest.approx(fast.cost, rel=1e-12)
+
+
+def test_ram_falls_back_visibly_when_it_cannot_certify(monkeypatch: pytest.MonkeyPatch) -> None:
+    """When the certificate refuses RAM's best critical point, RAM returns RQ's certified point
+    with fallback 'rq' and the reason; with fallback=False it raises."""
+    problem = hard_problem(np.random.default_rng(17), BEARING)
+    monkeypatch.setattr(ram, 'certify', lambda *args, **kwargs: (NONE, {}))
+    solution = ram.ram_optimum(problem)
+    assert solution.fallback == 'rq'
+    assert solution.details['reason'] == 'best critical point not certified'
+    assert solution.certificate in PROVED
+    np.testing.assert_array_equal(solution.p, rq.rq_optimum(problem).p)
+    with pytest.raises(FloatingPointError, match='not certified'):
+        ram.ram_optimum(problem, fallback=False)
+
+
+def test_ram_without_admissible_candidate_falls_back() -> None:
+    """A tiny disc (r = 2e-6 |p_o|) on which no root survives back-substitution: RAM falls
+    back to RQ with the reason (a batch of one with no candidate used to raise IndexError)."""
+    P = np.array([[0.0009270791479223851, 0.00026386589850665304, 0.0003848453165774923],
+                  [0.00026386589850665304, 0.3525637262645308, 0.002561194735714226],
+                  [0.0003848453165774923, 0.002561194735714226, 0.001330527300091233]])
+    problem = Problem(P, np.array([0.23826981636501407, 8.511821813068753]),
+                      1.6109330596150364e-05, 0.0516700924645838, BEARING)
+    solution = ram.ram_optimum(problem)
+    assert solution.fallback == 'rq'
+    assert solution.details['reason'] == 'no admissible critical point'
+    assert solution.certificate in PROVED
+
+
+# --- RAM on a batch ----------------------------------------------------------------------------
+@pytest.mark.parametrize('kind', KINDS)
+def test_ram_batch_equals_single_problems(kind: str) -> None:
+    """ram_batch on 80 problems (hard ones, and clustered interior ones for bearing) gives
+    every problem the point ram_optimum gives it alone, bit for bit, and the same fallback."""
+    rng = np.random.default_rng(18 + KINDS.index(kind))
+    problems = [hard_problem(rng, kind) for _ in range(60)]
+    if kind == BEARING:
+        problems += [clustered_interior_problem(rng) for _ in range(20)]
+    points, fallback = ram.ram_batch(ProblemBatch.stack(problems))
+    for index, problem in enumerate(problems):
+        single = ram.ram_optimum(problem)
+        np.testing.assert_array_equal(points[index], single.p)
+        assert fallback[index] == (single.fallback is not None)
+
+
+# --- GBS ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize('kind', KINDS)
+@pytest.mark.parametrize('cell', [0.05, 0.02])
+def test_pruned_gbs_equals_a_full_scan(kind: str, cell: float) -> None:
+    """GBS skips blocks by a bound but returns the grid point a full scan returns (the highest
+    gain, ties to the lowest row-major index) on 150 hard problems; a batch of problems with
+    one geometry returns each problem's own point."""
+    rng = np.random.default_rng(19 + KINDS.index(kind))
+    gbs = baselines.GridSearch(cell=cell)
+    for _ in range(150):
+        problem = hard_problem(rng, kind)
+        grid = baselines.grid_for(kind, problem.slot, problem.r, cell)
+        gains = np.asarray(problem.gain_at(grid.points[:, 0], grid.points[:, 1]))
+        best = gains == gains.max()
+        expected = grid.points[np.flatnonzero(best)[np.argmin(grid.rank[best])]]
+        np.testing.assert_array_equal(gbs.plan(problem, None).p, expected)
+    shared = [Problem(hard_problem(rng, kind).P, problem.p_o, problem.r, problem.sigma, kind)
+              for _ in range(30)]
+    batch = gbs.plan_batch(ProblemBatch.stack(shared), None)
+    for index, one in enumerate(shared):
+        np.testing.assert_array_equal(batch.p[index], gbs.plan(one, None).p)
+
+
+# --- the slow tier: every family, 10,000+ problems per sensor ----------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize('kind', KINDS)
+def test_every_answer_is_certified_and_optimal(kind: str) -> None:
+    """Every generator family (families() in test/harness/problems.py; 10,000+ problems per
+    sensor): RQ's answers carry a proof (or, when rounding defeats it, the enumeration of all
+    critical points), RAM's answers carry a proof or are RQ's with ``fallback`` set, and every
+    cost is within 1e-9 relative (plus the cost formula's own rounding) of the independent
+    quick reference. The clustered-interior family, where RAM used to return wrong points, is
+    also checked against the dense reference (40 problems), and RAM's own route must stand on
+    all of it; overall it stands on 90 % or more (it falls back, visibly, where its
+    elimination polynomials lose accuracy: mostly condition numbers above 1e9)."""
+    seed = {RANGE: 20, BEARING: 21}[kind]
+    total, failures, tally, proved = 0, [], Counter(), Counter()
+    for name, (generator, count) in families(kind).items():
+        rng = np.random.default_rng([seed, len(name)])
+        problems = [generator(rng) for _ in range(count)]
+        total += count
+        points, fallback = ram.ram_batch(ProblemBatch.stack(problems))
+        for index, problem in enumerate(problems):
+            exact = rq.rq_optimum(problem)
+            tally[('rq', exact.certificate)] += 1
+            if exact.certificate not in (*PROVED, CRITICAL_POINTS):
+                failures.append((name, index, 'rq uncertified', exact.details))
+            ram_cost = problem.cost(points[index])
+            if fallback[index]:
+                tally[('ram', 'fallback')] += 1
+                if not np.array_equal(points[index], exact.p):
+                    failures.append((name, index, 'ram fallback differs from rq'))
+            else:
+                tally[('ram', 'proved')] += 1
+                proved[name] += 1
+            reference = quick_reference(problem)
+            if name == 'clustered interior' and index < 40:
+                reference = min(reference, dense_reference(problem))
+            for label, cost in (('rq', exact.cost), ('ram', ram_cost)):
+                if cost > allowed_cost(problem, reference):
+                    failures.append((name, index, label, cost / reference - 1))
+    assert total >= 10_000
+    assert not failures, (failures[:20], len(failures), tally)
+    assert tally[('ram', 'proved')] >= 0.9 * total, (tally, proved)
+    if kind == BEARING:
+        assert proved['clustered interior'] == families(kind)['clustered interior'][1], proved
