@@ -18,9 +18,7 @@ from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
-from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
-from formopt_ros.core.strategies.periodic_design import SteadyConditions, design_pattern
 from formopt_ros.core.study import (
     ENGINES, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_studies,
     summarize)
@@ -183,6 +181,7 @@ def report_markdown(summary: dict[str, Any]) -> str:
     largest = max(r['max_innovation_nis'] for r in rows)
     lines += ['', f'Innovation gate ({INNOVATION_GATE:g}): {gated} of {updates} updates '
               f'refused; largest normalised innovation squared {largest:.3g}.']
+    lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
     return '\n'.join(lines) + '\n'
 
 
@@ -233,24 +232,6 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
-def describe_periodic_design(scenario: Scenario, options: dict[str, object]) -> str:
-    """One line on the cycle PERIODIC plays in ``scenario`` and the time its design takes."""
-    conditions = SteadyConditions.from_scenario(scenario)
-    if conditions is None:
-        return 'periodic: the leader turns; no cycle (greedy throughout)'
-    period = int(make_strategy('periodic', **options).settings['period'])
-    start = time.perf_counter()
-    design = design_pattern(conditions, period)
-    elapsed = time.perf_counter() - start
-    if design is None:
-        return f'periodic: no cycle has a steady state (greedy throughout); search {elapsed:.2f} s'
-    angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
-    return (f'periodic: cycle of {period} boundary points at [{angles}] deg around p_o, steady '
-            f'tr(W P W) {design.steady_cost:.6g} m^2, settles in {design.horizon} steps; '
-            f'designed offline in {elapsed:.2f} s ({design.evaluations} cycles evaluated; '
-            'once per scenario and worker process)')
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = build_parser()
@@ -270,11 +251,8 @@ def main(argv: list[str] | None = None) -> int:
                           partial(write_into, args.out, not args.no_figures))
     if bar:
         bar.close()
-    for config, result in zip(configs, results):
+    for result in results:
         print(report_markdown(summarize(result)))
-        if 'periodic' in strategies:
-            print(describe_periodic_design(result.scenario, config.strategy_options('periodic')))
-            print()
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
           f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')

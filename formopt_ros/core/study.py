@@ -22,6 +22,7 @@ from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
+from formopt_ros.core.strategies.periodic import describe_design
 
 #: Names of every strategy, in the order of the paper's comparison.
 METHODS = tuple(STRATEGIES)
@@ -99,26 +100,37 @@ class StudyResult:
     config: StudyConfig
     scenario: Scenario
     records: dict[str, StrategyRecord] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)   # strategy -> one line (PERIODIC)
 
 
 #: A unit of work: (config, strategies advanced together, trials).
 Task = tuple[StudyConfig, tuple[str, ...], tuple[int, ...]]
 #: Rough relative cost of a strategy in the batched engine (to balance the worker processes).
 COST = {('bearing', 'ram'): 5.0, ('bearing', 'rq'): 4.5, ('bearing', 'gbs'): 2.5,
-        ('range', 'ram'): 3.0, ('range', 'rq'): 2.5, ('range', 'gbs'): 2.0}
+        ('bearing', 'periodic'): 6.5, ('range', 'ram'): 3.0, ('range', 'rq'): 2.5,
+        ('range', 'gbs'): 2.0, ('range', 'periodic'): 8.5}
 
 
-def _task(task: Task) -> tuple[StudyConfig, list[tuple[str, int, TrialResult]]]:
+#: What a task returns: (config, [(strategy, trial, records)], notes).
+Output = tuple[StudyConfig, list[tuple[str, int, TrialResult]], dict[str, str]]
+
+
+def _task(task: Task) -> Output:
     config, strategies, trials = task
     scenario = config.make_scenario()
     options = {name: config.strategy_options(name) for name in strategies}
     if len(strategies) == 1 and len(trials) == 1:
         name, trial = strategies[0], trials[0]
-        return config, [(name, trial, run_trial(scenario, name, config.seed, trial,
-                                                config.steps, options[name]))]
-    lanes = run_lanes(scenario, strategies, config.seed, trials, config.steps, options)
-    return config, [(name, trial, lanes[name].trial(i)) for name in strategies
-                    for i, trial in enumerate(trials)]
+        runs = [(name, trial, run_trial(scenario, name, config.seed, trial, config.steps,
+                                        options[name]))]
+    else:
+        lanes = run_lanes(scenario, strategies, config.seed, trials, config.steps, options)
+        runs = [(name, trial, lanes[name].trial(i)) for name in strategies
+                for i, trial in enumerate(trials)]
+    # the cycle PERIODIC designed in this worker (cached: no second design)
+    notes = {'periodic': describe_design(scenario, options['periodic'])} \
+        if 'periodic' in strategies and 0 in trials else {}
+    return config, runs, notes
 
 
 def _cost(config: StudyConfig, strategy: str) -> float:
@@ -204,13 +216,13 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
 
 
 def _collect(results: list[StudyResult],
-             output: tuple[StudyConfig, list[tuple[str, int, TrialResult]]],
-             progress: Callable[[int], None] | None,
+             output: Output, progress: Callable[[int], None] | None,
              pending: dict[int, int]) -> StudyResult | None:
     """Store one task's runs; the config's result once its last task is in, else None."""
-    config, runs = output
+    config, runs, notes = output
     # configs come back pickled from worker processes: match them by value
     result = next(r for r in results if r.config == config)
+    result.notes.update(notes)
     for strategy, trial, out in runs:
         record = result.records[strategy]
         record.weighted_trace[trial] = out.weighted_trace
@@ -267,4 +279,5 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],
             'scenario': result.scenario.to_dict(),
             'options': {name: config.settings(name) for name in strategies},
-            'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies}
+            'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies,
+            'notes': dict(result.notes)}

@@ -26,7 +26,7 @@ greedy, turning fallbacks and switch tests.
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from formopt_ros.core.strategies.base import (
 from formopt_ros.core.strategies.periodic_design import (
     PatternDesign, SteadyConditions, cached_design, greedy_target, noise_free_step)
 from formopt_ros.core.strategies.rq import rq_optimum
+
+if TYPE_CHECKING:
+    from formopt_ros.core.scenario import Scenario
 
 GREEDY = 'greedy'
 PATTERN = 'pattern'
@@ -210,3 +213,20 @@ class PeriodicPattern(Strategy):
                     else self.design.costs[self.phase])
         actual = weighted_trace(P, self.design.conditions.slot)
         return actual <= (1.0 + float(self.settings['tolerance'])) * expected
+
+
+def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
+    """One line on the cycle PERIODIC plays in ``scenario`` and the time its design took (from
+    this process's cache: free after a run, designed now otherwise)."""
+    conditions = SteadyConditions.from_scenario(scenario)
+    if conditions is None:
+        return 'the leader turns; no cycle (greedy throughout)'
+    period = int(PeriodicPattern(**options).settings['period'])
+    design = cached_design(conditions, period)[0]
+    if design is None:
+        return 'no cycle has a steady state (greedy throughout)'
+    angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
+    return (f'cycle of {period} boundary points at [{angles}] deg around p_o, steady '
+            f'tr(W P W) {design.steady_cost:.6g} m^2, settles in {design.horizon} steps; '
+            f'designed offline in {design.design_time_s:.2f} s ({design.evaluations} cycles '
+            'evaluated; once per scenario and worker process)')

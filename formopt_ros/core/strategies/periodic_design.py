@@ -254,12 +254,8 @@ class PatternDesign:
         periods = -(-steps // m)
         powers = ratio[None] ** np.arange(periods)[:, None, None]          # (periods, 3, 3)
         Z = vectors[:, dominant][None] + vectors[:, subdominant] @ (G * powers)
-        Z = np.einsum('mij,njk->nmik', partial, Z).reshape(-1, 6, 3)[:steps]
-        X, Y = Z[:, :3], Z[:, 3:]
-        covariances = np.real(np.swapaxes(np.linalg.solve(np.swapaxes(Y, 1, 2),
-                                                          np.swapaxes(X, 1, 2)), 1, 2))
-        w2 = weight_vector(self.conditions.slot) ** 2
-        return np.einsum('i,nii->n', w2, covariances)
+        Z = (partial[None] @ Z[:, None]).reshape(-1, 6, 3)[:steps]
+        return _weighted_ratio_trace(Z[:, :3], Z[:, 3:], weight_vector(self.conditions.slot))
 
     def rollout_costs(self, x: np.ndarray, P: np.ndarray, phase: int,
                       steps: int) -> np.ndarray:
@@ -277,6 +273,21 @@ class PatternDesign:
         if steps <= 2:
             return np.array(head)
         return np.concatenate([head, self.future_costs((phase + 1) % m, P, steps - 2)])
+
+
+def _weighted_ratio_trace(X: np.ndarray, Y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """tr(W X Y^-1 W) (n,) for stacks X, Y (n, 3, 3) (complex allowed; the real part), with
+    Y^-1 by its adjugate: element-wise arithmetic on (n,) columns, several times faster than
+    a stacked LAPACK solve of 3 x 3 systems."""
+    (a, b, c), (d, e, f), (g, h, i) = (Y[:, 0, 0], Y[:, 0, 1], Y[:, 0, 2]), \
+        (Y[:, 1, 0], Y[:, 1, 1], Y[:, 1, 2]), (Y[:, 2, 0], Y[:, 2, 1], Y[:, 2, 2])
+    inverse = ((e * i - f * h, c * h - b * i, b * f - c * e),     # adj(Y), row by row
+               (f * g - d * i, a * i - c * g, c * d - a * f),
+               (d * h - e * g, b * g - a * h, a * e - b * d))
+    det = a * inverse[0][0] + b * inverse[1][0] + c * inverse[2][0]
+    total = sum(w[j] * w[j] * (X[:, j, 0] * inverse[0][j] + X[:, j, 1] * inverse[1][j]
+                               + X[:, j, 2] * inverse[2][j]) for j in range(3))
+    return np.real(total / det)
 
 
 def arrival_pose(x: np.ndarray, target: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
