@@ -20,8 +20,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
-    ENGINES, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, nees_band, run_studies,
-    summarize)
+    ENGINES, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, memory_estimate, nees_band,
+    run_studies, summarize)
 from formopt_ros.wire.jsonfile import write_json
 
 FIGURE_NAMES = {'range': 'fig5_range_weighted_trace.png',
@@ -232,6 +232,11 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
+def physical_memory() -> int:
+    """This machine's memory, bytes."""
+    return os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES')
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = build_parser()
@@ -245,6 +250,12 @@ def main(argv: list[str] | None = None) -> int:
                    for kind in kinds]
     except ValueError as error:
         fail(parser.prog, str(error))
+    need, have = memory_estimate(configs), physical_memory()
+    if need > have // 2:
+        fail(parser.prog, f'--trials {args.trials} x --steps {args.steps}: the study would hold '
+                          f'about {need / 2**30:.1f} GiB of records, more than half of the '
+                          f"{have / 2**30:.1f} GiB of this machine's memory; lower --trials or "
+                          '--steps')
     bar = _progress(args.trials * len(strategies) * len(kinds), ' + '.join(kinds))
     # each kind's outputs (figures take a second) are written as soon as its runs are in
     results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,

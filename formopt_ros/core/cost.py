@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import operator
+import sys
 from collections.abc import Callable
 from dataclasses import InitVar, dataclass
 from typing import Any, Generic, TypeVar, overload
@@ -139,10 +140,38 @@ def quotient_gain(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[A
     return weighted_sum(num[:-1], terms, num[-1]) / weighted_sum(den[:-1], terms, den[-1])
 
 
+#: Largest allowed deviation r as a fraction of |p_o|. Closer to the leader the image of the
+#: disc under the bearing's inversion (radius r / (|p_o|^2 - r^2)) grows without bound and the
+#: boundary series lose every digit: at r = 0.999999 |p_o| RQ and RAM returned points worse
+#: than the slot. Up to this bound the slow tier finds no wrong answer ('r near |p_o|').
+MAX_DEVIATION = 0.999
+
+
+def check_disc(x_o: float, y_o: float, r: float) -> float:
+    """|p_o| (m) when the disc of radius r (m) around p_o = (x_o, y_o) is a valid feasible
+    set: r <= MAX_DEVIATION |p_o| and every square of the problem a normal float; else
+    ValueError saying which."""
+    d_o = math.hypot(x_o, y_o)
+    if not r <= MAX_DEVIATION * d_o:
+        raise ValueError(f'r must be at most {MAX_DEVIATION} |p_o| = {MAX_DEVIATION * d_o:.6g} '
+                         f'm so that the disc keeps clear of the leader, got r = {r:.6g} m')
+    margin = d_o * d_o - r * r
+    if not (math.isfinite(d_o * d_o) and margin >= sys.float_info.min
+            and r * r >= sys.float_info.min):
+        raise ValueError(f'|p_o| = {d_o:.6g} m and r = {r:.6g} m are outside the range of '
+                         'double precision (their squares overflow or underflow); give them '
+                         'in metres')
+    return d_o
+
+
 def _check_array(name: str, value: object,
                  shape: tuple[int, ...]) -> tuple[np.ndarray, list[float]]:
-    """(value as a float array, its entries as a flat list) or ValueError naming ``name``."""
-    arr = np.asarray(value, dtype=float)
+    """(value as a float array, its entries as a flat list) or ValueError naming ``name``;
+    only real numbers are accepted (not booleans, complex numbers or objects)."""
+    raw = np.asarray(value)
+    if raw.dtype.kind not in 'iuf':
+        raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
+    arr = raw.astype(float)
     if arr.shape != shape:
         raise ValueError(f'{name} must have shape {shape}, got shape {arr.shape}')
     flat = arr.ravel().tolist()
@@ -152,6 +181,8 @@ def _check_array(name: str, value: object,
 
 
 def _check_positive(name: str, value: float, unit: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {value!r}')
     number = float(value)
     if not math.isfinite(number) or number <= 0.0:
         raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {value!r}')
@@ -257,10 +288,7 @@ class Problem(_QuotientForms):
         p_o, (x_o, y_o) = _check_array('p_o', self.p_o, (2,))
         r = _check_positive('r', self.r, 'm')
         sigma = _check_positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
-        d_o = math.hypot(x_o, y_o)
-        if r >= d_o:
-            raise ValueError(f'r must be smaller than |p_o| = {d_o:.6g} m so that the disc '
-                             f'does not reach the leader, got r = {r:.6g} m')
+        d_o = check_disc(x_o, y_o, r)
         for name, value in (('P', P), ('p_o', p_o), ('r', r), ('sigma', sigma)):
             object.__setattr__(self, name, value)
         self.__dict__.update(entries=entries, slot=(x_o, y_o), d_o=d_o)

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.cost import check_disc
 from formopt_ros.core.model import BEARING, MEASUREMENT_KINDS, RANGE
 from formopt_ros.core.strategies import make_strategy
 
@@ -181,13 +182,10 @@ class Scenario:
         p_o = tuple(_finite('p_o', v) for v in self.p_o)
         if len(p_o) != 2:
             raise ValueError(f'p_o must be [x, y] in m, got {list(self.p_o)!r}')
-        d_o = math.hypot(*p_o)
-        if d_o == 0.0:
+        if math.hypot(*p_o) == 0.0:
             raise ValueError('p_o must not be the leader position [0, 0]')
         r = _positive('r', self.r, 'm')
-        if r >= d_o:
-            raise ValueError(f'r must be smaller than |p_o| = {d_o:.6g} m so that the disc does '
-                             f'not reach the leader, got r = {r:.6g} m')
+        check_disc(p_o[0], p_o[1], r)
         _positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
         _positive('dt', self.dt, 's')
         _non_negative('sigma_v', self.sigma_v, 'm/s')

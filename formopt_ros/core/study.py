@@ -133,6 +133,17 @@ def _task(task: Task) -> Output:
     return config, runs, notes
 
 
+#: Bytes a study holds per (strategy, trial, step): the batched engine's records (estimate,
+#: truth, covariance, waypoint, traces, flags: ~190 B) plus the copies returned by the
+#: workers, rounded up.
+BYTES_PER_STEP = 300
+
+
+def memory_estimate(configs: list[StudyConfig]) -> int:
+    """Bytes the records of these studies take at their peak (an upper estimate)."""
+    return sum(BYTES_PER_STEP * c.trials * c.steps * len(c.strategies) for c in configs)
+
+
 def _cost(config: StudyConfig, strategy: str) -> float:
     return COST.get((config.measurement, strategy), 0.5) * config.trials * config.steps
 

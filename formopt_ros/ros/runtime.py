@@ -1,6 +1,7 @@
 """How every node process runs: arguments, help, the spin loop, signals and exit codes."""
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import signal
@@ -16,7 +17,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from formopt_ros.ros.params import Param, ParameterError
+from formopt_ros.ros.params import ROS_PARAMETERS, Param, ParameterError
 from formopt_ros.wire.jsonfile import write_json
 
 
@@ -138,28 +139,56 @@ def help_text(program: str, summary: str, specs: Sequence[Param]) -> str:
     return '\n'.join(lines)
 
 
+def unknown_parameters(argv: Sequence[str], specs: Sequence[Param]) -> list[str]:
+    """Names set with ``-p NAME:=VALUE`` (inside --ros-args, node-local or not) that the node
+    does not declare: refused, since a typo would otherwise leave a default in force silently.
+    A parameters file may carry other nodes' parameters (``/**``): those are only warned about
+    (see :func:`~formopt_ros.ros.params.declare`)."""
+    known = {spec.name for spec in specs} | ROS_PARAMETERS
+    names, inside, previous = [], False, ''
+    for arg in argv:
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--':
+            inside = False
+        elif inside and previous in ('-p', '--param') and ':=' in arg:
+            name = arg.split(':=', 1)[0]
+            names.append(name.rpartition(':')[2])       # 'node:name' -> 'name'
+        previous = arg
+    return [name for name in names if name not in known]
+
+
 def node_main(factory: Callable[[], Node], program: str, summary: str,
               specs: Sequence[Param], args: list[str] | None = None) -> int:
     """Run one node process; returns the exit code.
 
-    ``-h``/``--help`` (before ``--ros-args``) prints the parameters and exits 0; any other
-    argument outside ``--ros-args`` is refused with exit code 2, as is a ParameterError (one line
-    naming the parameter). SIGINT and SIGTERM end the spin loop (within 0.1 s) while the context
-    is still valid, so ``close()`` can still publish and write; then the context shuts down.
+    ``-h``/``--help`` (anywhere, also after ``--ros-args``) prints the parameters and exits 0;
+    any other argument outside ``--ros-args``, a ``-p`` parameter the node does not have and a
+    ParameterError are refused with exit code 2 and one line naming the argument. SIGINT and
+    SIGTERM end the spin loop (within 0.1 s) while the context is still valid, so ``close()``
+    can still publish and write; then the context shuts down.
     """
     from rclpy.utilities import remove_ros_args
     argv = list(sys.argv if args is None else [program, *args])
+    if any(a in ('-h', '--help') for a in argv[1:]):     # also after --ros-args (the scripts)
+        print(help_text(program, summary, specs))
+        return 0
     try:
         plain = remove_ros_args(argv)[1:]
     except Exception as error:              # malformed --ros-args section
         print(f'{program}: error: bad ROS arguments: {error}', file=sys.stderr)
         return 2
-    if any(a in ('-h', '--help') for a in plain):
-        print(help_text(program, summary, specs))
-        return 0
     if plain:
         print(f'{program}: error: unknown argument {plain[0]!r} (node parameters go after '
               '--ros-args as -p NAME:=VALUE; see --help)', file=sys.stderr)
+        return 2
+    unknown = unknown_parameters(argv, specs)
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], [spec.name for spec in specs], n=1,
+                                          cutoff=0.8)
+        hint = f"; did you mean '{close[0]}'?" if close else ''
+        print(f'{program}: error: unknown parameter {unknown[0]!r} for {program}{hint} (see '
+              '--help for its parameters)', file=sys.stderr)
         return 2
     fast_announcements()
     try:

@@ -144,13 +144,19 @@ class Probe(Node):
         return out
 
 
+def declared(node: str, params: dict[str, Any]) -> dict[str, Any]:
+    """The parameters among ``params`` that formation node ``node`` declares (a node refuses
+    others)."""
+    import importlib
+    names = {spec.name for spec in importlib.import_module(
+        f'formopt_ros.ros.nodes.{node}').PARAMS} | {'use_sim_time'}
+    return {k: v for k, v in params.items() if k in names}
+
+
 def node_args(node: str, robot: str, params: dict[str, Any]) -> list[str]:
     """Node-local ROS arguments: the robot's namespace under PREFIX and the parameters the node
     declares (a formation node also waits for the probe: recorders:=1 unless given)."""
-    import importlib
-    declared = {spec.name for spec in importlib.import_module(
-        f'formopt_ros.ros.nodes.{node}').PARAMS} | {'use_sim_time'}
-    values = {k: v for k, v in {**WITH_PROBE, **params}.items() if k in declared}
+    values = declared(node, {**WITH_PROBE, **params})
     return ['--ros-args', '-r', f'__ns:={namespace(robot)}', *parameter_args(values)]
 
 
@@ -279,7 +285,7 @@ class NodeProcess:
                  robot: str | None = None, extra: list[str] | None = None) -> None:
         self.node = node
         if node in ROBOT:
-            params = {**WITH_PROBE, **(params or {})}
+            params = declared(node, {**WITH_PROBE, **(params or {})})
         robot = ROBOT.get(node) if robot is None else robot
         remap = ['-r', f'__ns:={namespace(robot)}'] if robot else ['-r', f'__ns:={PREFIX}']
         self.process = subprocess.Popen(

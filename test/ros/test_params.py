@@ -27,3 +27,47 @@ def test_bad_parameter_exits_2(node_process, node: str, name: str, value: str,
     assert f"parameter '{name}'" in stderr
     assert f'got {shown}' in stderr
     assert ' ready ' not in stderr
+
+
+MISUSE = [
+    ('estimator_planner', ['-p', 'whatever:=1'], "unknown parameter 'whatever'"),
+    ('estimator_planner', ['-p', 'stratgy:=rq'], "did you mean 'strategy'"),
+    ('estimator_planner', ['--bogus'], 'bad ROS arguments'),
+    ('estimator_planner', ['--params-file', '/nonexistent/p.yaml'], 'params file'),
+    ('estimator_planner', ['-p', 'gbs_cell:=0.0001'], "parameter 'gbs_cell' must be"),
+    ('follower_sim', ['-p', 'formation_slot:=[.nan, 1.0]'], "parameter 'formation_slot'"),
+    ('follower_sim', ['-p', 'summary_path:=/dev/null/s.json'], "parameter 'summary_path'"),
+    ('leader_sim', ['-p', 'checkpoint_path:=/dev/null/c.pkl'], "parameter 'checkpoint_path'"),
+    ('recorder', ['-p', 'chunk_size:=100000000', '-p', 'output_path:=/tmp/never.mcap'],
+     "parameter 'chunk_size' must be an integer in [1024, 67108864]"),
+]
+
+
+@pytest.mark.parametrize(('node', 'extra', 'text'), MISUSE,
+                         ids=[f'{m[0]}-{m[1][-1][:20]}' for m in MISUSE])
+def test_misuse_is_one_line_exit_2(node_process, node: str, extra: list[str],
+                                   text: str) -> None:
+    """Typos, unknown parameters, values that would hang or exhaust memory, unwritable
+    outputs: refused at start with exit code 2 and one 'node: error:' line, no traceback."""
+    process = node_process(node, {}, extra=extra)
+    assert process.wait(timeout=60.0) == 2, process.stderr
+    errors = [line for line in process.stderr.splitlines() if f'{node}: error:' in line]
+    assert len(errors) == 1 and text in errors[0], process.stderr
+    assert 'Traceback' not in process.stderr and ' ready ' not in process.stderr
+
+
+def test_existing_summary_is_not_overwritten(node_process, tmp_path) -> None:
+    """An existing summary file is refused at start (unless the node resumes a checkpoint)."""
+    summary = tmp_path / 'summary.json'
+    summary.write_text('{"earlier": true}')
+    process = node_process('leader_sim', {'summary_path': str(summary)})
+    assert process.wait(timeout=60.0) == 2 and 'exists; refusing' in process.stderr
+    assert summary.read_text() == '{"earlier": true}'
+
+
+def test_help_does_not_start_the_node(node_process) -> None:
+    """--help prints every parameter and exits 0 without starting a node."""
+    process = node_process('estimator_planner', {}, extra=['--help'])
+    assert process.wait(timeout=60.0) == 0
+    assert 'resend_timeout' in process.stdout and 'checkpoint_path' in process.stdout
+    assert ' ready ' not in process.stderr

@@ -33,8 +33,8 @@ PARAMS = [
           '(empty: none)'),
     Param('flush_period', 1.0, 'close the current chunk and flush it to disk this often, s '
           '(bounds the loss when the recorder is killed)', 0.01, 60.0),
-    Param('chunk_size', 1 << 20, 'uncompressed MCAP chunk size that also closes a chunk, bytes',
-          1024, 1 << 30),
+    Param('chunk_size', 1 << 20, 'uncompressed MCAP chunk size that also closes a chunk, bytes '
+          '(a chunk is held in memory until written: at most 64 MiB)', 1024, 1 << 26),
     Param('compression', 'zstd', 'chunk compression', choices=('zstd', 'lz4', 'none')),
     Param('discovery_period', 0.5, 'period of the graph look-up for topics whose type is not in '
           'the fixed table, s', 0.01, 60.0),
