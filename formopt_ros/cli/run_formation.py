@@ -288,7 +288,7 @@ def run(args: Any) -> int:
     others = [leader] + [s for s, _ in nodes.values()]
     failure = ''
     try:
-        while not failure and any(e.alive() for e in estimators):
+        while not failure and not all(e.process.poll() == 0 for e in estimators):
             failure = supervise(estimators, others, recorder, args.respawn)
             if not failure and time.monotonic() - started > args.timeout:
                 failure = f'timeout after {args.timeout:g} s'

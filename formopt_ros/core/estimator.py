@@ -33,8 +33,9 @@ from formopt_ros.core.stepper import ReadyStep, StepAssembler
 from formopt_ros.core.strategies import (
     EstimatorView, PlanContext, Solution, StepRecord, Strategy)
 
-#: Processed steps a strategy can look back on through ``EstimatorView.history``.
-HISTORY_LENGTH = 256
+#: Processed steps a strategy can look back on through ``EstimatorView.history`` (kept short:
+#: the history is part of every checkpoint the estimator node writes after each step).
+HISTORY_LENGTH = 8
 #: Normalised innovation squared above which a measurement is not used (chi-square, 1 dof).
 INNOVATION_GATE = 100.0
 #: Gated measurements in a row after which the filter re-opens with an inflated covariance.
@@ -279,7 +280,8 @@ class EstimatorSession:
     assembler: StepAssembler
     steps: int = 0
     counters: Counters = field(default_factory=Counters)
-    nees: dict[int, float] = field(default_factory=dict)
+    nees_sum: float = 0.0
+    nees_count: int = 0
     last_reason: str = ''
     last_stamp_ns: int | None = None
     final_truth: np.ndarray | None = None
@@ -359,7 +361,8 @@ class EstimatorSession:
         if stamp_ns in self._truth and stamp_ns in self._posteriors:
             x, P = self._posteriors.pop(stamp_ns)
             truth = self._truth.pop(stamp_ns)
-            self.nees[stamp_ns] = normalized_estimation_error(truth, x, P)
+            self.nees_sum += normalized_estimation_error(truth, x, P)
+            self.nees_count += 1
             if stamp_ns == self.last_stamp_ns:
                 self.final_truth = truth
 
@@ -398,4 +401,4 @@ class EstimatorSession:
 
     def mean_nees(self) -> float | None:
         """Mean NEES over the steps with known truth (None without any)."""
-        return float(np.mean(list(self.nees.values()))) if self.nees else None
+        return self.nees_sum / self.nees_count if self.nees_count else None

@@ -116,3 +116,89 @@ def test_an_earlier_run_is_never_overwritten(tmp_path: Path) -> None:
     assert json.loads((out / 'summary.json').read_text()) == {'earlier': True}
     help_text = run('--help', timeout=30)
     assert help_text.returncode == 0 and '--formation FILE' in help_text.stdout
+
+
+# --- faults, as a user meets them -----------------------------------------------------------
+def node_pid(command_part: str, namespace_part: str) -> int | None:
+    """PID of the running node process whose command line holds both strings."""
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            command = (entry / 'cmdline').read_bytes().replace(b'\0', b' ').decode()
+        except OSError:
+            continue
+        if command_part in command and namespace_part in command and 'python' in command:
+            return int(entry.name)
+    return None
+
+
+def test_a_second_run_in_the_same_domain_stops_both(tmp_path: Path, ros_domain: int) -> None:
+    """Two runs started in one ROS domain with the same topic names (no --prefix): their
+    handshakes see each other's run_id and both stop, exit 1, summaries not ok, naming the
+    other run; nothing is reported as success."""
+    args = ('--steps', '100000', '--domain-id', str(ros_domain), '--no-record',
+            '--timeout', '120')
+    first = subprocess.Popen([str(SCRIPT), '--out', str(tmp_path / 'a'), '--run-id', 'run_a',
+                              *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    second = subprocess.Popen([str(SCRIPT), '--out', str(tmp_path / 'b'), '--run-id', 'run_b',
+                               *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    outputs = [p.communicate(timeout=150) for p in (first, second)]
+    for process, name, (_, stderr) in zip((first, second), 'ab', outputs):
+        assert process.returncode == 1, stderr
+        summary = json.loads((tmp_path / name / 'summary.json').read_text())
+        assert summary['ok'] is False and 'run_a' in summary['failure'] + stderr \
+            or 'run_b' in summary['failure'] + stderr, summary['failure']
+        assert "parameter 'run_id'" in (summary['failure'] or ''), summary['failure']
+
+
+@pytest.mark.parametrize('steps', [2, 3])
+def test_short_runs_are_recorded_completely(tmp_path: Path, ros_domain: int, steps: int) -> None:
+    """2 and 3 steps: every node delivers its last messages before it exits; the recording
+    holds every message the nodes say they published."""
+    out = tmp_path / 'short'
+    result = run('--steps', str(steps), '--out', str(out), '--domain-id', str(ros_domain),
+                 '--timeout', '120')
+    assert result.returncode == 0, result.stdout + result.stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    recording = summary['recording']
+    assert summary['ok'] and recording['complete'] and recording['missing'] == {}
+    counts = read_bag(out / 'run.mcap').counts()
+    assert counts['/follower/measurement'] == steps and counts['/follower/estimate'] == steps
+
+
+def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None:
+    """--respawn: the estimator and then the follower are killed with SIGKILL mid-run; each is
+    restarted and resumes from its checkpoint; the lockstep run still equals the pure
+    simulation (1e-9) and the summary lists the restarts."""
+    import os
+    import signal
+    import time
+    steps, out = 3000, tmp_path / 'respawn'
+    process = subprocess.Popen([str(SCRIPT), '--measurement', 'bearing', '--strategy', 'rq',
+                                '--seed', '4', '--steps', str(steps), '--out', str(out),
+                                '--domain-id', str(ros_domain), '--respawn', '2',
+                                '--prefix', '/respawn', '--timeout', '150'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    killed = []
+    deadline = time.monotonic() + 60
+    for node in ('estimator_planner', 'follower_sim'):
+        # mid-run: once the node has saved a checkpoint, and a little later
+        checkpoint = out / 'checkpoints' / f'follower.{node}.pkl'
+        while not checkpoint.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        pid = node_pid(f'lib/formopt_ros/{node}', '__ns:=/respawn/follower')
+        assert pid is not None and process.poll() is None, (node, process.poll())
+        os.kill(pid, signal.SIGKILL)
+        killed.append(node)
+    stdout, stderr = process.communicate(timeout=170)
+    assert process.returncode == 0, stdout + stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['ok'] and summary['steps'] == steps
+    assert summary['restarts'] == {f'follower.{n}': [-9] for n in killed}
+    ref = run_trial(Scenario.paper('bearing'), 'rq', 4, 0, steps)
+    np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
+    np.testing.assert_allclose(summary['final_truth'], ref.truth[-1], rtol=0, atol=TOL)
+    assert summary['resumed']['from_step'] > 0
