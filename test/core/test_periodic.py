@@ -16,7 +16,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, cached_design, greedy_target, lft, move_map, noise_free_step, pair_grid)
+    SteadyConditions, cached_design, clear_cache, greedy_target, lft, move_map, noise_free_step,
+    pair_grid)
 from formopt_ros.core.strategies.rq import rq_optimum
 from formopt_ros.core.study import StudyConfig, run_study, summarize
 
@@ -321,3 +322,16 @@ def test_any_change_of_the_disc_replans() -> None:
     assert_feasible(records)
     assert records[148][0].details['mode'] == 'pattern'
     assert records[149][0].details['replans'] == 1
+
+
+def test_prepare_designs_before_the_first_plan() -> None:
+    """prepare(scenario) designs and caches the cycle (a realtime node calls it at start), so
+    the first plan finds it cached; other strategies' prepare does nothing."""
+    scenario = Scenario.paper('range')
+    clear_cache()
+    make_strategy('periodic').prepare(scenario)
+    conditions = SteadyConditions.from_scenario(scenario)
+    assert conditions is not None
+    design, computed = cached_design(conditions, 4)
+    assert design is not None and not computed
+    make_strategy('rq').prepare(scenario)

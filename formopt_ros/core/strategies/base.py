@@ -13,11 +13,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from formopt_ros.core.cost import Problem, ProblemBatch
+
+if TYPE_CHECKING:
+    from formopt_ros.core.scenario import Scenario
 
 
 @dataclass(frozen=True)
@@ -246,6 +249,10 @@ class Strategy:
         the engine with one object per trial through :meth:`plan`.
         """
         raise NotImplementedError
+
+    def prepare(self, scenario: Scenario) -> None:
+        """Do once, before a run of ``scenario``, the work the first plan would otherwise pay
+        for (a realtime node calls it before its first waypoint). Default: nothing."""
 
     @classmethod
     def vectorised(cls) -> bool:

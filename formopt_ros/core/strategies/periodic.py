@@ -91,6 +91,13 @@ class PeriodicPattern(Strategy):
                        'switch_tests': 0, 'unpaid_tests': 0}
 
     # --- the decision ------------------------------------------------------------------------
+    def prepare(self, scenario: Scenario) -> None:
+        """Design (and cache) the cycle for the conditions ``scenario`` starts in, so that the
+        first plan does not spend the design time (about 1 s)."""
+        conditions = SteadyConditions.from_scenario(scenario)
+        if conditions is not None:
+            cached_design(conditions, int(self.settings['period']))
+
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
         """The next position: RQ's, or the cycle's next point (see the module docstring)."""
         if context.estimator is None:

@@ -81,6 +81,7 @@ class EstimatorPlannerNode(Node):
         self.scenario = self.run.spec.scenario
         self.frames = frames(self.follower_id)
         strategy = make_strategy(self.run.spec.strategy, **self.run.spec.options)
+        strategy.prepare(self.scenario)           # e.g. PERIODIC's cycle design, before step 1
         _, planner_rng = trial_streams(self.run.spec.seed, self.run.trial)
         self.lockstep = p['mode'] == 'lockstep'
         self.timebase = Timebase.from_dt(self.scenario.dt)
@@ -167,6 +168,7 @@ class EstimatorPlannerNode(Node):
                                          **strategy_options(values['strategy'], values))
             except ValueError as error:
                 return str(error)
+            strategy.prepare(self.scenario)
             self.session.estimator.strategy = strategy
             self.get_logger().info(f'strategy now {strategy!r} (from step '
                                    f'{self.session.step + 2})')
