@@ -4,6 +4,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -20,6 +22,32 @@ def test_ci_runs_the_readme_test_command() -> None:
 
 
 def test_readme_main_job_uses_the_setup_script() -> None:
-    """The first command sets up from scratch and then runs the formation."""
+    """The first command sets up from scratch and then runs the Fig. 4 formation, recorded."""
     first = _fenced_commands((ROOT / 'README.md').read_text())[0]
     assert first.startswith('bash scripts/setup.sh && scripts/run_formation.sh')
+    assert '--formation config/formation_fig4.yaml' in first and '--no-record' not in first
+    assert (ROOT / 'config' / 'formation_fig4.yaml').is_file()
+
+
+def test_node_reference_is_generated() -> None:
+    """The topic and frame tables between the node-reference markers are what
+    ``python -m formopt_ros.ros.nodes --readme`` prints (needs no ROS: topic table only)."""
+    pytest.importorskip('rclpy')              # the generator reads the QoS profiles
+    from formopt_ros.ros.nodes import readme_text
+    readme = (ROOT / 'README.md').read_text()
+    block = re.search(r'<!-- node-reference:[^\n]*-->\n(.*?)<!-- end node-reference -->',
+                      readme, re.S)
+    assert block is not None, 'README lost its node-reference markers'
+    assert block.group(1) == readme_text(), \
+        'regenerate with: python -m formopt_ros.ros.nodes --readme'
+
+
+def test_readme_commands_exist() -> None:
+    """Every formopt-* command README mentions is a console script of setup.py, and every
+    scripts/*.sh it mentions exists."""
+    readme = (ROOT / 'README.md').read_text()
+    setup = (ROOT / 'setup.py').read_text()
+    for command in set(re.findall(r'\b(formopt-[a-z-]+)\b', readme)):
+        assert f"'{command} = " in setup, command
+    for script in set(re.findall(r'scripts/([a-z_]+\.sh)', readme)):
+        assert (ROOT / 'scripts' / script).is_file(), script

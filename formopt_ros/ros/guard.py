@@ -11,6 +11,7 @@ FASTRTPS_DEFAULT_PROFILES_FILE is set).
 """
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +23,8 @@ from formopt_ros.ros import qos
 
 #: How long (s) a topic may have a second publisher before the run is stopped.
 INTRUDER_GRACE = 5.0
+#: Look at the publishers of the watched topics at most this often, s.
+CHECK_PERIOD = 0.5
 #: Exit codes: a scenario mismatch is a configuration error; an intruder a run-time failure.
 MISMATCH_EXIT, INTRUDER_EXIT = 2, 1
 
@@ -56,6 +59,7 @@ class RunGuard:
         self.expected: list[str] = []
         self.watched: list[str] = []
         self._crowded_since: dict[str, float] = {}
+        self._checked = -math.inf
 
     def expect(self, topic: str, compare: Compare) -> None:
         """Subscribe to the latched description on ``topic`` and compare it when it comes."""
@@ -91,10 +95,12 @@ class RunGuard:
         return self.failure is None and (not self.wait or not self.missing())
 
     def check(self) -> None:
-        """Look for topics with more than one publisher (call it periodically)."""
-        if self.failure is not None:
-            return
+        """Look for topics with more than one publisher (call it from a timer; it looks at
+        most every CHECK_PERIOD s)."""
         now = time.monotonic()
+        if self.failure is not None or now - self._checked < CHECK_PERIOD:
+            return
+        self._checked = now
         for topic in self.watched:
             infos = self.node.get_publishers_info_by_topic(topic)
             if len(infos) <= 1:

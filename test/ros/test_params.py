@@ -71,3 +71,17 @@ def test_help_does_not_start_the_node(node_process) -> None:
     assert process.wait(timeout=60.0) == 0
     assert 'resend_timeout' in process.stdout and 'checkpoint_path' in process.stdout
     assert ' ready ' not in process.stderr
+
+
+def test_an_integer_is_accepted_for_a_float_parameter(ros_init) -> None:
+    """-p dt:=1 (an integer) sets the float parameter dt to 1.0 instead of a type error."""
+    from harness.ros import node_args
+
+    from formopt_ros.ros.nodes.leader_sim import LeaderSim
+    ros_init()
+    node = LeaderSim(node_args('leader_sim', 'leader', {'dt': 1, 'v_leader': 2}))
+    try:
+        assert node.params['dt'] == 1.0 and isinstance(node.params['dt'], float)
+        assert node.get_parameter('v_leader').value == 2.0
+    finally:
+        node.destroy_node()

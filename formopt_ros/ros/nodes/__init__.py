@@ -1,9 +1,8 @@
 """The nodes: leader_sim, follower_sim, estimator_planner, recorder, replay.
 
 ``python -m formopt_ros.ros.nodes --write-configs DIR`` writes every node's documented
-parameters file, ``--readme`` prints README's node reference (topics with types and QoS,
-parameters, frames); the repository's config/ and README are generated this way and checked
-by the tests.
+parameters file, ``--readme`` prints README's node reference (topics, frames, parameters); the
+repository's config/ and README are generated this way and checked by the tests.
 """
 from __future__ import annotations
 
@@ -24,9 +23,6 @@ def config_text(node: str) -> str:
     return config_yaml(node, module.SUMMARY, module.PARAMS)
 
 
-#: The formation nodes of the README reference, with their robot namespace.
-FORMATION_NODES = {'leader_sim': '/<leader>', 'follower_sim': '/<follower>',
-                   'estimator_planner': '/<follower>'}
 #: Frames: (frame, parent, published by, meaning).
 FRAMES = (
     ('odom', '-', 'leader_sim', "the fixed frame: the leader's odometry starts at its origin"),
@@ -43,32 +39,32 @@ FRAMES = (
 
 
 def readme_text() -> str:
-    """README's node reference: per node, its topics (name, type, QoS) and parameters; then the
-    frames."""
+    """README's node reference: every topic of a formation (name, type, who publishes and
+    reads it, QoS, meaning), the frames, and per node its parameters (default, admissible
+    values, whether ``ros2 param set`` may change it)."""
     from formopt_ros.ros import qos
     from formopt_ros.wire.topics import BY_KEY
-    lines = []
-    for node, robot in FORMATION_NODES.items():
-        module = importlib.import_module(NODES[node])
-        lines += [f'#### {node} (namespace `{robot}`)', '', module.SUMMARY, '',
-                  '| direction | topic | type | QoS |', '|---|---|---|---|']
-        for topic in BY_KEY.values():
-            owner = '/<leader>' if topic.key.startswith('leader') else '/<follower>'
-            name = topic.name if topic.name.startswith('/') else f'{owner}/{topic.name}'
-            profile = qos.describe(qos.profile(topic.qos))
-            if node in topic.publishers:
-                lines.append(f'| publishes | `{name}` | `{topic.type}` | {profile} |')
-            if node in topic.listeners:
-                lines.append(f'| subscribes | `{name}` | `{topic.type}` | {profile} |')
-        lines += ['', '| parameter | default | accepts | |', '|---|---|---|---|']
-        for spec in module.PARAMS:
-            mutable = 'read-only' if spec.read_only else '**settable at run time**'
-            lines.append(f'| `{spec.name}` | `{spec.default!r}` | {spec.expected()} | '
-                         f'{mutable} |')
-        lines.append('')
-    lines += ['#### Frames (REP-103/105 style: x forward, y left, yaw counter-clockwise)', '',
-              '| frame | parent | published by | meaning |', '|---|---|---|---|']
+    lines = ['| topic | type | published by | read by | QoS | carries |',
+             '|---|---|---|---|---|---|']
+    for topic in BY_KEY.values():
+        owner = '/<leader>' if topic.key.startswith('leader') else '/<follower>'
+        name = topic.name if topic.name.startswith('/') else f'{owner}/{topic.name}'
+        kind = topic.type.split('/')[-1]
+        readers = ', '.join(topic.listeners) or 'recorder, tools'
+        lines.append(f"| `{name}` | `{kind}` | {', '.join(topic.publishers)} | {readers} | "
+                     f'{qos.describe(qos.profile(topic.qos))} | {topic.description} |')
+    lines += ['', '| frame | parent | published by | meaning |', '|---|---|---|---|']
     lines += [f'| `{f}` | `{p}` | {who} | {what} |' for f, p, who, what in FRAMES]
+    for node in NODES:
+        module = importlib.import_module(NODES[node])
+        lines += ['', f'<details><summary><code>{node}</code>: {len(module.PARAMS)} '
+                      'parameters</summary>', '', module.SUMMARY, '',
+                  '| parameter | default | accepts | at run time |', '|---|---|---|---|']
+        for spec in module.PARAMS:
+            settable = 'read-only' if spec.read_only else 'settable'
+            lines.append(f'| `{spec.name}` | `{spec.default!r}` | '
+                         f"{spec.expected().replace('|', '&#124;')} | {settable} |")
+        lines += ['', '</details>']
     return '\n'.join(lines) + '\n'
 
 

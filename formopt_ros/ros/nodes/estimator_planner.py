@@ -52,8 +52,6 @@ SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
-#: Look for a second publisher on the input topics this often, s.
-GUARD_PERIOD = 0.5
 
 
 class EstimatorPlannerNode(Node):
@@ -101,7 +99,6 @@ class EstimatorPlannerNode(Node):
         self.last_progress = time.monotonic()
         self.last_status = 0.0
         self.last_markers = -math.inf
-        self.last_guard_check = -math.inf
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
@@ -285,9 +282,7 @@ class EstimatorPlannerNode(Node):
         that got no answer; watch for intruders; publish the status and diagnostics while no
         step completes."""
         now = time.monotonic()
-        if now - self.last_guard_check >= GUARD_PERIOD:
-            self.last_guard_check = now
-            self.guard.check()
+        self.guard.check()
         if not self.finished and not self.started:
             if self.gate.ready() and self.guard.ready():
                 self.started = True

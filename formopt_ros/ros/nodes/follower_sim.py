@@ -1,7 +1,6 @@
 """follower_sim: the follower robot; executes waypoints with noise, measures range or bearing."""
 from __future__ import annotations
 
-import math
 import sys
 import time
 from typing import Any
@@ -40,8 +39,6 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
 SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and publishes its '
            'odometry, one range or bearing measurement per step, its true pose and its frames '
            'on /tf.')
-#: Look for a second publisher on the input topics this often, s.
-GUARD_PERIOD = 0.5
 
 
 def frames(follower_id: str) -> dict[str, str]:
@@ -103,7 +100,6 @@ class FollowerSim(Node):
         self.exit_code = 0
         self.error = ''
         self.resumed: dict[str, Any] | None = None
-        self.last_guard_check = -math.inf
         self.parked: list[Odometry] = []     # realtime resume: odometry of the time down
         self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
         self.throttle = Throttle(self)
@@ -227,10 +223,7 @@ class FollowerSim(Node):
     def on_check(self) -> None:
         """Watch for intruders; lockstep: execute what became executable once the run may
         start; send the odometry of a parked restart."""
-        now = time.monotonic()
-        if now - self.last_guard_check >= GUARD_PERIOD:
-            self.last_guard_check = now
-            self.guard.check()
+        self.guard.check()
         if self.parked and self._may_run():
             for msg in self.parked:
                 self._publish('odometry', msg)

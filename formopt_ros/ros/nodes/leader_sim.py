@@ -1,9 +1,7 @@
 """leader_sim: the leader robot; drives its path and publishes its odometry, /tf and /clock."""
 from __future__ import annotations
 
-import math
 import sys
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -37,8 +35,6 @@ SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub
            "follower's waypoint for it is in; realtime: at 1/dt).")
 #: The fixed frame of the leader's odometry (the world of the formation).
 ODOM_FRAME = 'odom'
-#: Look for a second publisher on the input topics this often, s.
-GUARD_PERIOD = 0.5
 
 
 class LeaderSim(Node):
@@ -71,7 +67,6 @@ class LeaderSim(Node):
         self.finished = False
         self.exit_code = 0
         self.error = ''
-        self.last_guard_check = -math.inf
         self.description = LeaderDescription(self.leader_id, self.run.path, self.run.dt,
                                              self.run.followers, p['mode'], p['run_id'])
         self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
@@ -122,10 +117,7 @@ class LeaderSim(Node):
 
     def on_check(self) -> None:
         """Watch for intruders; lockstep: serve a step that became servable."""
-        now = time.monotonic()
-        if now - self.last_guard_check >= GUARD_PERIOD:
-            self.last_guard_check = now
-            self.guard.check()
+        self.guard.check()
         if self.lockstep:
             self.serve()
 
