@@ -20,6 +20,12 @@ from typing import Any
 from formopt_interfaces.msg import RunDescription
 
 from formopt_ros.ros import qos
+from formopt_ros.ros.naming import peer_topic
+from formopt_ros.ros.runtime import stop_run
+from formopt_ros.wire.description import LeaderDescription
+from formopt_ros.wire.description import RunDescription as Description
+from formopt_ros.wire.description import follower_differences, leader_differences
+from formopt_ros.wire.topics import BY_KEY
 
 #: How long (s) a topic may have a second publisher before the run is stopped.
 INTRUDER_GRACE = 5.0
@@ -121,3 +127,22 @@ class RunGuard:
         if self.failure is None:
             self.failure = failure
             self.on_failure(failure)
+
+
+def follower_guard(node: Any, description: Any, leader_id: str, peer_key: str,
+                   watched: tuple[str, ...]) -> RunGuard:
+    """The guard of a follower's node (follower_sim or estimator_planner): it expects its
+    partner's description on its own ``peer_key`` topic and the leader's, compares both with
+    ``description`` (a wire RunDescription), and watches its own ``watched`` topics and the
+    leader's odometry. A failure stops the node (:func:`~formopt_ros.ros.runtime.stop_run`)."""
+    guard = RunGuard(node, node.params['wait_for_peers'],
+                     lambda failure: stop_run(node, failure.code, failure.message))
+    guard.expect(node.resolve_topic_name(BY_KEY[peer_key].name),
+                 lambda text: follower_differences(description, Description.from_json(text)))
+    guard.expect(peer_topic(node, leader_id, 'leader_description'),
+                 lambda text: leader_differences(description,
+                                                 LeaderDescription.from_json(text)))
+    for key in watched:
+        guard.watch(node.resolve_topic_name(BY_KEY[key].name))
+    guard.watch(peer_topic(node, leader_id, 'leader_odom'))
+    return guard

@@ -22,7 +22,7 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
-from formopt_ros.ros.guard import RunGuard
+from formopt_ros.ros.guard import follower_guard
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.nodes.follower_sim import frames
 from formopt_ros.ros.params import Param, ParameterError, declare, validate_on_set
@@ -30,11 +30,9 @@ from formopt_ros.ros.run_config import (
     CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
     SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults,
     strategy_options, strategy_params)
-from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run, write_summary
+from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
 from formopt_ros.wire import inputs
-from formopt_ros.wire.description import LeaderDescription
 from formopt_ros.wire.description import RunDescription as Description
-from formopt_ros.wire.description import follower_differences, leader_differences
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
@@ -136,17 +134,8 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.create_subscription(Measurement, BY_KEY['measurement'].name, self.on_measurement,
                                  qos.SUBSCRIBED)
-        self.guard = RunGuard(self, p['wait_for_peers'],
-                              lambda failure: stop_run(self, failure.code, failure.message))
-        self.guard.expect(self.resolve_topic_name(BY_KEY['sim_description'].name),
-                          lambda text: follower_differences(self.description,
-                                                            Description.from_json(text)))
-        self.guard.expect(peer_topic(self, self.leader_id, 'leader_description'),
-                          lambda text: leader_differences(self.description,
-                                                          LeaderDescription.from_json(text)))
-        for key in ('follower_odom', 'measurement', 'truth'):
-            self.guard.watch(self.resolve_topic_name(BY_KEY[key].name))
-        self.guard.watch(peer_topic(self, self.leader_id, 'leader_odom'))
+        self.guard = follower_guard(self, self.description, self.leader_id, 'sim_description',
+                                    ('follower_odom', 'measurement', 'truth'))
         validate_on_set(self, PARAMS, self.on_set)
         steady_timer(self, 0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, "

@@ -17,7 +17,7 @@ from formopt_ros.core.simulation import FollowerTruth, trial_streams
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
-from formopt_ros.ros.guard import MISMATCH_EXIT, RunGuard
+from formopt_ros.ros.guard import MISMATCH_EXIT, follower_guard
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.nodes.leader_sim import ODOM_FRAME
 from formopt_ros.ros.params import declare
@@ -25,9 +25,7 @@ from formopt_ros.ros.run_config import (
     CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
     SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults)
 from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run, write_summary
-from formopt_ros.wire.description import LeaderDescription
 from formopt_ros.wire.description import RunDescription as Description
-from formopt_ros.wire.description import follower_differences, leader_differences
 from formopt_ros.wire.inputs import odometry_frames
 from formopt_ros.wire.messages import (
     foreign_run, header_ns, odometry_problem, odometry_values, waypoint_mismatch,
@@ -128,16 +126,8 @@ class FollowerSim(Node):
                                  qos.SUBSCRIBED)
         self.create_subscription(Odometry, peer_topic(self, self.leader_id, 'leader_odom'),
                                  self.on_leader_odom, qos.SUBSCRIBED)
-        self.guard = RunGuard(self, p['wait_for_peers'],
-                              lambda failure: stop_run(self, failure.code, failure.message))
-        self.guard.expect(self.resolve_topic_name(BY_KEY['description'].name),
-                          lambda text: follower_differences(self.description,
-                                                            Description.from_json(text)))
-        self.guard.expect(peer_topic(self, self.leader_id, 'leader_description'),
-                          lambda text: leader_differences(self.description,
-                                                          LeaderDescription.from_json(text)))
-        self.guard.watch(self.resolve_topic_name(BY_KEY['waypoint'].name))
-        self.guard.watch(peer_topic(self, self.leader_id, 'leader_odom'))
+        self.guard = follower_guard(self, self.description, self.leader_id, 'description',
+                                    ('waypoint',))
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.scenario.dt, self.on_tick)
