@@ -3,7 +3,10 @@ own (the scenario handshake), and stops the run when they disagree or when a sec
 appears on a topic it reads (another run, or a stray node, in the same domain and namespace).
 
 Mismatch: the node stops with exit code 2 and one line naming every differing parameter with
-both values. Intruder: a topic the node reads has more than one publisher for longer than
+both values. It stops once every peer that reads its description has been matched (at most
+``MISMATCH_LINGER`` s later): the description is latched by a publisher that dies with the node,
+so a peer matched only after the node left would wait for the run forever instead of stopping
+too. Intruder: a topic the node reads has more than one publisher for longer than
 ``INTRUDER_GRACE`` s; the node stops with exit code 1 and names the publishing nodes. The grace
 covers a restarted peer whose killed predecessor stays in the ROS graph until its discovery
 lease ends (3 s with config/fastdds_discovery.xml, which every formopt_ros node loads unless
@@ -19,7 +22,7 @@ from typing import Any
 
 from formopt_interfaces.msg import RunDescription
 
-from formopt_ros.ros import qos
+from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.naming import peer_topic
 from formopt_ros.ros.runtime import stop_run
 from formopt_ros.wire.description import LeaderDescription
@@ -31,6 +34,8 @@ from formopt_ros.wire.topics import BY_KEY
 INTRUDER_GRACE = 5.0
 #: Look at the publishers of the watched topics at most this often, s.
 CHECK_PERIOD = 0.5
+#: A node stopped by a mismatch waits at most this long (s) for its description's readers.
+MISMATCH_LINGER = 3.0
 #: Exit codes: a scenario mismatch is a configuration error; an intruder a run-time failure.
 MISMATCH_EXIT, INTRUDER_EXIT = 2, 1
 
@@ -66,6 +71,22 @@ class RunGuard:
         self.watched: list[str] = []
         self._crowded_since: dict[str, float] = {}
         self._checked = -math.inf
+        self._failed_at = math.inf
+        self._reported = False
+        self.description_pub: Any = None
+        self.description_message: Any = None
+        self.readers = 0
+
+    def announce(self, key: str, description: str, run_id: str, readers: int) -> None:
+        """Publish the node's run description (JSON text) latched on topic ``key``; ``readers``
+        peer nodes read it (a mismatch stop waits until they are matched, see the module)."""
+        self.description_pub = self.node.create_publisher(RunDescription, BY_KEY[key].name,
+                                                          qos.LATCHED)
+        self.description_message = conversions.description(
+            self.node.get_clock().now().to_msg(), run_id, self.node.get_fully_qualified_name(),
+            description)
+        self.description_pub.publish(self.description_message)
+        self.readers = readers
 
     def expect(self, topic: str, compare: Compare) -> None:
         """Subscribe to the latched description on ``topic`` and compare it when it comes."""
@@ -102,9 +123,15 @@ class RunGuard:
 
     def check(self) -> None:
         """Look for topics with more than one publisher (call it from a timer; it looks at
-        most every CHECK_PERIOD s)."""
+        most every CHECK_PERIOD s); report a mismatch once the description's readers are
+        matched or MISMATCH_LINGER s have passed."""
         now = time.monotonic()
-        if self.failure is not None or now - self._checked < CHECK_PERIOD:
+        if self.failure is not None:
+            if not self._reported and (self._read_by_all() or
+                                       now - self._failed_at >= MISMATCH_LINGER):
+                self._report()
+            return
+        if now - self._checked < CHECK_PERIOD:
             return
         self._checked = now
         for topic in self.watched:
@@ -123,20 +150,35 @@ class RunGuard:
                 return
 
     def fail(self, failure: Failure) -> None:
-        """Record the first failure and report it."""
+        """Record the first failure and report it (a mismatch: when :meth:`check` may)."""
         if self.failure is None:
             self.failure = failure
-            self.on_failure(failure)
+            self._failed_at = time.monotonic()
+            if failure.code != MISMATCH_EXIT or self._read_by_all():
+                self._report()
+
+    def _read_by_all(self) -> bool:
+        """True when every reader of the node's description is matched (or none announced)."""
+        return (self.description_pub is None or
+                self.description_pub.get_subscription_count() >= self.readers)
+
+    def _report(self) -> None:
+        self._reported = True
+        assert self.failure is not None
+        self.on_failure(self.failure)
 
 
-def follower_guard(node: Any, description: Any, leader_id: str, peer_key: str,
+def follower_guard(node: Any, description: Any, leader_id: str, own_key: str, peer_key: str,
                    watched: tuple[str, ...]) -> RunGuard:
-    """The guard of a follower's node (follower_sim or estimator_planner): it expects its
-    partner's description on its own ``peer_key`` topic and the leader's, compares both with
-    ``description`` (a wire RunDescription), and watches its own ``watched`` topics and the
-    leader's odometry. A failure stops the node (:func:`~formopt_ros.ros.runtime.stop_run`)."""
+    """The guard of a follower's node (follower_sim or estimator_planner): it announces
+    ``description`` (a wire RunDescription) on its ``own_key`` topic, expects its partner's on
+    its own ``peer_key`` topic and the leader's, compares both with it, and watches its own
+    ``watched`` topics and the leader's odometry. A failure stops the node
+    (:func:`~formopt_ros.ros.runtime.stop_run`)."""
     guard = RunGuard(node, node.params['wait_for_peers'],
                      lambda failure: stop_run(node, failure.code, failure.message))
+    guard.announce(own_key, description.to_json(), node.params['run_id'],
+                   len(BY_KEY[own_key].listeners))
     guard.expect(node.resolve_topic_name(BY_KEY[peer_key].name),
                  lambda text: follower_differences(description, Description.from_json(text)))
     guard.expect(peer_topic(node, leader_id, 'leader_description'),

@@ -212,7 +212,7 @@ class Formation:
         args = self.args.setdefault((kind, robot), node_args(kind, robot, params))
         node = getattr(module, cls)(args + (extra or []))
         self.executor.add_node(node)
-        latched = {node.description_pub: node.description_message}
+        latched = {node.guard.description_pub: node.guard.description_message}
         if kind == 'follower_sim':
             latched[node.tf_static_pub] = node.tf_static_message
         for publisher in node.publishers:

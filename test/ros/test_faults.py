@@ -19,7 +19,7 @@ from formopt_ros.core.protocol import SUBSTEPS, seconds_to_ns
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import run_trial
 from formopt_ros.ros import conversions, qos
-from formopt_ros.ros.guard import INTRUDER_GRACE
+from formopt_ros.ros.guard import INTRUDER_GRACE, MISMATCH_EXIT, MISMATCH_LINGER
 
 TOL = 1e-9                 # lockstep: the same arithmetic as the pure simulation
 SEED = 5
@@ -64,6 +64,34 @@ def test_mismatch_in_separate_processes_is_one_line(node_process) -> None:
     assert f'{namespace("follower")}/follower_sim' in errors[0] or \
         f'{namespace("leader")}/leader_sim' in errors[0]
     assert not any('Traceback' in p.stderr for p in (estimator, sim, leader))
+
+
+def test_a_peer_matched_late_still_reads_the_mismatch(formation) -> None:
+    """An estimator that disagrees with its leader while its follower_sim is not up yet does
+    not leave at once (its latched description would leave with it and the follower_sim would
+    wait forever): it stops once the late follower_sim is matched, which then stops with exit
+    code 2 too; without a late peer it stops after MISMATCH_LINGER s."""
+    params = {'measurement': 'range', 'steps': 20}
+    run = formation(params, follower=False, per_node={'estimator_planner': {'dt': 0.02}})
+    assert run.spin_until(lambda: run.estimator.guard.failure is not None, 20.0)
+    assert not run.estimator.finished and run.estimator.guard.failure.code == MISMATCH_EXIT
+    sim = run._make('follower_sim', 'follower', params)
+    run.nodes.append(sim)
+    assert run.spin_until(lambda: run.estimator.finished and sim.finished, 20.0), sim.error
+    for node in (run.estimator, sim):
+        assert node.exit_code == MISMATCH_EXIT and "parameter 'dt' is " in node.error
+
+
+def test_a_mismatch_without_readers_stops_after_the_linger(formation) -> None:
+    """With no follower_sim ever matched the estimator still stops: MISMATCH_LINGER s after it
+    read the leader's disagreeing description (1 s of slack for the 0.05 s timer and load)."""
+    run = formation({'measurement': 'range', 'steps': 20}, follower=False,
+                    per_node={'estimator_planner': {'dt': 0.02}})
+    assert run.spin_until(lambda: run.estimator.guard.failure is not None, 20.0)
+    started = time.monotonic()
+    assert run.spin_until(lambda: run.estimator.finished, MISMATCH_LINGER + 10.0)
+    assert MISMATCH_LINGER - 0.1 <= time.monotonic() - started <= MISMATCH_LINGER + 1.0
+    assert run.estimator.exit_code == MISMATCH_EXIT
 
 
 # --- another run, strays ------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from formopt_interfaces.msg import Measurement, PlannerStatus, RunDescription, Waypoint
+from formopt_interfaces.msg import Measurement, PlannerStatus, Waypoint
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -119,12 +119,6 @@ class EstimatorPlannerNode(Node):
         self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
         self.diagnostics_pub = self.gate.add(self.create_publisher(
             DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS), 'diagnostics')
-        self.description_pub = self.create_publisher(RunDescription,
-                                                     BY_KEY['description'].name, qos.LATCHED)
-        self.description_message = conversions.description(
-            self.get_clock().now().to_msg(), p['run_id'], self.get_fully_qualified_name(),
-            self.description.to_json())
-        self.description_pub.publish(self.description_message)
         self.create_subscription(Odometry, BY_KEY['follower_odom'].name, self.on_follower_odom,
                                  qos.SUBSCRIBED)
         self.create_subscription(Odometry, peer_topic(self, self.leader_id, 'leader_odom'),
@@ -134,8 +128,8 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.create_subscription(Measurement, BY_KEY['measurement'].name, self.on_measurement,
                                  qos.SUBSCRIBED)
-        self.guard = follower_guard(self, self.description, self.leader_id, 'sim_description',
-                                    ('follower_odom', 'measurement', 'truth'))
+        self.guard = follower_guard(self, self.description, self.leader_id, 'description',
+                                    'sim_description', ('follower_odom', 'measurement', 'truth'))
         validate_on_set(self, PARAMS, self.on_set)
         steady_timer(self, 0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, "

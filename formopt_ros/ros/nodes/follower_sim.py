@@ -5,7 +5,7 @@ import sys
 import time
 from typing import Any
 
-from formopt_interfaces.msg import Measurement, RunDescription, Waypoint
+from formopt_interfaces.msg import Measurement, Waypoint
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -116,18 +116,12 @@ class FollowerSim(Node):
         if state is not None:
             self._restore(state)
         self.tf_static_pub.publish(self.tf_static_message)
-        self.description_pub = self.create_publisher(
-            RunDescription, BY_KEY['sim_description'].name, qos.LATCHED)
-        self.description_message = conversions.description(
-            self.get_clock().now().to_msg(), p['run_id'], self.get_fully_qualified_name(),
-            self.description.to_json())
-        self.description_pub.publish(self.description_message)
         self.create_subscription(Waypoint, BY_KEY['waypoint'].name, self.on_waypoint,
                                  qos.SUBSCRIBED)
         self.create_subscription(Odometry, peer_topic(self, self.leader_id, 'leader_odom'),
                                  self.on_leader_odom, qos.SUBSCRIBED)
-        self.guard = follower_guard(self, self.description, self.leader_id, 'description',
-                                    ('waypoint',))
+        self.guard = follower_guard(self, self.description, self.leader_id, 'sim_description',
+                                    'description', ('waypoint',))
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.scenario.dt, self.on_tick)

@@ -5,7 +5,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from formopt_interfaces.msg import RunDescription, Waypoint
+from formopt_interfaces.msg import Waypoint
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -83,16 +83,12 @@ class LeaderSim(Node):
         self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
         self.clock_pub = self.gate.add(self.create_publisher(Clock, '/clock', qos.CLOCK),
                                        'clock') if self.lockstep else None
-        self.description_pub = self.create_publisher(
-            RunDescription, BY_KEY['leader_description'].name, qos.LATCHED)
-        self.description_message = conversions.description(
-            self.get_clock().now().to_msg(), p['run_id'], self.get_fully_qualified_name(),
-            self.description.to_json())
-        self.description_pub.publish(self.description_message)
         # Subscribed in both modes: the estimators count the leader among the waypoint
         # subscribers they wait for before the first waypoint.
         self.guard = RunGuard(self, p['wait_for_peers'],
                               lambda failure: stop_run(self, failure.code, failure.message))
+        self.guard.announce('leader_description', self.description.to_json(), p['run_id'],
+                            len(BY_KEY['leader_description'].listeners) * len(self.run.followers))
         for follower in self.run.followers:
             self.create_subscription(Waypoint, peer_topic(self, follower, 'waypoint'),
                                      self._waypoint_callback(follower), qos.SUBSCRIBED)
