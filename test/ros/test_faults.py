@@ -84,13 +84,13 @@ def test_a_peer_matched_late_still_reads_the_mismatch(formation) -> None:
 
 def test_a_mismatch_without_readers_stops_after_the_linger(formation) -> None:
     """With no follower_sim ever matched the estimator still stops: MISMATCH_LINGER s after it
-    read the leader's disagreeing description (1 s of slack for the 0.05 s timer and load)."""
+    read the leader's disagreeing description (2 s of slack for the 0.05 s timer and load)."""
     run = formation({'measurement': 'range', 'steps': 20}, follower=False,
                     per_node={'estimator_planner': {'dt': 0.02}})
     assert run.spin_until(lambda: run.estimator.guard.failure is not None, 20.0)
     started = time.monotonic()
     assert run.spin_until(lambda: run.estimator.finished, MISMATCH_LINGER + 10.0)
-    assert MISMATCH_LINGER - 0.1 <= time.monotonic() - started <= MISMATCH_LINGER + 1.0
+    assert MISMATCH_LINGER - 0.1 <= time.monotonic() - started <= MISMATCH_LINGER + 2.0
     assert run.estimator.exit_code == MISMATCH_EXIT
 
 
