@@ -44,10 +44,13 @@ class OfflineResult:
 
     @property
     def max_diff(self) -> float:
-        """Largest difference over states and covariances (inf when step counts differ)."""
+        """Largest difference over states, covariances, waypoints (m) and, in lockstep, stamps
+        (s); inf when the step counts differ. The verdict of the replay: a planner that sends
+        other waypoints than the recorded ones fails it even when the estimates agree."""
         if self.steps != self.recorded_steps:
             return math.inf
-        return max(self.max_state_diff, self.max_covariance_diff)
+        return max(self.max_state_diff, self.max_covariance_diff,
+                   self.max_waypoint_diff or 0.0, self.max_stamp_diff_ns * 1e-9)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (no arrays)."""

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from formopt_ros.analysis.peers import casadi_available, peer_methods
-from formopt_ros.cli.common import ArgumentParser, integer, new_file
+from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
 from formopt_ros.core import METHODS, Problem, solve
 from formopt_ros.core.strategies import baselines
 from formopt_ros.core.strategies.certificate import PROVED
@@ -189,6 +189,7 @@ def format_table(header: list[str], rows: list[list[str]]) -> str:
 def write_csv(path: Path, all_results: dict[str, tuple[Results, np.ndarray]]) -> None:
     """One row per (kind, problem, method): time (us), cost, excess over the certified
     optimum, miss flag and fallback flag."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, 'x', newline='', encoding='utf-8') as handle:
         writer = csv.writer(handle)
         writer.writerow(['kind', 'problem', 'method', 'time_us', 'cost_m2', 'excess', 'miss',
@@ -237,6 +238,7 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+@command('formopt-bench')
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print the table; returns the process exit status."""
     args = build_parser().parse_args(argv)

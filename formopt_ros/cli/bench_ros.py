@@ -13,7 +13,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, integer, number
+from formopt_ros.cli.common import ArgumentParser, command, integer, new_file, number
 from formopt_ros.cli.run_formation import Launcher
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.wire.jsonfile import write_json
@@ -181,10 +181,12 @@ def build_parser() -> ArgumentParser:
                         help='ROS_DOMAIN_ID of the runs (default: $ROS_DOMAIN_ID, else 0)')
     parser.add_argument('--timeout', type=number(1.0, 3600.0), default=300.0,
                         help='give up a run after this long, s (default 300)')
-    parser.add_argument('--json', type=Path, help='also write the rows here as JSON')
+    parser.add_argument('--json', type=new_file, metavar='PATH',
+                        help='also write the rows here as JSON (a new file)')
     return parser
 
 
+@command('formopt-bench-ros')
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     args = build_parser().parse_args(argv)

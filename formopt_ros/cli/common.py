@@ -3,11 +3,44 @@ exit code 2, never a traceback; argument types that check ranges and refuse to o
 from __future__ import annotations
 
 import argparse
+import functools
 import math
+import os
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn, TypeVar
+
+#: Exit codes of :func:`command`: an interrupted command (128 + SIGINT, as a shell reports it)
+#: and a failure of the system (a file that cannot be written, a closed pipe).
+INTERRUPTED_EXIT, SYSTEM_EXIT = 130, 1
+
+Main = TypeVar('Main', bound=Callable[..., Any])
+
+
+def command(prog: str) -> Callable[[Main], Main]:
+    """Decorate a command's ``main``: Ctrl-C prints '<prog>: interrupted' and returns 130; an
+    OSError (an output that cannot be written) prints one 'error:' line and returns 1; a closed
+    stdout (``| head``) ends quietly with 1. Never a traceback."""
+    def wrap(main: Main) -> Main:
+        @functools.wraps(main)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                print(f'{prog}: interrupted', file=sys.stderr)
+                return INTERRUPTED_EXIT
+            except BrokenPipeError:
+                # the reader left: stop writing (Python would complain at exit otherwise)
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                return SYSTEM_EXIT
+            except OSError as error:
+                where = f': {error.filename}' if error.filename else ''
+                print(f'{prog}: error: {error.strerror or error}{where}', file=sys.stderr)
+                return SYSTEM_EXIT
+        return run  # type: ignore[return-value]
+    return wrap
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -75,14 +108,19 @@ def new_folder(text: str) -> Path:
 
 
 def _check_parent(path: Path, text: str) -> None:
-    parent = path.resolve().parent
+    """Refuse a path that cannot be created (or an empty folder that cannot be written): the
+    nearest existing folder must let a new entry be made there (tried with a temporary folder,
+    removed at once), so a long run never ends on an output it cannot write."""
+    parent = path.resolve() if path.is_dir() else path.resolve().parent
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
         raise argparse.ArgumentTypeError(f'cannot create {text}: {parent} is not a folder')
-    import os
-    if not os.access(parent, os.W_OK):
-        raise argparse.ArgumentTypeError(f'cannot create {text}: {parent} is not writable')
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix='.formopt-probe-', dir=parent))
+    except OSError as error:
+        raise argparse.ArgumentTypeError(
+            f'cannot create {text}: {parent}: {error.strerror}') from None
 
 
 def existing_file(text: str) -> Path:

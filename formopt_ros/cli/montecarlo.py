@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, fail, integer, new_folder, number
+from formopt_ros.cli.common import ArgumentParser, command, fail, integer, new_folder, number
 from formopt_ros.core.estimator import INNOVATION_GATE
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
@@ -237,6 +237,7 @@ def physical_memory() -> int:
     return os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES')
 
 
+@command('formopt-montecarlo')
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = build_parser()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, integer, new_file
+from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
 from formopt_ros.cli.montecarlo import add_scenario_options, scenario_overrides
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.scenario import Scenario
@@ -79,6 +79,7 @@ def report(scenario: Scenario, period: int, repeats: int, trials: int, steps: in
               f'{decisions.mean():.3f} ms (load average {os.getloadavg()[0]:.2f})')
 
 
+@command('formopt-periodic')
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)

@@ -9,7 +9,8 @@ from typing import Any
 from formopt_ros.analysis.offline import offline
 from formopt_ros.analysis.recording import load_recording
 from formopt_ros.bag import BagError, read_bag
-from formopt_ros.cli.common import ArgumentParser, existing_file, fail, integer, new_file, number
+from formopt_ros.cli.common import (
+    ArgumentParser, command, existing_file, fail, integer, new_file, number)
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
 
@@ -63,7 +64,8 @@ def build_parser() -> ArgumentParser:
                        help="re-run a follower's estimator from the core over the bag instead")
     flags.add_argument('--follower', help='which follower (default: the only one)')
     flags.add_argument('--strategy', choices=tuple(STRATEGIES),
-                       help='default: from the run description')
+                       help='default: from the run description (another one is a what-if: '
+                       'its waypoints differ from the recorded ones, so the check fails)')
     flags.add_argument('--strategy-option', action='append', default=[], metavar='NAME=VALUE',
                        help="a strategy option (e.g. cell=0.01), replacing the recorded one")
     flags.add_argument('--seed', type=integer(0, 2**31 - 1),
@@ -111,6 +113,7 @@ def offline_main(args: Any) -> int:
     return 0 if ok else 1
 
 
+@command(PROG)
 def main(args: list[str] | None = None) -> None:
     """Console entry point: ``replay BAG [--rate F | --fast] [--topics ...] [--offline]``."""
     argv = list(sys.argv[1:] if args is None else args)

@@ -6,7 +6,8 @@ import sys
 from formopt_ros.analysis.recording import load_recording
 from formopt_ros.analysis.report import make_report
 from formopt_ros.bag import BagError, read_bag
-from formopt_ros.cli.common import ArgumentParser, existing_file, fail, integer, new_folder
+from formopt_ros.cli.common import (
+    ArgumentParser, command, existing_file, fail, integer, new_folder)
 
 
 def build_parser() -> ArgumentParser:
@@ -22,6 +23,7 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+@command('formopt-report')
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: ``formopt-report BAG --out DIR``; exit 2 on a bad bag."""
     args = build_parser().parse_args(argv)

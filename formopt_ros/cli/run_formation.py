@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from formopt_ros.cli.common import ArgumentParser, fail, integer, number
+from formopt_ros.cli.common import ArgumentParser, command, fail, integer, number
 from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.formation import load_formation
@@ -399,6 +399,7 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
     return 0
 
 
+@command(PROG)
 def main(argv: list[str] | None = None) -> int:
     """Entry point of scripts/run_formation.sh; SIGTERM stops the run like Ctrl-C (exit 1)."""
     args = build_parser().parse_args(argv)

@@ -9,7 +9,9 @@ alone, so results depend neither on the engine nor on the number of worker proce
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
+import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from collections.abc import Callable
@@ -213,17 +215,34 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
                 finish(done)
         return results
     with ProcessPoolExecutor(max_workers=min(jobs, len(ordered))) as pool:
-        futures = {pool.submit(_task, task) for task in ordered}
-        finishing = []
-        while futures:
-            complete, futures = wait(futures, return_when=FIRST_COMPLETED)
-            for future in complete:
-                done = _collect(results, future.result(), progress, pending)
-                if done is not None and finish is not None:
-                    finishing.append(pool.submit(finish, done))
-        for future in finishing:
-            future.result()
+        try:
+            futures = _submit_ignoring_interrupts(pool, ordered)
+            finishing = []
+            while futures:
+                complete, futures = wait(futures, return_when=FIRST_COMPLETED)
+                for future in complete:
+                    done = _collect(results, future.result(), progress, pending)
+                    if done is not None and finish is not None:
+                        finishing.append(pool.submit(finish, done))
+            for future in finishing:
+                future.result()
+        except KeyboardInterrupt:
+            pool.shutdown(wait=False, cancel_futures=True)
+            for worker in multiprocessing.active_children():   # the pool's workers
+                worker.terminate()
+            raise
     return results
+
+
+def _submit_ignoring_interrupts(pool: ProcessPoolExecutor, tasks: list[Task]) -> set[Any]:
+    """Submit every task; the workers, forked meanwhile, ignore SIGINT from birth. Ctrl-C
+    reaches the whole process group: only the main process handles it (and ends the workers,
+    which print no traceback each)."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return {pool.submit(_task, task) for task in tasks}
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _collect(results: list[StudyResult],

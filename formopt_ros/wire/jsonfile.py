@@ -27,5 +27,8 @@ def write_json(path: str | Path, data: Any) -> None:
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(target.name + '.tmp')
-    temporary.write_text(json.dumps(json_safe(data), indent=2, allow_nan=False) + '\n')
-    os.replace(temporary, target)
+    try:
+        temporary.write_text(json.dumps(json_safe(data), indent=2, allow_nan=False) + '\n')
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)       # only left after a failure: never keep it

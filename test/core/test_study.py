@@ -230,24 +230,3 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
         assert stop.value.code == 2
     assert 'foo' in capsys.readouterr().err
 
-
-def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFixture) -> None:
-    """An output folder that holds files (--out) and an output file that exists (--csv,
-    --json, --figure) stop the command with exit code 2 before any work; nothing is
-    overwritten."""
-    from formopt_ros.cli import bench, montecarlo, periodic, replay
-    taken = tmp_path / 'taken.csv'
-    taken.write_text('keep me')
-    (tmp_path / 'busy').mkdir()
-    (tmp_path / 'busy' / 'summary.json').write_text('keep me')
-    for main, argv in ((montecarlo.main, ['--out', str(tmp_path / 'busy')]),
-                       (montecarlo.main, ['--out', str(taken)]),
-                       (bench.main, ['--csv', str(taken)]),
-                       (periodic.main, ['--figure', str(taken)]),
-                       (replay.main, [str(taken), '--json', str(taken)])):
-        with pytest.raises(SystemExit) as stop:
-            main(argv)
-        assert stop.value.code == 2, argv
-        assert 'refusing to overwrite' in capsys.readouterr().err, argv
-    assert taken.read_text() == 'keep me'
-    assert (tmp_path / 'busy' / 'summary.json').read_text() == 'keep me'

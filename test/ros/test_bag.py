@@ -192,6 +192,17 @@ def test_offline_replay_agrees(recording: Recording, tmp_path: Path) -> None:
     assert json.loads((tmp_path / 'offline.json').read_text())['max_diff'] <= 1e-9
 
 
+def test_offline_replay_with_another_strategy_fails(recording: Recording) -> None:
+    """Another planner over the same inputs estimates the same states but sends other
+    waypoints: the replay reports the waypoint difference and FAILED, exit 1."""
+    other = 'mtf' if STRATEGY != 'mtf' else 'ram'
+    command = subprocess.run(
+        [sys.executable, '-m', 'formopt_ros.cli.replay', str(recording.path), '--offline',
+         '--strategy', other], capture_output=True, text=True, timeout=120)
+    assert command.returncode == 1, command.stdout + command.stderr
+    assert 'FAILED' in command.stdout and 'state 0.000e+00' in command.stdout
+
+
 def test_offline_replay_fails_on_a_tampered_estimate(recording: Recording,
                                                      tmp_path: Path) -> None:
     """An estimate off by 1e-6 m is reported and the command exits 1."""

@@ -1,0 +1,140 @@
+"""The command-line convention shared by every command: outputs are never overwritten, an
+output that cannot be made is refused before any work, Ctrl-C / a closed pipe / a failed write
+end with one line and a documented exit code, never a traceback."""
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from formopt_ros.cli.common import INTERRUPTED_EXIT, SYSTEM_EXIT, command
+
+
+def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """An output folder that holds files (--out) and an output file that exists (--csv,
+    --json, --figure) stop the command with exit code 2 before any work; nothing is
+    overwritten."""
+    from formopt_ros.cli import bench, bench_ros, montecarlo, periodic, replay
+    taken = tmp_path / 'taken.csv'
+    taken.write_text('keep me')
+    (tmp_path / 'busy').mkdir()
+    (tmp_path / 'busy' / 'summary.json').write_text('keep me')
+    for main, argv in ((montecarlo.main, ['--out', str(tmp_path / 'busy')]),
+                       (montecarlo.main, ['--out', str(taken)]),
+                       (bench.main, ['--csv', str(taken)]),
+                       (bench_ros.main, ['--json', str(taken)]),
+                       (bench_ros.main, ['--json', str(tmp_path / 'busy')]),
+                       (periodic.main, ['--figure', str(taken)]),
+                       (replay.main, [str(taken), '--json', str(taken)])):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2, argv
+        err = capsys.readouterr().err
+        assert 'refusing to overwrite' in err or 'is a folder' in err, argv
+    assert taken.read_text() == 'keep me'
+    assert (tmp_path / 'busy' / 'summary.json').read_text() == 'keep me'
+
+
+@pytest.mark.parametrize('argv', [
+    ['formopt_ros.cli.montecarlo', '--out', '/proc/formopt-study'],
+    ['formopt_ros.cli.bench', '--csv', '/proc/formopt.csv'],
+    ['formopt_ros.cli.bench_ros', '--json', '/proc/formopt.json'],
+    ['formopt_ros.cli.periodic', '--figure', '/proc/formopt.png'],
+    ['formopt_ros.cli.report', __file__, '--out', '/proc/formopt-report'],
+    ['formopt_ros.cli.replay', __file__, '--offline', '--json', '/proc/formopt.json']])
+def test_an_output_that_cannot_be_made_is_refused_at_start(argv: list[str]) -> None:
+    """A path where nothing can be created (/proc, even for root) stops the command at once:
+    exit 2, one line naming the path, no traceback, no work done."""
+    done = subprocess.run([sys.executable, '-m', *argv], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert 'cannot create /proc/formopt' in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stdout == ''
+
+
+def test_missing_output_folders_are_created(tmp_path: Path) -> None:
+    """An output file in folders that do not exist yet: they are made, the file written."""
+    from formopt_ros.cli import bench
+    target = tmp_path / 'new' / 'deeper' / 'rows.csv'
+    assert bench.main(['--problems', '2', '--repeats', '1', '--methods', 'rq',
+                       '--measurement', 'range', '--csv', str(target)]) == 0
+    assert len(target.read_text().splitlines()) == 1 + 2       # header, one row per problem
+
+
+def test_command_wrapper_turns_failures_into_one_line(capsys: pytest.CaptureFixture) -> None:
+    """Ctrl-C: 'interrupted', 130; an OSError: one 'error:' line with the path, 1; a return
+    value and SystemExit pass through."""
+    def raising(error: BaseException):
+        def main() -> int:
+            raise error
+        return command('tool')(main)
+
+    assert raising(KeyboardInterrupt())() == INTERRUPTED_EXIT == 130
+    assert capsys.readouterr().err == 'tool: interrupted\n'
+    full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), '/data/out.csv')
+    assert raising(full)() == SYSTEM_EXIT == 1
+    assert capsys.readouterr().err == 'tool: error: No space left on device: /data/out.csv\n'
+    with pytest.raises(SystemExit):
+        raising(SystemExit(2))()
+    assert command('tool')(lambda: 7)() == 7
+
+
+def test_closed_pipe_ends_quietly(tmp_path: Path) -> None:
+    """`formopt-bench ... | head -1`: the reader leaves early; the command ends with exit 1
+    and prints nothing on stderr (no BrokenPipeError traceback)."""
+    process = subprocess.Popen(
+        [sys.executable, '-m', 'formopt_ros.cli.bench', '--problems', '2', '--repeats', '1',
+         '--methods', 'rq'], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert process.stdout is not None and process.stderr is not None
+    process.stdout.close()                                   # the reader is gone at once
+    assert process.wait(timeout=120) == SYSTEM_EXIT
+    assert process.stderr.read() == b''
+
+
+def children(pid: int) -> list[str]:
+    """The child process ids of ``pid`` (Linux /proc)."""
+    path = Path(f'/proc/{pid}/task/{pid}/children')
+    return path.read_text().split() if path.exists() else []
+
+
+def ignores_sigint(pid: int | str) -> bool:
+    """True when process ``pid`` ignores SIGINT (the SigIgn mask of /proc/PID/status)."""
+    status = Path(f'/proc/{pid}/status').read_text()
+    mask = next(line for line in status.splitlines() if line.startswith('SigIgn:'))
+    return bool(int(mask.split()[1], 16) >> (signal.SIGINT - 1) & 1)
+
+
+def pool_running(pid: int) -> bool:
+    """The worker pool is up: workers that ignore SIGINT, a main process that handles it."""
+    try:
+        workers = children(pid)
+        return bool(workers) and all(ignores_sigint(w) for w in workers) and \
+            not ignores_sigint(pid)
+    except (FileNotFoundError, StopIteration):
+        return False
+
+
+def test_ctrl_c_stops_the_study_with_one_line(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the worker pool runs:
+    exit 130 within 30 s, stderr is the one line 'formopt-montecarlo: interrupted' (the
+    workers print nothing), no worker is left."""
+    process = subprocess.Popen(
+        [sys.executable, '-m', 'formopt_ros.cli.montecarlo', '--out', str(tmp_path / 'study'),
+         '--jobs', '2', '--steps', '5000', '--no-figures'],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 60.0
+    while not pool_running(process.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)                                     # polling a condition, with deadline
+    workers = children(process.pid)
+    assert pool_running(process.pid), 'the worker pool never started'
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=30.0)
+    assert process.returncode == INTERRUPTED_EXIT, err
+    assert err == 'formopt-montecarlo: interrupted\n'
+    assert not any(Path(f'/proc/{pid}').exists() for pid in workers)
