@@ -229,4 +229,3 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2
     assert 'foo' in capsys.readouterr().err
-
