@@ -43,3 +43,17 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
     assert summary['message_counts']['received'] == {
         'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS, 'measurement': STEPS,
         'truth': STEPS}
+
+
+def test_diagnostics_every_status_period_while_steps_complete(formation) -> None:
+    """/diagnostics comes every status_period (here 0.1 s) also while every step completes
+    (per-step status messages do not hold it back): >= 4 OK diagnostics with rising step
+    counts while the run advances."""
+    run = formation({'measurement': 'range', 'seed': SEED, 'steps': 10**6,
+                     'status_period': 0.1})
+    diagnostics = run.published.setdefault('/diagnostics', [])
+    assert run.spin_until(lambda: len(diagnostics) >= 5, 30.0), len(diagnostics)
+    status = [message.status[0] for message in diagnostics[1:]]     # [0]: maybe before start
+    steps = [int(next(v.value for v in s.values if v.key == 'step')) for s in status]
+    assert all(s.level == b'\x00' for s in status), [s.message for s in status]
+    assert steps == sorted(steps) and steps[-1] > steps[0] > 0, steps

@@ -41,8 +41,8 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
               10**9),
         Param('resend_timeout', 1.0, 'resend the last waypoint after this long without progress '
               '(a peer restarted, a message was lost), s', 0.01, 3600.0, read_only=False),
-        Param('status_period', 1.0, 'publish the status and /diagnostics at least this often, '
-              'also while no step completes, s', 0.05, 60.0, read_only=False),
+        Param('status_period', 1.0, 'publish /diagnostics this often and the status at least '
+              'this often (also while no step completes), s', 0.05, 60.0, read_only=False),
         RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in; estimate, "
            'waypoint, status, markers, leader -> <follower>/estimate on /tf, /diagnostics and '
@@ -96,6 +96,7 @@ class EstimatorPlannerNode(Node):
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
         self.last_status = 0.0
+        self.last_diagnostics = 0.0
         self.last_markers = -math.inf
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
@@ -262,8 +263,8 @@ class EstimatorPlannerNode(Node):
 
     def on_timer(self) -> None:
         """Start the run once the publishers are matched and the peers agree; resend a waypoint
-        that got no answer; watch for intruders; publish the status and diagnostics while no
-        step completes."""
+        that got no answer; watch for intruders; publish the status while no step completes
+        and /diagnostics every status_period."""
         now = time.monotonic()
         self.guard.check()
         if not self.finished and not self.started:
@@ -283,6 +284,8 @@ class EstimatorPlannerNode(Node):
         if self.gate.open and now - self.last_status >= self.params['status_period']:
             self._publish_status(self.get_clock().now().to_msg(), self.session.step,
                                  self.session.estimator.weighted_trace())
+        if self.gate.open and now - self.last_diagnostics >= self.params['status_period']:
+            self.last_diagnostics = now              # every period, whether steps complete
             self.diagnostics_pub.publish(DiagnosticArray(
                 header=conversions.header(self.get_clock().now().to_msg(), ''),
                 status=[self.diagnostic()]))
