@@ -179,7 +179,48 @@ def formation_of(args: Any) -> tuple[Formation, Path | None]:
     for item in args.extra:
         if ':=' not in item:
             fail(PROG, f'-p must be NAME:=VALUE, got {item!r}')
+    check_extras(dict(item.split(':=', 1) for item in args.extra))
     return Formation('leader', (spec,)), None
+
+
+#: Node parameters that run_formation sets itself (-p of them is refused): its option for each.
+_MANAGED = {'mode': '--mode', 'run_id': '--run-id', 'steps': '--steps', 'seed': '--seed',
+            'measurement': '--measurement', 'strategy': '--strategy', 'recorders': '--no-record',
+            'use_sim_time': '--mode', 'followers': '--formation',
+            'formation_file': '--formation', 'summary_path': '--out',
+            'checkpoint_path': '--respawn'}
+
+
+def check_extras(extra: dict[str, str]) -> None:
+    """Refuse, before anything starts, a -p that no node receiving it has, one this command
+    sets itself, or a value a node would refuse at start (the nodes' own check, on the value
+    parsed as YAML like ``--ros-args -p``)."""
+    import difflib
+
+    import yaml
+
+    from formopt_ros.ros.nodes import estimator_planner, follower_sim, leader_sim
+    from formopt_ros.ros.params import ParameterError
+    for name, text in extra.items():
+        if name in _MANAGED:
+            fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
+        lists = (follower_sim.PARAMS, estimator_planner.PARAMS) + (
+            (leader_sim.PARAMS,) if name in _LEADER_KEYS else ())
+        specs = [spec for params in lists for spec in params if spec.name == name]
+        if not specs:
+            known = sorted({spec.name for params in lists for spec in params})
+            close = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
+            fail(PROG, f"-p {name}: no such parameter of follower_sim or estimator_planner"
+                       + (f"; did you mean '{close[0]}'?" if close else ''))
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            fail(PROG, f'-p {name}:={text}: not a YAML value')
+        for spec in specs:
+            try:
+                spec.check(value)
+            except ParameterError as error:
+                fail(PROG, f'-p {name}:={text}: {error}')
 
 
 def prepare_out(out: Path) -> Path:

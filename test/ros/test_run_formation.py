@@ -44,6 +44,9 @@ def test_single_follower_flags(tmp_path: Path, ros_domain: int) -> None:
                                      'follower.estimator_planner': 0}
     assert summary['counters']['accepted_measurements'] == STEPS
     assert summary['wall_time_s'] > 0 and summary['steps_per_s'] > 0
+    # config/fastdds_discovery.xml parses (an error there silently drops the whole profile)
+    logs = ''.join(log.read_text(errors='replace') for log in out.glob('*.log'))
+    assert 'XMLPARSER' not in logs and 'Error' not in logs, logs[:2000]
 
 
 def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
@@ -94,6 +97,11 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     (['--formation', 'nonexistent.yaml'], 'no such formation file'),
     (['--formation', str(FIG4), '--strategy', 'rq'], 'cannot be combined with --formation'),
     (['--prefix', 'bad name'], '--prefix must look like'),
+    (['-p', 'dt:=-1'], "-p dt:=-1: parameter 'dt' must be a number in [0.001, 10]"),
+    (['-p', 'dt:=nan'], "-p dt:=nan: parameter 'dt' must be a number"),
+    (['-p', 'stratgy:=rq'], "-p stratgy: no such parameter of follower_sim or "
+                            "estimator_planner; did you mean 'strategy'?"),
+    (['-p', 'strategy:=rq'], '-p strategy: set by run_formation.sh itself; use --strategy'),
 ])
 def test_bad_arguments_stop_before_any_node_starts(tmp_path: Path, args: list[str],
                                                    text: str) -> None:
