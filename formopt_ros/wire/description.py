@@ -171,9 +171,12 @@ def _same(a: Any, b: Any, rtol: float = 1e-9) -> bool:
 def parameter_differences(mine: dict[str, Any],
                           theirs: dict[str, Any]) -> list[tuple[str, Any, Any]]:
     """(parameter, my value, their value) for every parameter both describe that differs
-    (numbers: relative 1e-9), in the order of ``mine``."""
+    (numbers: relative 1e-9), in the order of ``mine``. My run_id '' accepts any run (the
+    node parameter's meaning: e.g. an estimator driven by a replayed bag); theirs '' does not
+    (their messages carry '' and would be refused as another run's)."""
     return [(name, value, theirs[name]) for name, value in mine.items()
-            if name in theirs and not _same(value, theirs[name])]
+            if name in theirs and not _same(value, theirs[name])
+            and not (name == 'run_id' and value == '')]
 
 
 def follower_differences(mine: RunDescription, theirs: RunDescription,

@@ -143,3 +143,14 @@ def test_descriptions_differ_by_parameter_name() -> None:
     assert {name for name, _, _ in leader_differences(base, leader)} == {
         'path', 'omega_leader', 'followers'}
     assert leader_differences(base, base.leader_view()) == []
+
+
+def test_run_id_empty_accepts_any_run() -> None:
+    """My run_id '' accepts a peer of any run (an estimator fed by a replayed bag); a peer
+    whose run_id is '' does not match my 'run_a' (its messages would be refused)."""
+    import dataclasses
+    mine = RunDescription('f1', Scenario.paper('range'), 'ram', run_id='')
+    recorded = dataclasses.replace(mine, run_id='run_b40')
+    assert follower_differences(mine, recorded) == []
+    assert leader_differences(mine, recorded.leader_view()) == []
+    assert follower_differences(recorded, mine) == [('run_id', 'run_b40', '')]
