@@ -170,9 +170,11 @@ def formation_of(args: Any) -> tuple[Formation, Path | None]:
             fail(PROG, f"--{(flags or ['p'])[0]} cannot be combined with --formation (set it "
                        'in the formation file)')
         try:
-            return load_formation(args.formation), args.formation.resolve()
+            formation = load_formation(args.formation)
         except ValueError as error:
             fail(PROG, f'--formation: {error}')
+        check_formation(formation, args.formation)
+        return formation, args.formation.resolve()
     kind = args.measurement or 'range'
     spec = FollowerSpec('follower', Scenario.paper(kind), args.strategy or 'ram', {},
                         args.seed or 0)
@@ -198,17 +200,12 @@ def check_extras(extra: dict[str, str]) -> None:
     import difflib
 
     import yaml
-
-    from formopt_ros.ros.nodes import estimator_planner, follower_sim, leader_sim
-    from formopt_ros.ros.params import ParameterError
     for name, text in extra.items():
         if name in _MANAGED:
             fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
-        lists = (follower_sim.PARAMS, estimator_planner.PARAMS) + (
-            (leader_sim.PARAMS,) if name in _LEADER_KEYS else ())
-        specs = [spec for params in lists for spec in params if spec.name == name]
-        if not specs:
-            known = sorted({spec.name for params in lists for spec in params})
+        roles = ('follower', 'leader') if name in _LEADER_KEYS else ('follower',)
+        if not node_specs(name, roles):
+            known = sorted({spec.name for role in roles for spec in node_specs(None, (role,))})
             close = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
             fail(PROG, f"-p {name}: no such parameter of follower_sim or estimator_planner"
                        + (f"; did you mean '{close[0]}'?" if close else ''))
@@ -216,11 +213,47 @@ def check_extras(extra: dict[str, str]) -> None:
             value = yaml.safe_load(text)
         except yaml.YAMLError:
             fail(PROG, f'-p {name}:={text}: not a YAML value')
-        for spec in specs:
+        problem = check_values({name: value}, roles)
+        if problem:
+            fail(PROG, f'-p {name}:={text}: {problem}')
+
+
+def check_formation(formation: Formation, path: Path) -> None:
+    """Refuse, before anything starts, a formation whose values a node would refuse at start
+    (e.g. a noise of 1e300: the file's own checks only ask for a positive number)."""
+    from formopt_ros.ros.run_config import follower_values
+    from formopt_ros.wire.description import path_parameters
+    leader = {'dt': formation.dt, **path_parameters(formation.leader)}
+    problem = check_values(leader, ('leader',))
+    if problem:
+        fail(PROG, f'--formation {path}: leader {formation.leader_id!r}: {problem}')
+    for follower in formation.followers:
+        problem = check_values(follower_values(follower, formation.trial, formation.leader_id),
+                               ('follower',))
+        if problem:
+            fail(PROG, f'--formation {path}: follower {follower.id!r}: {problem}')
+
+
+def node_specs(name: str | None, roles: tuple[str, ...]) -> list[Any]:
+    """The parameter specs called ``name`` (None: all) of the nodes of ``roles`` ('leader':
+    leader_sim; 'follower': follower_sim and estimator_planner)."""
+    from formopt_ros.ros.nodes import estimator_planner, follower_sim, leader_sim
+    lists = {'leader': (leader_sim.PARAMS,),
+             'follower': (follower_sim.PARAMS, estimator_planner.PARAMS)}
+    return [spec for role in roles for params in lists[role] for spec in params
+            if name is None or spec.name == name]
+
+
+def check_values(values: dict[str, Any], roles: tuple[str, ...]) -> str:
+    """Why a node of ``roles`` would refuse one of ``values`` (its own check), or ''."""
+    from formopt_ros.ros.params import ParameterError
+    for name, value in values.items():
+        for spec in node_specs(name, roles):
             try:
                 spec.check(value)
             except ParameterError as error:
-                fail(PROG, f'-p {name}:={text}: {error}')
+                return str(error)
+    return ''
 
 
 def prepare_out(out: Path) -> Path:

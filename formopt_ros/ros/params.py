@@ -155,8 +155,9 @@ def declare(node: Node, specs: list[Param],
         try:
             node.declare_parameter(spec.name, default, spec.descriptor())
         except Exception as error:           # rclpy rejects out-of-range or mistyped overrides
+            shown = override if override is not None else default
             raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got "
-                                 f'{override!r} ({type(error).__name__})') from None
+                                 f'{shown!r} ({type(error).__name__})') from None
         value = node.get_parameter(spec.name).value
         values[spec.name] = spec.check(list(value) if isinstance(spec.default, list)
                                        and value is not None else value)

@@ -17,7 +17,8 @@ def load_formation(path: str | Path) -> Formation:
     except FileNotFoundError:
         raise ValueError(f'{path}: no such formation file') from None
     except (OSError, yaml.YAMLError) as error:
-        raise ValueError(f'{path}: cannot read the formation: {error}') from None
+        where = ' '.join(str(error).split())           # YAML's message spans lines
+        raise ValueError(f'{path}: cannot read the formation: {where}') from None
     if not isinstance(data, dict) or 'formation' not in data:
         raise ValueError(f"{path}: a formation file has one top-level key 'formation'")
     try:

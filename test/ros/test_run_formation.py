@@ -102,6 +102,10 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     (['-p', 'stratgy:=rq'], "-p stratgy: no such parameter of follower_sim or "
                             "estimator_planner; did you mean 'strategy'?"),
     (['-p', 'strategy:=rq'], '-p strategy: set by run_formation.sh itself; use --strategy'),
+    (['--formation', str(REPO / 'test' / 'data' / 'formation_loud_noise.yaml')],
+     "follower 'range': parameter 'range_sigma' must be a number in [1e-06, 1000]"),
+    (['--formation', str(REPO / 'test' / 'data' / 'formation_broken.yaml')],
+     "cannot read the formation: while parsing a flow sequence"),
 ])
 def test_bad_arguments_stop_before_any_node_starts(tmp_path: Path, args: list[str],
                                                    text: str) -> None:
