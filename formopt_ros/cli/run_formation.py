@@ -21,7 +21,7 @@ from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario, check_i
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.jsonfile import write_json
-from formopt_ros.wire.topics import BY_KEY, resolve
+from formopt_ros.wire.topics import BY_KEY, GLOBAL_TOPICS, resolve
 
 PROG = 'run_formation.sh'
 SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
@@ -73,6 +73,7 @@ class Launcher:
 
     out: Path
     checkpoints: bool = False
+    remaps: list[str] = field(default_factory=list)   # FROM:=TO for every node
     processes: list[Process] = field(default_factory=list)
 
     def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
@@ -84,6 +85,8 @@ class Launcher:
         if summary_path is not None and self.checkpoints:
             params['checkpoint_path'] = str(self.out / 'checkpoints' / f'{name}.pkl')
         args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
+        for remap in self.remaps:
+            args += ['-r', remap]
         for key, value in params.items():
             args += ['-p', f'{key}:={format_value(value)}']
         log = self.out / f'{name}.log'
@@ -141,8 +144,10 @@ def build_parser() -> ArgumentParser:
                         help='output folder: <node>.log, <node>.json summaries, run.mcap, '
                              'summary.json (a folder holding an earlier run is refused)')
     parser.add_argument('--prefix', default='',
-                        help='formation namespace prefix, e.g. /run7: two runs with different '
-                             'prefixes share a ROS domain without seeing each other')
+                        help='formation namespace prefix, e.g. /run7: the robots run under '
+                             '/run7/<robot> and /tf, /tf_static, /clock, /diagnostics are '
+                             'remapped to /run7/tf, ...; two runs with different prefixes share '
+                             'a ROS domain without seeing each other')
     parser.add_argument('--run-id', default='',
                         help='identity of the run: nodes refuse messages and peers of another '
                              'run (default: a fresh random id, in summary.json)')
@@ -278,32 +283,40 @@ def expected_counts(prefix: str, leader: dict[str, Any] | None,
                     followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]]
                     ) -> dict[str, int]:
     """Messages per topic the nodes say they published (their summaries)."""
-    out: dict[str, int] = {'/tf': 0, '/diagnostics': 0}
+    tf, tf_static, clock, diagnostics = (f'{prefix}{name}' for name in (
+        '/tf', '/tf_static', '/clock', '/diagnostics'))      # remapped under the prefix
+    out: dict[str, int] = {tf: 0, diagnostics: 0}
     leader_ns = f"{prefix}/{leader['leader_id']}" if leader else ''
     if leader:
         out[resolve(leader_ns, BY_KEY['leader_odom'])] = leader['published']['odometry']
         out[resolve(leader_ns, BY_KEY['leader_description'])] = 1
-        out['/clock'] = leader['published']['clock']
-        out['/tf'] += leader['published']['tf']
+        out[clock] = leader['published']['clock']
+        out[tf] += leader['published']['tf']
     for follower_id, (sim, estimator) in followers.items():
         ns = f'{prefix}/{follower_id}'
         if sim:
             for key, name in (('follower_odom', 'odometry'), ('measurement', 'measurement'),
                               ('truth', 'truth')):
                 out[resolve(ns, BY_KEY[key])] = sim['published'][name]
-            out['/tf'] += sim['published']['tf']
-            out['/tf_static'] = out.get('/tf_static', 0) + 1
+            out[tf] += sim['published']['tf']
+            out[tf_static] = out.get(tf_static, 0) + 1
             out[resolve(ns, BY_KEY['sim_description'])] = 1
         if estimator:
             published = estimator['message_counts']['published']
             for key in ('estimate', 'waypoint', 'status', 'markers'):
                 out[resolve(ns, BY_KEY[key])] = published[key]
             out[resolve(ns, BY_KEY['description'])] = 1
-            out['/tf'] += published['tf']
-            out['/diagnostics'] += published['diagnostics']
-    if out.get('/clock') == 0:
-        del out['/clock']
-    return {k: v for k, v in out.items() if v or k in ('/tf',)}
+            out[tf] += published['tf']
+            out[diagnostics] += published['diagnostics']
+    if out.get(clock) == 0:
+        del out[clock]
+    return {k: v for k, v in out.items() if v or k == tf}
+
+
+def global_remaps(prefix: str) -> list[str]:
+    """-r rules that move the global topics (/tf, /tf_static, /clock, /diagnostics) under
+    ``prefix``, so that two runs in one domain do not mix their transforms and clocks."""
+    return [f'{t.name}:={prefix}{t.name}' for t in GLOBAL_TOPICS] if prefix else []
 
 
 def run(args: Any) -> int:
@@ -322,7 +335,7 @@ def run(args: Any) -> int:
     if args.domain_id is not None:
         os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    launcher = Launcher(out, checkpoints=args.respawn > 0)
+    launcher = Launcher(out, checkpoints=args.respawn > 0, remaps=global_remaps(prefix))
     record = not args.no_record
     common: dict[str, Any] = {'mode': args.mode, 'run_id': run_id,
                               'recorders': 1 if record else 0,
@@ -446,11 +459,18 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
             f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()})
         missing = {topic: n - recorded.get(topic, 0) for topic, n in expected.items()
                    if recorded.get(topic, 0) < n}
+        extra = {topic: n - expected.get(topic, 0) for topic, n in recorded.items()
+                 if n > expected.get(topic, 0)}
         complete = bool(recorded) and not missing
         recording = {'path': str(out / 'run.mcap'), 'counts': recorded, 'expected': expected,
-                     'complete': complete, 'missing': missing}
+                     'complete': complete, 'missing': missing, 'extra': extra}
         if not complete and not failure:
             failure = f'the recording misses messages: {missing or "no counts"}'
+        # a restarted node publishes again what it sent after its last checkpoint
+        if extra and not failure and not any(p.restarts for p in launcher.processes):
+            failure = (f'the recording holds messages that no node of this run published: '
+                       f'{extra} (another run publishes on these topics in this ROS domain; '
+                       'use --domain-id or --prefix)')
     steps = min((r['steps'] for r in followers.values()), default=0)
     summary: dict[str, Any] = {
         'ok': not failure, 'failure': failure or None, 'run_id': run_id, 'mode': args.mode,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -163,6 +164,60 @@ def test_a_second_run_in_the_same_domain_stops_both(tmp_path: Path, ros_domain: 
         assert summary['ok'] is False and 'run_a' in summary['failure'] + stderr \
             or 'run_b' in summary['failure'] + stderr, summary['failure']
         assert "parameter 'run_id'" in (summary['failure'] or ''), summary['failure']
+
+
+def test_prefixed_runs_share_a_domain_without_mixing(tmp_path: Path, ros_domain: int) -> None:
+    """Two runs at once in one domain under --prefix /pa and /pb: /tf, /tf_static, /clock and
+    /diagnostics are remapped under each prefix, so each bag holds exactly what its own
+    nodes published (no extra message) and each run equals the pure simulation."""
+    steps = 300
+    processes = {prefix: subprocess.Popen(
+        [str(SCRIPT), '--prefix', f'/{prefix}', '--steps', str(steps), '--seed', '6',
+         '--out', str(tmp_path / prefix), '--domain-id', str(ros_domain), '--timeout', '150'],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for prefix in ('pa', 'pb')}
+    ref = run_trial(Scenario.paper('range'), 'ram', 6, 0, steps)
+    for prefix, process in processes.items():
+        stdout, stderr = process.communicate(timeout=180)
+        assert process.returncode == 0, stdout + stderr
+        summary = json.loads((tmp_path / prefix / 'summary.json').read_text())
+        recording = summary['recording']
+        assert recording['complete'] and recording['extra'] == {}
+        assert recording['counts'] == recording['expected']
+        assert recording['counts'][f'/{prefix}/clock'] == 2 * steps
+        assert recording['counts'][f'/{prefix}/tf'] == 3 * 2 * steps
+        assert all(topic.startswith(f'/{prefix}/') for topic in recording['counts'])
+        np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0,
+                                   atol=TOL)
+
+
+def test_foreign_messages_in_the_recording_fail_the_run(tmp_path: Path, ros_domain: int,
+                                                        ros_init) -> None:
+    """A stray node publishing on the run's /x/tf during the run: the bag holds messages no
+    node of the run published; the run is not reported as a success (exit 1, 'extra')."""
+    from rclpy.node import Node
+    from tf2_msgs.msg import TFMessage
+
+    from formopt_ros.ros import qos
+    ros_init()
+    stray = Node('stray_tf')
+    publisher = stray.create_publisher(TFMessage, '/x/tf', qos.TF)
+    process = subprocess.Popen(
+        [str(SCRIPT), '--prefix', '/x', '--steps', '600', '--out', str(tmp_path / 'x'),
+         '--domain-id', str(ros_domain), '--timeout', '150'],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sent = 0
+    while process.poll() is None:
+        if publisher.get_subscription_count() > 0:         # the recorder is up
+            publisher.publish(TFMessage())
+            sent += 1
+        time.sleep(0.02)                                   # pacing the stray, not a sync
+    stdout, stderr = process.communicate(timeout=30)
+    stray.destroy_node()
+    assert sent > 0
+    assert process.returncode == 1, stdout + stderr
+    summary = json.loads((tmp_path / 'x' / 'summary.json').read_text())
+    assert summary['ok'] is False and summary['recording']['extra']['/x/tf'] > 0
+    assert 'no node of this run published' in summary['failure']
 
 
 @pytest.mark.parametrize('steps', [2, 3])
