@@ -280,11 +280,12 @@ def prepare_out(out: Path) -> Path:
 
 
 def expected_counts(prefix: str, leader: dict[str, Any] | None,
-                    followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]]
-                    ) -> dict[str, int]:
-    """Messages per topic the nodes say they published (their summaries)."""
-    tf, tf_static, clock, diagnostics = (f'{prefix}{name}' for name in (
-        '/tf', '/tf_static', '/clock', '/diagnostics'))      # remapped under the prefix
+                    followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]],
+                    remapped: bool = True) -> dict[str, int]:
+    """Messages per topic the nodes say they published (their summaries); the global topics
+    under ``prefix`` when ``remapped`` (:func:`global_remaps`, as run_formation starts them)."""
+    tf, tf_static, clock, diagnostics = (f'{prefix if remapped else ""}{name}' for name in (
+        '/tf', '/tf_static', '/clock', '/diagnostics'))
     out: dict[str, int] = {tf: 0, diagnostics: 0}
     leader_ns = f"{prefix}/{leader['leader_id']}" if leader else ''
     if leader:

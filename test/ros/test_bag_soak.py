@@ -52,7 +52,7 @@ def test_realtime_run_records_without_loss(node_process, tmp_path: Path) -> None
     assert recorder.wait(timeout=30) == 0
     read = {node: json.loads(p.read_text()) for node, p in summaries.items()}
     expected = expected_counts(PREFIX, read['leader_sim'], {
-        'follower': (read['follower_sim'], read['estimator_planner'])})
+        'follower': (read['follower_sim'], read['estimator_planner'])}, remapped=False)
     recorded = bags.read_bag(path).counts()
     lost = {name: expected[name] - recorded.get(name, 0) for name in expected}
     result = {'seconds_requested': SECONDS, 'run_time_s': run_time, 'dt': DT, 'bag': str(path),

@@ -70,7 +70,7 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     assert recording['counts'] == recording['expected']
     counts = read_bag(out / 'run.mcap').counts()
     assert counts == recording['counts']
-    assert counts['/fig4test/leader/odom'] == 2 * STEPS and counts['/clock'] == 2 * STEPS
+    assert counts['/fig4test/leader/odom'] == 2 * STEPS and counts['/fig4test/clock'] == 2 * STEPS
     assert counts['/fig4test/range/estimate'] == counts['/fig4test/bearing/estimate'] == STEPS
     from rosbags.highlevel import AnyReader
     with AnyReader([out / 'run.mcap']) as reader:
