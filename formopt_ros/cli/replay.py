@@ -10,7 +10,7 @@ from formopt_ros.analysis.offline import offline
 from formopt_ros.analysis.recording import load_recording
 from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import (
-    ArgumentParser, command, existing_file, fail, integer, new_file, number)
+    INTERRUPTED_EXIT, ArgumentParser, command, existing_file, fail, integer, new_file, number)
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
 
@@ -143,7 +143,17 @@ def main(args: list[str] | None = None) -> None:
     if options.wait_subscribers is not None:
         extra += ['-p', f'wait_subscribers:={options.wait_subscribers}']
     ros_args = (ros or ['--ros-args']) + extra if (ros or extra) else []
-    sys.exit(node_main(lambda: Replay(preloaded), PROG, SUMMARY, PARAMS, ros_args))
+    made: list[Replay] = []
+
+    def make() -> Replay:
+        made.append(Replay(preloaded))
+        return made[-1]
+    code = node_main(make, PROG, SUMMARY, PARAMS, ros_args)
+    if code == 0 and made and not made[-1].finished:       # Ctrl-C or SIGTERM mid-playback
+        print(f'{PROG}: interrupted after {made[-1].sent} of {len(made[-1].queue)} messages',
+              file=sys.stderr)
+        code = INTERRUPTED_EXIT
+    sys.exit(code)
 
 
 if __name__ == '__main__':

@@ -25,3 +25,27 @@ def test_signal_stops_node_cleanly(node_process, tmp_path, node: str, signum: in
     assert 'rosout' not in stderr          # logging after the context shut down
     key, value = CLOSED[node]
     assert json.loads(summary.read_text())[key] == value
+
+
+def test_interrupted_replay_says_so(ros_domain: int) -> None:
+    """Ctrl-C mid-playback: replay reports how much it sent and exits 130, not 0 (a partial
+    replay is not a success), without a traceback."""
+    import subprocess
+    import sys
+
+    from harness.ros import REPO
+    bag = REPO / 'test' / 'data' / 'legacy_0.1.0_lockstep_bearing_crm_seed2.mcap'
+    process = subprocess.Popen([sys.executable, '-m', 'formopt_ros.cli.replay', str(bag),
+                                '--rate', '0.001'], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stderr is not None
+    lines = []
+    for line in process.stderr:                # blocks per line; the node logs 'replaying'
+        lines.append(line)
+        if 'replaying' in line:
+            break
+    process.send_signal(signal.SIGINT)
+    _, rest = process.communicate(timeout=30.0)
+    stderr = ''.join(lines) + rest
+    assert process.returncode == 130, stderr
+    assert 'replay: interrupted after ' in stderr and 'Traceback' not in stderr
