@@ -189,9 +189,20 @@ def _check_positive(name: str, value: float, unit: str) -> float:
     return number
 
 
-def check_covariance(P: object, name: str = 'P') -> tuple[np.ndarray, Entries]:
+#: Admissible variances on the diagonal of a problem's P (m^2, rad^2) and largest sigma (m or
+#: rad): the cost and its certificate multiply up to six entries of P and R = sigma^2, which
+#: outside these bounds leave the range of doubles (measured: 1e-120 underflows, 1e30 and
+#: sigma 1e200 overflow; a sweep of 400 correlated P with variances log-uniform in the range
+#: and sigma in [1e-6, 1] solved with every method).
+VARIANCE_RANGE = (1e-100, 1e25)
+SIGMA_MAX = 1e100
+
+
+def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] | None = None
+                     ) -> tuple[np.ndarray, Entries]:
     """(P as a symmetric float (3, 3) array, its six distinct entries) or ValueError when P is
-    not symmetric positive definite (asymmetry up to 1e-9 relative is averaged away)."""
+    not symmetric positive definite (asymmetry up to 1e-9 relative is averaged away) or, when
+    ``variances`` = (low, high) is given, when a diagonal entry lies outside it."""
     arr, (p00, p01, p02, p10, p11, p12, p20, p21, p22) = _check_array(name, P, (3, 3))
     if p01 != p10 or p02 != p20 or p12 != p21:
         scale = max(map(abs, (p00, p01, p02, p10, p11, p12, p20, p21, p22)))
@@ -202,6 +213,11 @@ def check_covariance(P: object, name: str = 'P') -> tuple[np.ndarray, Entries]:
         arr = 0.5 * (arr + arr.T)
         p01, p02, p12 = float(arr[0, 1]), float(arr[0, 2]), float(arr[1, 2])
     entries = (p00, p01, p02, p11, p12, p22)
+    if variances is not None and not all(v <= 0.0 or variances[0] <= v <= variances[1]
+                                         for v in (p00, p11, p22)):    # v <= 0: not PD
+        raise ValueError(f'the variances on the diagonal of {name} must lie in '
+                         f'[{variances[0]:g}, {variances[1]:g}] (m^2, rad^2), got '
+                         f'{[p00, p11, p22]}')
     if not positive_definite_entries(entries):
         eig = np.linalg.eigvalsh(arr)
         raise ValueError(f'{name} must be positive definite, got eigenvalues {eig.tolist()}')
@@ -284,10 +300,12 @@ class Problem(_QuotientForms):
         if self.measurement not in MEASUREMENT_KINDS:
             raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
                              f'got {self.measurement!r}')
-        P, entries = check_covariance(self.P)
+        P, entries = check_covariance(self.P, variances=VARIANCE_RANGE)
         p_o, (x_o, y_o) = _check_array('p_o', self.p_o, (2,))
         r = _check_positive('r', self.r, 'm')
         sigma = _check_positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
+        if sigma > SIGMA_MAX:
+            raise ValueError(f'sigma must be at most {SIGMA_MAX:g}, got {sigma!r}')
         d_o = check_disc(x_o, y_o, r)
         for name, value in (('P', P), ('p_o', p_o), ('r', r), ('sigma', sigma)):
             object.__setattr__(self, name, value)

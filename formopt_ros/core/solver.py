@@ -52,8 +52,10 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
         certify its own answer, return RQ's with ``Solution.fallback = 'rq'``.
 
     Raises:
-        ValueError: for a non-SPD or non-finite P, bad p_o, r <= 0 or r >= |p_o|, sigma <= 0,
-            or an unknown measurement, method or option.
+        ValueError: for a non-SPD or non-finite P, a variance of P outside
+            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), bad p_o, r <= 0 or r > 0.999 |p_o|,
+            sigma <= 0 or above ``cost.SIGMA_MAX`` (1e100), or an unknown measurement, method
+            or option.
     """
     strategy = make_strategy(method, **options)
     context = context or DEFAULT_CONTEXT

@@ -62,6 +62,9 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
              ('p_o complex', {'p_o': GOOD_P_O + 0j}, r'p_o must hold real numbers'),
              ('tiny p_o', {'p_o': GOOD_P_O * 1e-200, 'r': 0.1e-200}, r'\|p_o\| = .* outside'),
              ('huge p_o', {'p_o': GOOD_P_O * 1e200, 'r': 0.1e200}, r'\|p_o\| = .* outside'),
+             ('P tiny', {'P': GOOD_P * 1e-300}, r'the variances on the diagonal of P'),
+             ('P huge', {'P': GOOD_P * 1e300}, r'the variances on the diagonal of P'),
+             ('sigma huge', {'sigma': 1e200}, r'sigma must be at most 1e\+100'),
              ('sigma zero', {'sigma': 0.0}, r'sigma must be'),
              ('sigma negative', {'sigma': -0.01}, r'sigma must be'),
              ('measurement', {'measurement': 'lidar'}, r'measurement must be one of')]
@@ -176,3 +179,34 @@ def test_q_disc_maps_boundary_circle_and_inverts() -> None:
         # 1e-12 relative: point_from_q is the inverse map (also on the whole array at once).
         np.testing.assert_allclose(point_from_q(q), boundary, rtol=1e-12)
         np.testing.assert_allclose(point_from_q(q[0]), boundary[0], rtol=1e-12)
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
+    """Across VARIANCE_RANGE (variances log-uniform over 125 decades, correlations up to 0.9,
+    sigma in [1e-6, 1]) every method returns a feasible finite point, without an exception;
+    RAM's answers are certified or visibly replaced by RQ's (seeded: 150 problems)."""
+    import warnings
+
+    from formopt_ros.core.cost import VARIANCE_RANGE
+    from formopt_ros.core.solver import solve
+    rng = np.random.default_rng(11)
+    low, high = np.log10(VARIANCE_RANGE)
+    solved = 0
+    while solved < 150:
+        d = 10.0 ** rng.uniform(low, high, 3)
+        c = rng.uniform(-0.9, 0.9, 3)
+        correlation = np.array([[1, c[0], c[1]], [c[0], 1, c[2]], [c[1], c[2], 1]])
+        if np.linalg.eigvalsh(correlation).min() <= 1e-3:
+            continue
+        P = np.sqrt(d)[:, None] * correlation * np.sqrt(d)[None, :]
+        sigma = 10.0 ** rng.uniform(-6, 0)
+        for method in ('ram', 'rq', 'gbs', 'mtf', 'periodic'):
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore', RuntimeWarning)
+                solution = solve(P, GOOD_P_O, 0.3, sigma, measurement=kind, method=method)
+            assert np.all(np.isfinite(solution.p)), (method, d, sigma)
+            assert np.hypot(*(solution.p - GOOD_P_O)) <= 0.3 * (1 + 1e-9), (method, d, sigma)
+            if method in ('ram', 'rq'):
+                assert solution.certificate != 'none' or solution.fallback == 'rq', (method, d)
+        solved += 1

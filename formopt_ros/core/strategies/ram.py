@@ -303,13 +303,16 @@ def _colleague_base(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def chebyshev_roots(series: np.ndarray) -> np.ndarray:
     """Complex roots in x = 2 sigma - 1 of Chebyshev series (T, n + 1): eigenvalues of the
-    colleague matrices (numpy's chebcompanion, batched; NaN when the leading coefficient is 0),
-    shape (T, n)."""
+    colleague matrices (numpy's chebcompanion, batched; NaN when the leading coefficient is 0 or
+    so small that the matrix overflows), shape (T, n)."""
     base, scale = _colleague_base(series.shape[1] - 1)
     mat = np.repeat(base[None], len(series), axis=0)
     lead = series[:, -1:]
     good = (lead[:, 0] != 0.0) & np.all(np.isfinite(series), axis=1)
     mat[:, :, -1] -= (series[:, :-1] / np.where(good[:, None], lead, 1.0)) * scale
+    finite = np.all(np.isfinite(mat[:, :, -1]), axis=1)   # a tiny leading term overflows
+    good &= finite
+    mat[~finite] = base
     roots = np.linalg.eigvals(mat[:, ::-1, ::-1])
     roots[~good] = np.nan
     return roots
