@@ -12,10 +12,11 @@ import pytest
 
 pytest.importorskip('mcap', reason='the tools extra (mcap, rosbags) is not installed')
 pytest.importorskip('rosbags', reason='the tools extra (mcap, rosbags) is not installed')
-from mcap.reader import make_reader  # noqa: E402
-from mcap.records import Channel, Chunk, Schema  # noqa: E402
+from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
+from mcap.records import Channel, Chunk, Message, Schema  # noqa: E402
 from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
 from mcap.writer import Writer  # noqa: E402
+from rosbags.rosbag2.storage_mcap import McapReader  # noqa: E402
 
 from formopt_ros import bag  # noqa: E402
 from formopt_ros.bag import qos, schema  # noqa: E402
@@ -262,6 +263,52 @@ def chunk_records(path: Path) -> list[list]:
                 if isinstance(record, Chunk)]
 
 
+def test_every_chunk_is_self_describing_and_every_reader_agrees(tmp_path: Path) -> None:
+    """Each chunk has the Schema and Channel records of its messages before them; mcap (indexed
+    and streaming), rosbags (indexed and scanning) and read_bag count the same 200 messages."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)
+    chunks = chunk_records(path)
+    assert len(chunks) == 10
+    for records in chunks:
+        seen: set[tuple[str, int]] = set()
+        for record in records:
+            if isinstance(record, Schema):
+                seen.add(('schema', record.id))
+            elif isinstance(record, Channel):
+                assert ('schema', record.schema_id) in seen
+                seen.add(('channel', record.id))
+            elif isinstance(record, Message):
+                assert ('channel', record.channel_id) in seen
+    expected = {'/leader/odom': 133, '/follower/status': 67}
+    assert bag.read_bag(path).counts() == expected
+    assert [(r.topic, r.log_time) for r in bag.read_bag(path).messages] == written
+    with open(path, 'rb') as stream:
+        indexed = [(c.topic, m.log_time) for _, c, m in make_reader(stream).iter_messages()]
+    with open(path, 'rb') as stream:
+        streamed = [(c.topic, m.log_time) for _, c, m in NonSeekingReader(stream).iter_messages()]
+    assert indexed == streamed == written
+    reader = McapReader(path)
+    reader.open()
+    try:
+        assert {c.topic: c.msgcount for c in reader.connections} == expected
+        assert len(reader.connections) == 2
+        by_index = [(c.topic, t) for c, t, _ in reader.messages(reader.connections)]
+        by_scan = [(c.topic, t) for c, t, _ in reader.messages_scan(reader.connections)]
+    finally:
+        reader.close()
+    assert by_index == by_scan == written
+
+
+def test_writer_needs_the_mcap_chunk_builder(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """An mcap Writer without the chunk builder to replace: one clear error, no file left."""
+    monkeypatch.setattr(Writer, '__init__', lambda self, *args, **kwargs: None)
+    with pytest.raises(bag.BagError, match='chunk builder'):
+        bag.BagWriter(tmp_path / 'run.mcap')
+    assert not (tmp_path / 'run.mcap').exists()
+
+
 def damage_first_chunk_and_cut(data: bytes, rng: random.Random) -> tuple[bytes, int]:
     """Flip a byte inside the first chunk and cut the file inside a later chunk; returns the
     damaged bytes and the index of the chunk that was cut."""
@@ -272,6 +319,29 @@ def damage_first_chunk_and_cut(data: bytes, rng: random.Random) -> tuple[bytes, 
     cut_chunk = rng.randrange(2, len(offsets))
     start, end = offsets[cut_chunk]
     return bytes(broken[:rng.randrange(start + 1, end)]), cut_chunk
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_repair_keeps_every_intact_chunk_when_the_first_is_damaged(tmp_path: Path, seed: int
+                                                                   ) -> None:
+    """The first chunk (where the channels were registered) damaged and the file cut: with
+    self-describing chunks every message of every intact chunk is kept, in order."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)
+    chunks = chunk_records(path)
+    broken_data, cut_chunk = damage_first_chunk_and_cut(path.read_bytes(), random.Random(seed))
+    broken = tmp_path / 'broken.mcap'
+    broken.write_bytes(broken_data)
+    result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    intact = [m for records in chunks[1:cut_chunk] for m in records if isinstance(m, Message)]
+    assert len(intact) == 20 * (cut_chunk - 1)
+    assert result.chunks == cut_chunk - 1 and len(result.damage) == 1
+    assert result.kept == len(intact) and result.lost == 0 and result.unrecoverable == {}
+    kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
+    assert kept == written[20:20 * cut_chunk]
+    assert result.counts == bag.read_bag(tmp_path / 'fixed.mcap').counts()
+    assert sum(result.counts.values()) == result.kept
+    assert bag_main(['repair', str(broken), str(tmp_path / 'again.mcap')]) == 0
 
 
 def write_plain_bag(path: Path, flush_every: int = 20) -> list[tuple[int, int]]:
