@@ -11,7 +11,13 @@ from formopt_ros.bag.writer import LIBRARY, PROFILE
 
 @dataclass
 class RepairResult:
-    """What :func:`repair` kept from a damaged file."""
+    """What :func:`repair` kept from a damaged file, and what it could not.
+
+    ``unrecoverable`` counts, per channel id of the damaged file, the messages of intact chunks
+    that were not written because their Channel record, or the channel's Schema record, was
+    lost (the plain chunked mcap Writer puts them only into the chunk where a channel is
+    registered); ``why`` says which, per channel id.
+    """
 
     kept: int
     chunks: int
@@ -21,43 +27,66 @@ class RepairResult:
     stop_offset: int
     size: int
     damage: list[Damage] = field(default_factory=list)
+    unrecoverable: dict[int, int] = field(default_factory=dict)
+    why: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def lost(self) -> int:
+        """Messages of intact chunks that could not be written (see ``unrecoverable``)."""
+        return sum(self.unrecoverable.values())
 
 
 def repair(source: str | Path, target: str | Path) -> RepairResult:
     """Write a valid MCAP with every readable chunk and message of a damaged one.
 
     Chunks whose CRC or compression fails are skipped (and listed in ``damage``); reading
-    resumes after them, so one flipped byte costs one chunk, not the rest of the file.
+    resumes after them, so one flipped byte costs one chunk, not the rest of the file. A
+    message whose channel, or whose channel's schema, is nowhere in the readable records cannot
+    be written as a ROS message: it is counted in ``unrecoverable`` (never dropped silently),
+    and a channel without a schema is left out, so the output always reads with
+    :func:`~formopt_ros.bag.read_bag`.
     """
     from mcap.writer import CompressionType, Writer
     source, target = Path(source), Path(target)
     if target.exists():
         raise BagError(f'{target}: file exists; refusing to overwrite it')
     result = scan(source)
-    counts: dict[str, int] = {c.topic: 0 for c in result.channels.values()}
+    why = {old: 'Channel record lost' for old in
+           {m.channel_id for m in result.messages} - set(result.channels)}
+    for old, channel in result.channels.items():
+        if channel.schema_id not in result.schemas:
+            why[old] = (f'Schema record of {channel.topic} lost' if channel.schema_id else
+                        f'{channel.topic} has no schema')
+    usable = {old: c for old, c in result.channels.items() if old not in why}
+    counts: dict[str, int] = {c.topic: 0 for c in usable.values()}
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         stream = open(target, 'xb')
     except OSError as error:
         raise BagError(f'{target}: cannot create: {error.strerror}') from None
+    unrecoverable: dict[int, int] = {}
     with stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile=result.profile or PROFILE, library=result.library or LIBRARY)
         schema_ids = {old: writer.register_schema(s.name, s.encoding, s.data)
-                      for old, s in result.schemas.items()}
+                      for old, s in result.schemas.items()
+                      if old in {c.schema_id for c in usable.values()}}
         channel_ids = {}
-        for old, channel in result.channels.items():
+        for old, channel in usable.items():
             channel_ids[old] = writer.register_channel(
-                channel.topic, channel.message_encoding, schema_ids.get(channel.schema_id, 0),
+                channel.topic, channel.message_encoding, schema_ids[channel.schema_id],
                 dict(channel.metadata))
-        topics = {c.id: c.topic for c in result.channels.values()}
         kept = 0
         for message in result.messages:
             if message.channel_id in channel_ids:
                 writer.add_message(channel_ids[message.channel_id], message.log_time,
                                    message.data, message.publish_time, message.sequence)
-                counts[topics[message.channel_id]] += 1
+                counts[usable[message.channel_id].topic] += 1
                 kept += 1
+            else:
+                unrecoverable[message.channel_id] = unrecoverable.get(message.channel_id, 0) + 1
         writer.finish()
     return RepairResult(kept, result.chunks, counts, result.complete, result.stop_reason,
-                        result.stop_offset, source.stat().st_size, result.damage)
+                        result.stop_offset, source.stat().st_size, result.damage,
+                        dict(sorted(unrecoverable.items())),
+                        {old: why[old] for old in sorted(unrecoverable)})

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from formopt_ros.bag.errors import BagError
 from formopt_ros.bag.schema import SCHEMA_ENCODING, has_header, header_stamp_ns, message_definition
@@ -13,6 +13,56 @@ LIBRARY = 'formopt_ros.bag'
 COMPRESSIONS = ('zstd', 'lz4', 'none')
 
 
+def _self_describing_chunks(writer: Any) -> None:
+    """Make every chunk of an mcap ``Writer`` carry the Schema and Channel records it uses.
+
+    The Writer puts a Schema or Channel record only into the chunk being built when it is
+    registered; a reader that loses that chunk (a flipped byte) and the summary (a killed
+    writer) cannot decode any later message of the channel. The MCAP spec allows identical
+    duplicate Schema and Channel records, so the first message of a channel in each chunk is
+    preceded by its channel's records (when the chunk does not hold them yet). mcap has no
+    public hook for this: the Writer's private chunk builder is replaced by a subclass (checked,
+    so an mcap release that renames it fails loudly instead of writing the old layout).
+    """
+    from mcap._chunk_builder import ChunkBuilder
+    from mcap.records import Channel, Message, Schema
+
+    class Builder(ChunkBuilder):
+        def __init__(self) -> None:
+            super().__init__()
+            self.schemas: dict[int, Schema] = {}
+            self.channels: dict[int, Channel] = {}
+            self.described: set[tuple[str, int]] = set()    # records in this chunk
+
+        def add_schema(self, schema: Schema) -> None:
+            self.schemas[schema.id] = schema
+            self.described.add(('schema', schema.id))
+            super().add_schema(schema)
+
+        def add_channel(self, channel: Channel) -> None:
+            self.channels[channel.id] = channel
+            self.described.add(('channel', channel.id))
+            super().add_channel(channel)
+
+        def add_message(self, message: Message) -> None:
+            if ('channel', message.channel_id) not in self.described:
+                channel = self.channels[message.channel_id]
+                if channel.schema_id and ('schema', channel.schema_id) not in self.described:
+                    self.add_schema(self.schemas[channel.schema_id])
+                self.add_channel(channel)
+            super().add_message(message)
+
+        def reset(self) -> None:
+            super().reset()
+            self.described.clear()
+
+    name = '_Writer__chunk_builder'
+    if not isinstance(getattr(writer, name, None), ChunkBuilder):
+        raise BagError('this mcap release has no Writer chunk builder to replace; '
+                       'formopt_ros.bag.writer needs an update for it')
+    setattr(writer, name, Builder())
+
+
 class BagWriter:
     """One rosbag2-compatible .mcap file: ros2 profile, cdr messages, ros2msg schemas.
 
@@ -20,6 +70,14 @@ class BagWriter:
     metadata, like rosbag2_storage_mcap. The file is opened exclusively: an existing file is
     never overwritten. :meth:`flush` closes the current chunk and hands it to the OS, so a killed
     writer loses only what came after the last flush (see :func:`formopt_ros.bag.repair`).
+
+    Every chunk is self-describing: the first message of a channel in a chunk is preceded by
+    the channel's Schema and Channel records, so the messages of any intact chunk can be decoded
+    (and repaired) whatever else of the file is lost. The cost is compressed with each chunk:
+    about 6 kB per chunk for the 11 schemas of a one-follower formation. Measured by rewriting
+    600-step runs with and without it at the same chunk boundaries: lockstep (4 and 6 chunks)
+    537 -> 557 kB (+3.7 %) and 553 -> 583 kB (+5.5 %); realtime (64 chunks, one per 1 s
+    ``flush_period``) 1.00 -> 1.40 MB (+40 %). A longer flush_period makes it smaller.
     """
 
     def __init__(self, path: str | Path, chunk_size: int = 1 << 20,
@@ -37,7 +95,14 @@ class BagWriter:
             raise BagError(f'{self.path}: file exists; refusing to overwrite it') from None
         except OSError as error:
             raise BagError(f'{self.path}: cannot create: {error.strerror}') from None
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=kinds[compression])
+        try:
+            self._writer = Writer(self._file, chunk_size=chunk_size,
+                                  compression=kinds[compression])
+            _self_describing_chunks(self._writer)
+        except BaseException:
+            self._file.close()
+            self.path.unlink()
+            raise
         self._writer.start(profile=PROFILE, library=LIBRARY)
         self._file.flush()                  # a valid (empty) bag on disk from the start
         self._schemas: dict[str, int] = {}

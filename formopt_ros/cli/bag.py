@@ -28,7 +28,11 @@ def build_parser() -> ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``formopt-bag info BAG`` and ``formopt-bag repair IN OUT``; exit 2 on a bad bag."""
+    """``formopt-bag info BAG`` and ``formopt-bag repair IN OUT``; exit 2 on a bad bag.
+
+    repair exits 1 when messages of intact chunks could not be recovered (their channel or
+    schema was lost); the partial repair is still written.
+    """
     args = build_parser().parse_args(argv)
     try:
         if args.command == 'info':
@@ -53,6 +57,16 @@ def main(argv: list[str] | None = None) -> int:
           f'wrote {args.target}')
     for topic, count in sorted(result.counts.items()):
         print(f'  {topic:32s} {count:8d}')
+    if result.lost:
+        groups: dict[str, list[str]] = {}
+        for old in result.unrecoverable:
+            groups.setdefault(result.why[old], []).append(str(old))
+        reasons = '; '.join(f"{why} (channel{'s' if len(ids) > 1 else ''} {', '.join(ids)})"
+                            for why, ids in groups.items())
+        print(f'formopt-bag: partial repair: {result.lost} messages of intact chunks could not '
+              f'be recovered, their channel or schema is unknown: {reasons}; {args.target} has '
+              'the rest', file=sys.stderr)
+        return 1
     return 0
 
 

@@ -12,10 +12,15 @@ import pytest
 
 pytest.importorskip('mcap', reason='the tools extra (mcap, rosbags) is not installed')
 pytest.importorskip('rosbags', reason='the tools extra (mcap, rosbags) is not installed')
-from mcap.reader import make_reader  # noqa: E402
+from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
+from mcap.records import Channel, Chunk, Message, Schema  # noqa: E402
+from mcap.stream_reader import StreamReader, breakup_chunk  # noqa: E402
+from mcap.writer import Writer  # noqa: E402
+from rosbags.rosbag2.storage_mcap import McapReader  # noqa: E402
 
 from formopt_ros import bag  # noqa: E402
 from formopt_ros.bag import qos, schema  # noqa: E402
+from formopt_ros.cli.bag import main as bag_main  # noqa: E402
 from formopt_ros.wire.topics import formation_topics  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -249,6 +254,171 @@ def test_garbage_between_records_is_skipped(tmp_path: Path) -> None:
     assert len(result.damage) >= 1 and result.kept == 80
     kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
     assert kept == written[:40] + written[60:]
+
+
+def chunk_records(path: Path) -> list[list]:
+    """The records inside each chunk of an undamaged MCAP file, chunk by chunk."""
+    with open(path, 'rb') as stream:
+        return [breakup_chunk(record) for record in StreamReader(stream, emit_chunks=True).records
+                if isinstance(record, Chunk)]
+
+
+def test_every_chunk_is_self_describing_and_every_reader_agrees(tmp_path: Path) -> None:
+    """Each chunk has the Schema and Channel records of its messages before them; mcap (indexed
+    and streaming), rosbags (indexed and scanning) and read_bag count the same 200 messages."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)
+    chunks = chunk_records(path)
+    assert len(chunks) == 10
+    for records in chunks:
+        seen: set[tuple[str, int]] = set()
+        for record in records:
+            if isinstance(record, Schema):
+                seen.add(('schema', record.id))
+            elif isinstance(record, Channel):
+                assert ('schema', record.schema_id) in seen
+                seen.add(('channel', record.id))
+            elif isinstance(record, Message):
+                assert ('channel', record.channel_id) in seen
+    expected = {'/leader/odom': 133, '/follower/status': 67}
+    assert bag.read_bag(path).counts() == expected
+    assert [(r.topic, r.log_time) for r in bag.read_bag(path).messages] == written
+    with open(path, 'rb') as stream:
+        indexed = [(c.topic, m.log_time) for _, c, m in make_reader(stream).iter_messages()]
+    with open(path, 'rb') as stream:
+        streamed = [(c.topic, m.log_time) for _, c, m in NonSeekingReader(stream).iter_messages()]
+    assert indexed == streamed == written
+    reader = McapReader(path)
+    reader.open()
+    try:
+        assert {c.topic: c.msgcount for c in reader.connections} == expected
+        assert len(reader.connections) == 2
+        by_index = [(c.topic, t) for c, t, _ in reader.messages(reader.connections)]
+        by_scan = [(c.topic, t) for c, t, _ in reader.messages_scan(reader.connections)]
+    finally:
+        reader.close()
+    assert by_index == by_scan == written
+
+
+def test_writer_needs_the_mcap_chunk_builder(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """An mcap Writer without the chunk builder to replace: one clear error, no file left."""
+    monkeypatch.setattr(Writer, '__init__', lambda self, *args, **kwargs: None)
+    with pytest.raises(bag.BagError, match='chunk builder'):
+        bag.BagWriter(tmp_path / 'run.mcap')
+    assert not (tmp_path / 'run.mcap').exists()
+
+
+def damage_first_chunk_and_cut(data: bytes, rng: random.Random) -> tuple[bytes, int]:
+    """Flip a byte inside the first chunk and cut the file inside a later chunk; returns the
+    damaged bytes and the index of the chunk that was cut."""
+    offsets = chunk_offsets(data)
+    broken = bytearray(data)
+    start, end = offsets[0]
+    broken[rng.randrange(start + 60, end)] ^= 0xFF
+    cut_chunk = rng.randrange(2, len(offsets))
+    start, end = offsets[cut_chunk]
+    return bytes(broken[:rng.randrange(start + 1, end)]), cut_chunk
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_repair_keeps_every_intact_chunk_when_the_first_is_damaged(tmp_path: Path, seed: int
+                                                                   ) -> None:
+    """The first chunk (where the channels were registered) damaged and the file cut: with
+    self-describing chunks every message of every intact chunk is kept, in order."""
+    path = tmp_path / 'run.mcap'
+    written = write_bag(path, 200, flush_every=20)
+    chunks = chunk_records(path)
+    broken_data, cut_chunk = damage_first_chunk_and_cut(path.read_bytes(), random.Random(seed))
+    broken = tmp_path / 'broken.mcap'
+    broken.write_bytes(broken_data)
+    result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    intact = [m for records in chunks[1:cut_chunk] for m in records if isinstance(m, Message)]
+    assert len(intact) == 20 * (cut_chunk - 1)
+    assert result.chunks == cut_chunk - 1 and len(result.damage) == 1
+    assert result.kept == len(intact) and result.lost == 0 and result.unrecoverable == {}
+    kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
+    assert kept == written[20:20 * cut_chunk]
+    assert result.counts == bag.read_bag(tmp_path / 'fixed.mcap').counts()
+    assert sum(result.counts.values()) == result.kept
+    assert bag_main(['repair', str(broken), str(tmp_path / 'again.mcap')]) == 0
+
+
+def write_plain_bag(path: Path, flush_every: int = 20) -> list[tuple[int, int]]:
+    """A bag written the old way (plain chunked mcap Writer): /leader/odom registered in the
+    first chunk; /range/odom (same schema) and /follower/status registered in the second.
+    Returns (channel id, log_time) per message."""
+    odometry = schema.message_definition(ODOMETRY).encode()
+    status_type = 'formopt_interfaces/msg/PlannerStatus'
+    rng = random.Random(7)
+    written = []
+    with open(path, 'xb') as stream:
+        writer = Writer(stream, chunk_size=1 << 20)
+        writer.start(profile='ros2', library='old')
+        odom_schema = writer.register_schema(ODOMETRY, 'ros2msg', odometry)
+        channels = [writer.register_channel('/leader/odom', 'cdr', odom_schema)]
+        for i in range(200):
+            if i == flush_every:
+                channels.append(writer.register_channel('/range/odom', 'cdr', odom_schema))
+                status = writer.register_schema(status_type, 'ros2msg',
+                                                schema.message_definition(status_type).encode())
+                channels.append(writer.register_channel('/follower/status', 'cdr', status))
+            channel = channels[i % len(channels)]
+            payload = bytes([0, 1, 0, 0]) + struct.pack('<iI', i, 0) + rng.randbytes(50)
+            writer.add_message(channel, 1_000_000 * (i + 1), payload, 1_000_000 * (i + 1))
+            written.append((channel, 1_000_000 * (i + 1)))
+            if (i + 1) % flush_every == 0:
+                writer.flush()
+        writer.finish()
+    return written
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_repair_of_an_old_bag_reports_what_it_could_not_recover(
+        tmp_path: Path, seed: int, capsys: pytest.CaptureFixture[str]) -> None:
+    """An old-style bag with its first chunk damaged and its tail cut: the messages of intact
+    chunks whose channel (1) or schema (channel 2) was lost are counted per channel, the CLI says
+    so in one line and exits 1; the partial repair reads and keeps every decodable message."""
+    path = tmp_path / 'old.mcap'
+    written = write_plain_bag(path)
+    chunks = chunk_records(path)
+    assert [type(r) for r in chunks[1][:3]] == [Channel, Schema, Channel]   # the old layout
+    broken_data, cut_chunk = damage_first_chunk_and_cut(path.read_bytes(), random.Random(seed))
+    broken = tmp_path / 'broken.mcap'
+    broken.write_bytes(broken_data)
+    intact = written[20:20 * cut_chunk]
+    per_channel = {c: sum(1 for channel, _ in intact if channel == c) for c in (1, 2, 3)}
+    assert per_channel[1] > 0 and per_channel[2] > 0 and per_channel[3] > 0
+    result = bag.repair(broken, tmp_path / 'fixed.mcap')
+    assert result.unrecoverable == {1: per_channel[1], 2: per_channel[2]}
+    assert result.why == {1: 'Channel record lost', 2: 'Schema record of /range/odom lost'}
+    assert result.lost == per_channel[1] + per_channel[2]
+    assert result.kept == per_channel[3] and result.kept + result.lost == len(intact)
+    assert result.counts == {'/follower/status': per_channel[3]}
+    fixed = bag.read_bag(tmp_path / 'fixed.mcap')
+    assert list(fixed.channels) == ['/follower/status']
+    assert [r.log_time for r in fixed.messages] == [t for c, t in intact if c == 3]
+    capsys.readouterr()
+    assert bag_main(['repair', str(broken), str(tmp_path / 'cli.mcap')]) == 1
+    out, err = capsys.readouterr()
+    assert out.startswith(f'kept {result.kept} messages in {cut_chunk - 1} chunks')
+    assert err.splitlines() == [
+        f'formopt-bag: partial repair: {result.lost} messages of intact chunks could not be '
+        'recovered, their channel or schema is unknown: Channel record lost (channel 1); Schema '
+        f'record of /range/odom lost (channel 2); {tmp_path / "cli.mcap"} has the rest']
+    assert bag.read_bag(tmp_path / 'cli.mcap').counts() == {'/follower/status': per_channel[3]}
+    assert bag_main(['info', str(tmp_path / 'cli.mcap')]) == 0
+
+
+def test_repair_of_an_undamaged_old_bag_keeps_everything(tmp_path: Path) -> None:
+    """The summary repeats every Schema and Channel: a complete old bag loses nothing."""
+    path = tmp_path / 'old.mcap'
+    written = write_plain_bag(path)
+    result = bag.repair(path, tmp_path / 'fixed.mcap')
+    assert result.was_complete and result.kept == 200 and result.unrecoverable == {}
+    by_topic = {1: '/leader/odom', 2: '/range/odom', 3: '/follower/status'}
+    assert [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages] == [
+        (by_topic[c], t) for c, t in written]
 
 
 def run_module(module: str, *args: str) -> subprocess.CompletedProcess:
