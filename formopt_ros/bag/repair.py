@@ -6,7 +6,8 @@ from pathlib import Path
 
 from formopt_ros.bag.errors import BagError
 from formopt_ros.bag.reader import Damage, scan
-from formopt_ros.bag.writer import LIBRARY, PROFILE
+from formopt_ros.bag.schema import SCHEMA_ENCODING, message_definition
+from formopt_ros.bag.writer import LIBRARY, PROFILE, TYPE_KEY
 
 
 @dataclass
@@ -16,7 +17,9 @@ class RepairResult:
     ``unrecoverable`` counts, per channel id of the damaged file, the messages of intact chunks
     that were not written because their Channel record, or the channel's Schema record, was
     lost (the plain chunked mcap Writer puts them only into the chunk where a channel is
-    registered); ``why`` says which, per channel id.
+    registered); ``why`` says which, per channel id. ``rebuilt`` names, per channel id, the
+    type whose lost schema was rebuilt from the channel's metadata (bags of BagWriter) and the
+    installed message definitions.
     """
 
     kept: int
@@ -29,6 +32,7 @@ class RepairResult:
     damage: list[Damage] = field(default_factory=list)
     unrecoverable: dict[int, int] = field(default_factory=dict)
     why: dict[int, str] = field(default_factory=dict)
+    rebuilt: dict[int, str] = field(default_factory=dict)
 
     @property
     def lost(self) -> int:
@@ -43,8 +47,9 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     resumes after them, so one flipped byte costs one chunk, not the rest of the file. A
     message whose channel, or whose channel's schema, is nowhere in the readable records cannot
     be written as a ROS message: it is counted in ``unrecoverable`` (never dropped silently),
-    and a channel without a schema is left out, so the output always reads with
-    :func:`~formopt_ros.bag.read_bag`.
+    unless the channel names its type (``TYPE_KEY``) and the schema can be rebuilt from the
+    installed definitions. A channel without a usable schema is left out, so the output always
+    reads with :func:`~formopt_ros.bag.read_bag`.
     """
     from mcap.writer import CompressionType, Writer
     source, target = Path(source), Path(target)
@@ -53,8 +58,19 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     result = scan(source)
     why = {old: 'Channel record lost' for old in
            {m.channel_id for m in result.messages} - set(result.channels)}
+    rebuilt: dict[int, str] = {}                   # channel id -> type of its rebuilt schema
     for old, channel in result.channels.items():
-        if channel.schema_id not in result.schemas:
+        if channel.schema_id in result.schemas:
+            continue
+        type_name = channel.metadata.get(TYPE_KEY, '')
+        if channel.schema_id and type_name:
+            try:
+                message_definition(type_name)
+                rebuilt[old] = type_name
+                continue
+            except BagError as error:
+                why[old] = f'Schema record of {channel.topic} lost and {error}'
+        else:
             why[old] = (f'Schema record of {channel.topic} lost' if channel.schema_id else
                         f'{channel.topic} has no schema')
     usable = {old: c for old, c in result.channels.items() if old not in why}
@@ -71,11 +87,15 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
         schema_ids = {old: writer.register_schema(s.name, s.encoding, s.data)
                       for old, s in result.schemas.items()
                       if old in {c.schema_id for c in usable.values()}}
+        for type_name in sorted(set(rebuilt.values())):
+            schema_ids[('rebuilt', type_name)] = writer.register_schema(
+                type_name, SCHEMA_ENCODING, message_definition(type_name).encode())
         channel_ids = {}
         for old, channel in usable.items():
+            schema_id = schema_ids[('rebuilt', rebuilt[old]) if old in rebuilt
+                                   else channel.schema_id]
             channel_ids[old] = writer.register_channel(
-                channel.topic, channel.message_encoding, schema_ids[channel.schema_id],
-                dict(channel.metadata))
+                channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
         kept = 0
         for message in result.messages:
             if message.channel_id in channel_ids:
@@ -89,4 +109,4 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     return RepairResult(kept, result.chunks, counts, result.complete, result.stop_reason,
                         result.stop_offset, source.stat().st_size, result.damage,
                         dict(sorted(unrecoverable.items())),
-                        {old: why[old] for old in sorted(unrecoverable)})
+                        {old: why[old] for old in sorted(unrecoverable)}, rebuilt)

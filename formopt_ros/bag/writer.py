@@ -13,43 +13,41 @@ LIBRARY = 'formopt_ros.bag'
 COMPRESSIONS = ('zstd', 'lz4', 'none')
 
 
-def _self_describing_chunks(writer: Any) -> None:
-    """Make every chunk of an mcap ``Writer`` carry the Schema and Channel records it uses.
+#: Channel metadata key naming the message type, so that a channel whose Schema record was lost
+#: (it is written once, in the chunk where the type first appears) can have it rebuilt.
+TYPE_KEY = 'type_name'
 
-    The Writer puts a Schema or Channel record only into the chunk being built when it is
-    registered; a reader that loses that chunk (a flipped byte) and the summary (a killed
-    writer) cannot decode any later message of the channel. The MCAP spec allows identical
-    duplicate Schema and Channel records, so the first message of a channel in each chunk is
-    preceded by its channel's records (when the chunk does not hold them yet). mcap has no
-    public hook for this: the Writer's private chunk builder is replaced by a subclass (checked,
-    so an mcap release that renames it fails loudly instead of writing the old layout).
+
+def _self_describing_chunks(writer: Any) -> None:
+    """Make every chunk of an mcap ``Writer`` carry the Channel records of its messages.
+
+    The Writer puts a Channel record only into the chunk being built when it is registered; a
+    reader that loses that chunk (a flipped byte) and the summary (a killed writer) cannot tell
+    the topic of any later message of the channel. The MCAP spec allows identical duplicate
+    Channel records, so the first message of a channel in each chunk is preceded by its Channel
+    record (when the chunk does not hold it yet). Schemas are not repeated (they are ~20 times
+    larger): the channel's metadata names its type (``TYPE_KEY``), from which
+    :func:`~formopt_ros.bag.repair` rebuilds a lost schema. mcap has no public hook for this:
+    the Writer's private chunk builder is replaced by a subclass (checked, so an mcap release
+    that renames it fails loudly instead of writing the old layout).
     """
     from mcap._chunk_builder import ChunkBuilder
-    from mcap.records import Channel, Message, Schema
+    from mcap.records import Channel, Message
 
     class Builder(ChunkBuilder):
         def __init__(self) -> None:
             super().__init__()
-            self.schemas: dict[int, Schema] = {}
             self.channels: dict[int, Channel] = {}
-            self.described: set[tuple[str, int]] = set()    # records in this chunk
-
-        def add_schema(self, schema: Schema) -> None:
-            self.schemas[schema.id] = schema
-            self.described.add(('schema', schema.id))
-            super().add_schema(schema)
+            self.described: set[int] = set()            # channel ids with a record here
 
         def add_channel(self, channel: Channel) -> None:
             self.channels[channel.id] = channel
-            self.described.add(('channel', channel.id))
+            self.described.add(channel.id)
             super().add_channel(channel)
 
         def add_message(self, message: Message) -> None:
-            if ('channel', message.channel_id) not in self.described:
-                channel = self.channels[message.channel_id]
-                if channel.schema_id and ('schema', channel.schema_id) not in self.described:
-                    self.add_schema(self.schemas[channel.schema_id])
-                self.add_channel(channel)
+            if message.channel_id not in self.described:
+                self.add_channel(self.channels[message.channel_id])
             super().add_message(message)
 
         def reset(self) -> None:
@@ -72,12 +70,12 @@ class BagWriter:
     writer loses only what came after the last flush (see :func:`formopt_ros.bag.repair`).
 
     Every chunk is self-describing: the first message of a channel in a chunk is preceded by
-    the channel's Schema and Channel records, so the messages of any intact chunk can be decoded
-    (and repaired) whatever else of the file is lost. The cost is compressed with each chunk:
-    about 6 kB per chunk for the 11 schemas of a one-follower formation. Measured by rewriting
-    600-step runs with and without it at the same chunk boundaries: lockstep (4 and 6 chunks)
-    537 -> 557 kB (+3.7 %) and 553 -> 583 kB (+5.5 %); realtime (64 chunks, one per 1 s
-    ``flush_period``) 1.00 -> 1.40 MB (+40 %). A longer flush_period makes it smaller.
+    the channel's Channel record, which names the type (``TYPE_KEY``), so the messages of any
+    intact chunk can be repaired whatever else of the file is lost (a lost schema is rebuilt
+    from the type). Cost, by ``scripts/measure_bag_overhead.py`` (the same messages rewritten
+    at the same chunk boundaries without it): realtime 300 steps, 31 chunks (one per 1 s
+    ``flush_period``), 532 -> 570 kB (+7.0 %); lockstep Fig. 4 pair, 600 steps, 6 chunks,
+    1013 -> 1022 kB (+0.8 %).
     """
 
     def __init__(self, path: str | Path, chunk_size: int = 1 << 20,
@@ -121,7 +119,7 @@ class BagWriter:
         if type_name not in self._schemas:
             self._schemas[type_name] = self._writer.register_schema(
                 type_name, SCHEMA_ENCODING, message_definition(type_name).encode())
-        metadata = {'offered_qos_profiles': offered_qos_profiles}
+        metadata = {'offered_qos_profiles': offered_qos_profiles, TYPE_KEY: type_name}
         if type_hash:
             metadata['topic_type_hash'] = type_hash
         self.channels[topic] = self._writer.register_channel(

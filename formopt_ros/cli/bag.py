@@ -6,7 +6,7 @@ import sys
 
 from formopt_ros.bag import BagError, read_bag, repair
 from formopt_ros.bag.reader import info
-from formopt_ros.cli.common import ArgumentParser, existing_file, fail, new_file
+from formopt_ros.cli.common import ArgumentParser, command, existing_file, fail, new_file
 
 
 def build_parser() -> ArgumentParser:
@@ -27,6 +27,7 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+@command('formopt-bag')
 def main(argv: list[str] | None = None) -> int:
     """``formopt-bag info BAG`` and ``formopt-bag repair IN OUT``; exit 2 on a bad bag.
 
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
           f'wrote {args.target}')
     for topic, count in sorted(result.counts.items()):
         print(f'  {topic:32s} {count:8d}')
+    if result.rebuilt:
+        print(f'rebuilt {len(result.rebuilt)} lost schema(s) from the channels\' type names: '
+              + ', '.join(sorted(set(result.rebuilt.values()))))
     if result.lost:
         groups: dict[str, list[str]] = {}
         for old in result.unrecoverable:

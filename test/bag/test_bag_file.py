@@ -20,6 +20,7 @@ from rosbags.rosbag2.storage_mcap import McapReader  # noqa: E402
 
 from formopt_ros import bag  # noqa: E402
 from formopt_ros.bag import qos, schema  # noqa: E402
+from formopt_ros.bag.writer import TYPE_KEY  # noqa: E402
 from formopt_ros.cli.bag import main as bag_main  # noqa: E402
 from formopt_ros.wire.topics import formation_topics  # noqa: E402
 
@@ -264,22 +265,23 @@ def chunk_records(path: Path) -> list[list]:
 
 
 def test_every_chunk_is_self_describing_and_every_reader_agrees(tmp_path: Path) -> None:
-    """Each chunk has the Schema and Channel records of its messages before them; mcap (indexed
-    and streaming), rosbags (indexed and scanning) and read_bag count the same 200 messages."""
+    """Each chunk has the Channel record of its messages before them, naming the type; the
+    schemas are written once (first chunk); mcap (indexed and streaming), rosbags (indexed and
+    scanning) and read_bag count the same 200 messages."""
     path = tmp_path / 'run.mcap'
     written = write_bag(path, 200, flush_every=20)
     chunks = chunk_records(path)
     assert len(chunks) == 10
-    for records in chunks:
-        seen: set[tuple[str, int]] = set()
+    types = {'/leader/odom': ODOMETRY, '/follower/status': 'formopt_interfaces/msg/PlannerStatus'}
+    for index, records in enumerate(chunks):
+        seen: set[int] = set()
         for record in records:
-            if isinstance(record, Schema):
-                seen.add(('schema', record.id))
-            elif isinstance(record, Channel):
-                assert ('schema', record.schema_id) in seen
-                seen.add(('channel', record.id))
+            if isinstance(record, Channel):
+                assert record.metadata[TYPE_KEY] == types[record.topic]
+                seen.add(record.id)
             elif isinstance(record, Message):
-                assert ('channel', record.channel_id) in seen
+                assert record.channel_id in seen
+        assert sum(isinstance(r, Schema) for r in records) == (2 if index == 0 else 0)
     expected = {'/leader/odom': 133, '/follower/status': 67}
     assert bag.read_bag(path).counts() == expected
     assert [(r.topic, r.log_time) for r in bag.read_bag(path).messages] == written
@@ -322,8 +324,8 @@ def damage_first_chunk_and_cut(data: bytes, rng: random.Random) -> tuple[bytes, 
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2, 3])
-def test_repair_keeps_every_intact_chunk_when_the_first_is_damaged(tmp_path: Path, seed: int
-                                                                   ) -> None:
+def test_repair_keeps_every_intact_chunk_when_the_first_is_damaged(
+        tmp_path: Path, seed: int, capsys: pytest.CaptureFixture[str]) -> None:
     """The first chunk (where the channels were registered) damaged and the file cut: with
     self-describing chunks every message of every intact chunk is kept, in order."""
     path = tmp_path / 'run.mcap'
@@ -337,11 +339,14 @@ def test_repair_keeps_every_intact_chunk_when_the_first_is_damaged(tmp_path: Pat
     assert len(intact) == 20 * (cut_chunk - 1)
     assert result.chunks == cut_chunk - 1 and len(result.damage) == 1
     assert result.kept == len(intact) and result.lost == 0 and result.unrecoverable == {}
+    assert sorted(result.rebuilt.values()) == sorted(                # schemas were in chunk 1
+        [ODOMETRY, 'formopt_interfaces/msg/PlannerStatus'])
     kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
     assert kept == written[20:20 * cut_chunk]
     assert result.counts == bag.read_bag(tmp_path / 'fixed.mcap').counts()
     assert sum(result.counts.values()) == result.kept
     assert bag_main(['repair', str(broken), str(tmp_path / 'again.mcap')]) == 0
+    assert 'rebuilt 2 lost schema(s) from the channels' in capsys.readouterr().out
 
 
 def write_plain_bag(path: Path, flush_every: int = 20) -> list[tuple[int, int]]:
