@@ -108,6 +108,12 @@ def formation_run(args: Any, mode: str, followers: int, steps: int, dt: float,
                                  f'(logs in {out}): '
                                  + (f'{dead[0].name} exited' if dead else 'timeout'))
         node.destroy_node()
+        # the estimators end by themselves after their last step: a SIGINT in the middle of
+        # an interpreter's exit would kill it (exit code -2) and read as a failure
+        ends = time.monotonic() + 10.0
+        while any(p.alive() for p in launcher.processes if p.name.endswith('estimator_planner')
+                  ) and time.monotonic() < ends:
+            time.sleep(0.05)
     finally:
         rclpy.try_shutdown()
         launcher.stop(launcher.processes)
