@@ -204,7 +204,7 @@ def check_extras(extra: dict[str, str]) -> None:
     parsed as YAML like ``--ros-args -p``)."""
     import difflib
 
-    import yaml
+    from formopt_ros.ros.params import ParameterError, parse_value
     for name, text in extra.items():
         if name in _MANAGED:
             fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
@@ -215,9 +215,9 @@ def check_extras(extra: dict[str, str]) -> None:
             fail(PROG, f"-p {name}: no such parameter of follower_sim or estimator_planner"
                        + (f"; did you mean '{close[0]}'?" if close else ''))
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
-            fail(PROG, f'-p {name}:={text}: not a YAML value')
+            value = parse_value(name, text)
+        except ParameterError as error:
+            fail(PROG, f'-p {name}:={text}: {error}')
         problem = check_values({name: value}, roles)
         if problem:
             fail(PROG, f'-p {name}:={text}: {problem}')

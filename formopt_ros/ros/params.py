@@ -118,6 +118,16 @@ def _number(value: float | None) -> str:
     return f'{value:g}'
 
 
+def parse_value(name: str, text: str) -> Any:
+    """The value of ``-p name:=text`` as ``--ros-args`` parses it (YAML); ParameterError when
+    it is not YAML."""
+    import yaml
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise ParameterError(f"parameter '{name}': {text!r} is not a YAML value") from None
+
+
 def _override_value(node: Node, name: str) -> Any:
     override = node._parameter_overrides.get(name)
     return None if override is None else override.value
