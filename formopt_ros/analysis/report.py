@@ -162,11 +162,14 @@ def _follower_summary(recording: Recording, run: Run,
     window = steady_window(n)
     valid = np.isfinite(run.nees)
     status = run.last_status
+    missing = sorted(set(range(1, int(status.step) + 1)) - {int(k) for k in run.steps})
     return {
         'follower_id': follower.follower_id,
         'description': 'reconstructed from the messages' if follower.legacy else 'recorded',
         'steps': int(status.step),
         'estimates': n,
+        'missing_steps': len(missing),
+        'missing_ranges': step_ranges(missing),
         'strategy': run.strategy,
         'measurement': run.measurement,
         'slot_m': [float(v) for v in run.p_o],
@@ -183,6 +186,24 @@ def _follower_summary(recording: Recording, run: Run,
     }
 
 
+def step_ranges(steps: list[int]) -> str:
+    """Sorted step numbers as ranges: [1, 2, 3, 7] -> '1-3, 7' ('' for none)."""
+    ranges: list[list[int]] = []
+    for step in steps:
+        if ranges and step == ranges[-1][1] + 1:
+            ranges[-1][1] = step
+        else:
+            ranges.append([step, step])
+    return ', '.join(f'{a}-{b}' if b > a else f'{a}' for a, b in ranges)
+
+
+def steps_text(row: dict[str, Any]) -> str:
+    """'300' for a complete run; '223 of 300 (missing 1-77)' when the bag lacks steps."""
+    if not row['missing_steps']:
+        return f"{row['steps']}"
+    return f"{row['estimates']} of {row['steps']} (missing {row['missing_ranges']})"
+
+
 def _markdown(s: dict[str, Any]) -> str:
     lo, hi = s['nees_band_95']
     lines = [f"# Formation run: {Path(s['bag']).name}", '',
@@ -196,7 +217,7 @@ def _markdown(s: dict[str, Any]) -> str:
         lines.append(
             f"| {f} | {row['measurement']} | {row['strategy']} | "
             f"[{row['slot_m'][0]:g}, {row['slot_m'][1]:g}] | {row['r_m']:.4g} | "
-            f"{row['steps']} | {row['steady_weighted_trace']:.6g} (last "
+            f"{steps_text(row)} | {row['steady_weighted_trace']:.6g} (last "
             f"{row['steady_window_steps']}) | {row['final_weighted_trace']:.6g} | {nees} | "
             f"{row['rejected_measurements']} / {row['rejected_odometry']} |")
     lines += ['', '## Messages per topic', '', '| topic | messages |', '|---|---|']

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 
 from formopt_ros.analysis.recording import load_recording
-from formopt_ros.analysis.report import make_report
+from formopt_ros.analysis.report import make_report, steps_text
 from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import (
     ArgumentParser, command, existing_file, fail, integer, new_folder)
@@ -34,9 +34,14 @@ def main(argv: list[str] | None = None) -> int:
         fail('formopt-report', str(error))
     for follower, row in summary['followers'].items():
         nees = 'n/a' if row['mean_nees'] is None else f"{row['mean_nees']:.3f}"
-        print(f"{args.bag} {follower}: {row['steps']} steps, {row['strategy']}, "
+        print(f"{args.bag} {follower}: {steps_text(row)} steps, {row['strategy']}, "
               f"{row['measurement']}; steady tr(W P W) {row['steady_weighted_trace']:.6g} m^2; "
               f'mean NEES {nees}')
+        if row['missing_steps']:
+            print(f"formopt-report: warning: {follower}: the bag lacks steps "
+                  f"{row['missing_ranges']} ({row['missing_steps']} of {row['steps']}: a "
+                  'damaged, repaired or cut recording); the values cover the recorded steps '
+                  'only', file=sys.stderr)
     print(f"wrote {', '.join(summary['figures'])}, summary.json, summary.md to {args.out}")
     return 0
 

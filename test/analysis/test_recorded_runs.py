@@ -82,3 +82,48 @@ def test_commands_on_the_legacy_bag(tmp_path: Path) -> None:
     again = run('formopt_ros.cli.report', str(LEGACY), '--out', str(report))
     assert again.returncode == 2 and 'not an empty folder' in again.stderr
     assert (report / 'summary.json').read_bytes() == before
+
+
+def test_report_names_the_steps_a_bag_lacks(tmp_path: Path) -> None:
+    """A bag without the estimates, statuses and measurements of steps 1-5 (as after a repair
+    that lost the first chunk): the report does not claim a full run: 15 of 20 steps,
+    'missing 1-5' in summary.md and stdout, a warning on stderr; exit 0."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from formopt_ros.wire.messages import header_ns
+    source = read_bag(LEGACY)
+    dropped = set()                                    # (topic, log time) of steps 1-5
+    for suffix in ('estimate', 'status', 'measurement', 'truth'):
+        topic = f'/follower/{suffix}'
+        records = [(r.log_time, header_ns(m)) for r, m in zip(
+            (r for r in source.messages if r.topic == topic), (m for _, m in source.decode(
+                source.find(topic))))]
+        stamps = sorted({stamp for _, stamp in records if stamp > 0})[:5]
+        dropped |= {(topic, log_time) for log_time, stamp in records if stamp in stamps}
+    gappy = tmp_path / 'gappy.mcap'
+    with open(LEGACY, 'rb') as stream, open(gappy, 'xb') as out:
+        writer = Writer(out)
+        writer.start(profile='ros2', library='test')
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(stream).iter_messages():
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding,
+                                                            schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id],
+                    dict(channel.metadata))
+            if (channel.topic, message.log_time) not in dropped:
+                writer.add_message(channels[channel.id], message.log_time, message.data,
+                                   message.publish_time)
+        writer.finish()
+    result = run('formopt_ros.cli.report', str(gappy), '--out', str(tmp_path / 'report'))
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((tmp_path / 'report' / 'summary.json').read_text())
+    assert (summary['steps'], summary['estimates'], summary['missing_steps']) == (20, 15, 5)
+    assert summary['missing_ranges'] == '1-5'
+    assert '15 of 20 (missing 1-5)' in (tmp_path / 'report' / 'summary.md').read_text()
+    assert '15 of 20 (missing 1-5) steps' in result.stdout
+    assert 'warning: follower: the bag lacks steps 1-5 (5 of 20' in result.stderr
