@@ -12,9 +12,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
-#: Exit codes of :func:`command`: an interrupted command (128 + SIGINT, as a shell reports it)
-#: and a failure of the system (a file that cannot be written, a closed pipe).
-INTERRUPTED_EXIT, SYSTEM_EXIT = 130, 1
+#: Exit codes of :func:`command`: an interrupted command and one whose reader closed the pipe
+#: (128 + SIGINT or SIGPIPE, as a shell reports a process those signals end), and a failure
+#: of the system (a file that cannot be written).
+INTERRUPTED_EXIT, CLOSED_PIPE_EXIT, SYSTEM_EXIT = 130, 141, 1
 
 Main = TypeVar('Main', bound=Callable[..., Any])
 
@@ -22,7 +23,7 @@ Main = TypeVar('Main', bound=Callable[..., Any])
 def command(prog: str) -> Callable[[Main], Main]:
     """Decorate a command's ``main``: Ctrl-C prints '<prog>: interrupted' and returns 130; an
     OSError (an output that cannot be written) prints one 'error:' line and returns 1; a closed
-    stdout (``| head``) ends quietly with 1. Never a traceback."""
+    stdout (``| head``) ends quietly with 141. Never a traceback."""
     def wrap(main: Main) -> Main:
         @functools.wraps(main)
         def run(*args: Any, **kwargs: Any) -> Any:
@@ -34,7 +35,7 @@ def command(prog: str) -> Callable[[Main], Main]:
             except BrokenPipeError:
                 # the reader left: stop writing (Python would complain at exit otherwise)
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-                return SYSTEM_EXIT
+                return CLOSED_PIPE_EXIT
             except OSError as error:
                 where = f': {error.filename}' if error.filename else ''
                 print(f'{prog}: error: {error.strerror or error}{where}', file=sys.stderr)
@@ -120,7 +121,8 @@ def _check_parent(path: Path, text: str) -> None:
         os.rmdir(tempfile.mkdtemp(prefix='.formopt-probe-', dir=parent))
     except OSError as error:
         raise argparse.ArgumentTypeError(
-            f'cannot create {text}: {parent}: {error.strerror}') from None
+            f'cannot create {text}: nothing can be created in {parent} '
+            f'({error.strerror})') from None
 
 
 def existing_file(text: str) -> Path:

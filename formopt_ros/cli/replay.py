@@ -65,7 +65,8 @@ def build_parser() -> ArgumentParser:
     flags.add_argument('--follower', help='which follower (default: the only one)')
     flags.add_argument('--strategy', choices=tuple(STRATEGIES),
                        help='default: from the run description (another one is a what-if: '
-                       'its waypoints differ from the recorded ones, so the check fails)')
+                       'where its waypoints differ from the recorded ones the check fails; '
+                       'RAM and RQ choose the same points, so they pass each other\'s check)')
     flags.add_argument('--strategy-option', action='append', default=[], metavar='NAME=VALUE',
                        help="a strategy option (e.g. cell=0.01), replacing the recorded one")
     flags.add_argument('--seed', type=integer(0, 2**31 - 1),

@@ -3,9 +3,6 @@ from __future__ import annotations
 
 import sys
 
-from formopt_ros.analysis.recording import load_recording
-from formopt_ros.analysis.report import make_report, steps_text
-from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import (
     ArgumentParser, command, existing_file, fail, integer, new_folder)
 
@@ -27,6 +24,11 @@ def build_parser() -> ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: ``formopt-report BAG --out DIR``; exit 2 on a bad bag."""
     args = build_parser().parse_args(argv)
+    # imported here, inside @command: a Ctrl-C during the slow imports (matplotlib, rosbags)
+    # is one 'interrupted' line, not a traceback
+    from formopt_ros.analysis.recording import load_recording
+    from formopt_ros.analysis.report import make_report, steps_text
+    from formopt_ros.bag import BagError, read_bag
     try:
         summary = make_report(load_recording(read_bag(args.bag)), args.out,
                               args.trajectory_steps, args.follower)

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from formopt_ros.cli.common import ArgumentParser, command, fail, integer, number
-from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario, check_id
+from formopt_ros.core.scenario import Formation, FollowerSpec, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.jsonfile import write_json
@@ -166,8 +166,9 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
-def formation_of(args: Any) -> tuple[Formation, Path | None]:
-    """The formation to run and its file (None for the single-follower flags)."""
+def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
+    """The formation to run, its file (None for the single-follower flags) and the checked -p
+    values (the formation's scenario and options include them)."""
     flags = [name for name in ('measurement', 'strategy', 'seed') if getattr(args, name)
              is not None]
     if args.formation is not None:
@@ -179,15 +180,29 @@ def formation_of(args: Any) -> tuple[Formation, Path | None]:
         except ValueError as error:
             fail(PROG, f'--formation: {error}')
         check_formation(formation, args.formation)
-        return formation, args.formation.resolve()
-    kind = args.measurement or 'range'
-    spec = FollowerSpec('follower', Scenario.paper(kind), args.strategy or 'ram', {},
-                        args.seed or 0)
+        return formation, args.formation.resolve(), {}
+    kind, strategy = args.measurement or 'range', args.strategy or 'ram'
+    extras: dict[str, str] = {}
     for item in args.extra:
         if ':=' not in item:
             fail(PROG, f'-p must be NAME:=VALUE, got {item!r}')
-    check_extras(dict(item.split(':=', 1) for item in args.extra))
-    return Formation('leader', (spec,)), None
+        name, text = item.split(':=', 1)
+        if name in extras:
+            fail(PROG, f'-p {name} is given twice ({extras[name]!r} and {text!r})')
+        extras[name] = text
+    values = check_extras(extras)
+    from formopt_ros.ros.params import ParameterError
+    from formopt_ros.ros.run_config import scenario_from
+    try:
+        scenario = scenario_from({**{spec.name: spec.default
+                                     for spec in node_specs(None, ('follower', 'leader'))},
+                                  'measurement': kind, **values})
+    except ParameterError as error:
+        fail(PROG, f'-p: {error}')
+    options = {name[len(strategy) + 1:]: value for name, value in values.items()
+               if name.startswith(f'{strategy}_')}
+    spec = FollowerSpec('follower', scenario, strategy, options, args.seed or 0)
+    return Formation('leader', (spec,)), None, values
 
 
 #: Node parameters that run_formation sets itself (-p of them is refused): its option for each.
@@ -195,16 +210,18 @@ _MANAGED = {'mode': '--mode', 'run_id': '--run-id', 'steps': '--steps', 'seed': 
             'measurement': '--measurement', 'strategy': '--strategy', 'recorders': '--no-record',
             'use_sim_time': '--mode', 'followers': '--formation',
             'formation_file': '--formation', 'summary_path': '--out',
-            'checkpoint_path': '--respawn'}
+            'checkpoint_path': '--respawn', 'leader_id': '--formation',
+            'follower_id': '--formation'}
 
 
-def check_extras(extra: dict[str, str]) -> None:
-    """Refuse, before anything starts, a -p that no node receiving it has, one this command
-    sets itself, or a value a node would refuse at start (the nodes' own check, on the value
-    parsed as YAML like ``--ros-args -p``)."""
+def check_extras(extra: dict[str, str]) -> dict[str, Any]:
+    """The -p values parsed as YAML (like ``--ros-args -p``) and checked by the nodes' own
+    specs (integers for floats converted); refuse, before anything starts, a -p that no node
+    receiving it has, one this command sets itself, or a value a node would refuse."""
     import difflib
 
     from formopt_ros.ros.params import ParameterError, parse_value
+    values: dict[str, Any] = {}
     for name, text in extra.items():
         if name in _MANAGED:
             fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
@@ -221,6 +238,8 @@ def check_extras(extra: dict[str, str]) -> None:
         problem = check_values({name: value}, roles)
         if problem:
             fail(PROG, f'-p {name}:={text}: {problem}')
+        values[name] = node_specs(name, roles)[0].check(value)
+    return values
 
 
 def check_formation(formation: Formation, path: Path) -> None:
@@ -247,6 +266,12 @@ def node_specs(name: str | None, roles: tuple[str, ...]) -> list[Any]:
              'follower': (follower_sim.PARAMS, estimator_planner.PARAMS)}
     return [spec for role in roles for params in lists[role] for spec in params
             if name is None or spec.name == name]
+
+
+def follower_sim_specs() -> list[Any]:
+    """follower_sim's parameter specs (it refuses the estimator's, e.g. strategy options)."""
+    from formopt_ros.ros.nodes import follower_sim
+    return list(follower_sim.PARAMS)
 
 
 def check_values(values: dict[str, Any], roles: tuple[str, ...]) -> str:
@@ -322,7 +347,7 @@ def global_remaps(prefix: str) -> list[str]:
 
 def run(args: Any) -> int:
     """The whole run; returns the exit code."""
-    formation, formation_file = formation_of(args)
+    formation, formation_file, extra = formation_of(args)
     try:
         check_id('--run-id', args.run_id) if args.run_id else None
     except ValueError as error:
@@ -330,7 +355,8 @@ def run(args: Any) -> int:
     run_id = args.run_id or f'run_{uuid.uuid4().hex[:12]}'
 
     prefix = args.prefix.rstrip('/')
-    if prefix and not all(part and check_id_ok(part) for part in prefix.lstrip('/').split('/')):
+    if prefix and not (prefix.startswith('/') and
+                       all(part and check_id_ok(part) for part in prefix[1:].split('/'))):
         fail(PROG, f'--prefix must look like /name or /name/name, got {args.prefix!r}')
     out = prepare_out(args.out)
     if args.domain_id is not None:
@@ -341,7 +367,6 @@ def run(args: Any) -> int:
     common: dict[str, Any] = {'mode': args.mode, 'run_id': run_id,
                               'recorders': 1 if record else 0,
                               'use_sim_time': args.mode == 'lockstep'}
-    extra = dict(item.split(':=', 1) for item in args.extra)
     source = {'formation_file': str(formation_file)} if formation_file else {}
     started = time.monotonic()
     recorder = None
@@ -361,8 +386,10 @@ def run(args: Any) -> int:
             spec = follower
             params.update({'measurement': spec.scenario.measurement, 'seed': spec.seed,
                            **extra})
+        sim_names = {spec.name for spec in follower_sim_specs()}
         sim = launcher.start(f'{follower.id}.follower_sim', 'follower_sim', ns,
-                             {k: v for k, v in params.items() if k != 'strategy'})
+                             {k: v for k, v in params.items()
+                              if k in sim_names or k in common or k in source})
         estimator_params = dict(params, steps=args.steps)
         if not formation_file:
             estimator_params['strategy'] = follower.strategy
@@ -427,7 +454,7 @@ _LEADER_KEYS = {'dt', 'path', 'v_leader', 'omega_leader', 'amplitude', 'period',
                 'segment_durations', 'segment_speeds', 'segment_yaw_rates', 'repeat_segments'}
 
 
-def leader_extra(extra: dict[str, str]) -> dict[str, str]:
+def leader_extra(extra: dict[str, Any]) -> dict[str, Any]:
     """The -p extras that concern the leader."""
     return {k: v for k, v in extra.items() if k in _LEADER_KEYS}
 

@@ -35,6 +35,8 @@ class Param:
         low, high: admissible closed range of a number (None: unbounded).
         choices: admissible strings.
         read_only: fixed at start-up (``ros2 param set`` is refused); otherwise validated on set.
+        identifier: a robot id ('' allowed): letters, digits, underscores, a letter first (it
+            becomes a ROS namespace).
     """
 
     name: str
@@ -44,6 +46,7 @@ class Param:
     high: float | None = None
     choices: tuple[str, ...] = ()
     read_only: bool = True
+    identifier: bool = False
 
     def descriptor(self) -> ParameterDescriptor:
         """The ROS descriptor, with range and read-only flag (ros2 param describe shows them)."""
@@ -69,8 +72,24 @@ class Param:
             value = float(value)
         if isinstance(self.default, list) and isinstance(value, (list, tuple)):
             value = list(value)
+            if not value:
+                raise ParameterError(f"parameter '{self.name}' must be a non-empty list "
+                                     f'({expected}), got []')
+            if self.default and isinstance(self.default[0], float):   # ints pass for floats
+                value = [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+                         for v in value]
+            kind = type(self.default[0]) if self.default else None
+            if kind is not None and not all(type(v) is kind for v in value):
+                raise ParameterError(f"parameter '{self.name}' must be {expected}, "
+                                     f'got {value!r}')
         elif type(value) is not type(self.default):
             raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
+        if self.identifier and value:
+            from formopt_ros.core.scenario import check_id
+            try:
+                check_id(f"parameter '{self.name}'", value)
+            except ValueError as error:
+                raise ParameterError(str(error)) from None
         if self.choices and value not in self.choices:
             raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
         numbers = value if isinstance(value, list) else [value]
@@ -156,11 +175,17 @@ def declare(node: Node, specs: list[Param],
     values = {}
     for spec in specs:
         override = _override_value(node, spec.name)
+        if override is None and spec.name in node._parameter_overrides:   # e.g. -p x:=[]
+            raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got a "
+                                 'value without a type (an empty list?)')
         if isinstance(spec.default, float) and isinstance(override, int) \
                 and not isinstance(override, bool):
             node._parameter_overrides[spec.name] = Parameter(spec.name, value=float(override))
         elif override is not None:
-            spec.check(override)            # our message before rclpy's type exception
+            checked = spec.check(list(override) if isinstance(spec.default, list) and
+                                 isinstance(override, (list, tuple)) else override)
+            if checked != override:          # e.g. [1, 2] for a list of floats
+                node._parameter_overrides[spec.name] = Parameter(spec.name, value=checked)
         default = defaults.get(spec.name, spec.default)
         try:
             node.declare_parameter(spec.name, default, spec.descriptor())

@@ -22,9 +22,10 @@ FORMATION_FILE = Param('formation_file', '', 'a formation YAML file (config/form
                        'documents it); when set, the scenario, leader path, strategy and seed '
                        'come from it and setting them here is refused')
 FOLLOWER_ID = Param('follower_id', '', "id of the follower (frames, message filter); '' means "
-                    "the last part of the node namespace ('follower' at the root)")
+                    "the last part of the node namespace ('follower' at the root)",
+                    identifier=True)
 LEADER_ID = Param('leader_id', DEFAULT_LEADER, 'id of the leader: its namespace (beside this '
-                  "node's) and frame")
+                  "node's) and frame", identifier=True)
 MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
              'realtime: timers at 1/dt', choices=MODES)
 DT = Param('dt', 0.05, 'sub-step length, s', 1e-3, 10.0)

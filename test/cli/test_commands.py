@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from formopt_ros.cli.common import INTERRUPTED_EXIT, SYSTEM_EXIT, command
+from formopt_ros.cli.common import CLOSED_PIPE_EXIT, INTERRUPTED_EXIT, SYSTEM_EXIT, command
 
 
 def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFixture) -> None:
@@ -86,14 +86,14 @@ def test_command_wrapper_turns_failures_into_one_line(capsys: pytest.CaptureFixt
 
 
 def test_closed_pipe_ends_quietly(tmp_path: Path) -> None:
-    """`formopt-bench ... | head -1`: the reader leaves early; the command ends with exit 1
-    and prints nothing on stderr (no BrokenPipeError traceback)."""
+    """`formopt-bench ... | head -1`: the reader leaves early; the command ends with exit 141
+    (as if SIGPIPE had ended it) and prints nothing on stderr (no BrokenPipeError traceback)."""
     process = subprocess.Popen(
         [sys.executable, '-m', 'formopt_ros.cli.bench', '--problems', '2', '--repeats', '1',
          '--methods', 'rq'], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert process.stdout is not None and process.stderr is not None
     process.stdout.close()                                   # the reader is gone at once
-    assert process.wait(timeout=120) == SYSTEM_EXIT
+    assert process.wait(timeout=120) == CLOSED_PIPE_EXIT == 141
     assert process.stderr.read() == b''
 
 

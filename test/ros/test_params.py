@@ -40,6 +40,9 @@ MISUSE = [
     ('leader_sim', ['-p', 'checkpoint_path:=/dev/null/c.pkl'], "parameter 'checkpoint_path'"),
     ('recorder', ['-p', 'chunk_size:=100000000', '-p', 'output_path:=/tmp/never.mcap'],
      "parameter 'chunk_size' must be an integer in [1024, 67108864]"),
+    ('estimator_planner', ['-p', 'leader_id:=a b'], "parameter 'leader_id' must be a name of"),
+    ('follower_sim', ['-p', 'follower_id:=x/y'], "parameter 'follower_id' must be a name of"),
+    ('leader_sim', ['-p', 'segment_durations:=[]'], 'got a value without a type'),
 ]
 
 

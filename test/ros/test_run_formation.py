@@ -50,6 +50,28 @@ def test_single_follower_flags(tmp_path: Path, ros_domain: int) -> None:
     assert 'XMLPARSER' not in logs and 'Error' not in logs, logs[:2000]
 
 
+def test_p_values_shape_the_run_and_its_summary(tmp_path: Path, ros_domain: int) -> None:
+    """-p dt, a segments path given with integer lists (accepted for floats) and a strategy
+    option: the run equals run_trial of that scenario (1e-9) and summary.json's formation
+    describes what ran."""
+    from formopt_ros.core.scenario import LeaderPath, Segment
+    out = tmp_path / 'p'
+    result = run('-p', 'dt:=0.02', '-p', 'path:=segments', '-p', 'segment_durations:=[1, 2]',
+                 '-p', 'segment_speeds:=[1, 2]', '-p', 'segment_yaw_rates:=[0, 0.1]',
+                 '--strategy', 'gbs', '-p', 'gbs_cell:=0.02', '--steps', '30', '--seed', '3',
+                 '--out', str(out), '--domain-id', str(ros_domain), '--no-record')
+    assert result.returncode == 0, result.stdout + result.stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    leader = LeaderPath('segments', segments=(Segment(1.0, 1.0, 0.0), Segment(2.0, 2.0, 0.1)))
+    scenario = Scenario.paper('range', dt=0.02, leader=leader)
+    assert summary['formation']['dt'] == 0.02
+    assert summary['formation']['leader']['path']['segments'][1] == {
+        'duration': 2.0, 'speed': 2.0, 'yaw_rate': 0.1}
+    assert summary['formation']['followers'][0]['options'] == {'cell': 0.02}
+    ref = run_trial(scenario, 'gbs', 3, 0, 30, options={'cell': 0.02})
+    np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
+
+
 def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     """The paper's Fig. 4 pair under a namespace prefix: every follower equals the pure
     formation simulation (1e-9), the bag holds every published message, rosbags reads it."""
@@ -103,6 +125,13 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     (['-p', 'stratgy:=rq'], "-p stratgy: no such parameter of follower_sim or "
                             "estimator_planner; did you mean 'strategy'?"),
     (['-p', 'strategy:=rq'], '-p strategy: set by run_formation.sh itself; use --strategy'),
+    (['-p', 'leader_id:=a_b'], '-p leader_id: set by run_formation.sh itself; use --formation'),
+    (['-p', 'segment_durations:=[]'], "parameter 'segment_durations' must be a non-empty list"),
+    (['-p', 'path:=segments', '-p', 'segment_durations:=[1, 2]'],
+     'segment_durations, segment_speeds and segment_yaw_rates must have the same length'),
+    (['-p', 'dt:=0.02', '-p', 'dt:=0.03'], "-p dt is given twice ('0.02' and '0.03')"),
+    (['--prefix', 'a'], "--prefix must look like /name or /name/name, got 'a'"),
+    (['--prefix', '//a'], "--prefix must look like /name or /name/name, got '//a'"),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_loud_noise.yaml')],
      "follower 'range': parameter 'range_sigma' must be a number in [1e-06, 1000]"),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_broken.yaml')],
