@@ -49,6 +49,7 @@ class Scan:
     damage: list[Damage] = field(default_factory=list)
     stop_reason: str = ''
     stop_offset: int = 0
+    summary_messages: int | None = None                # the Statistics record's count, if read
 
 
 def _check_file(path: Path) -> bytes:
@@ -107,7 +108,7 @@ def scan(path: str | Path) -> Scan:
     by its length; where the framing itself is broken, reading resumes at the next chunk that
     parses. A tail cut short (a killed writer) ends the scan with ``stop_reason``.
     """
-    from mcap.records import Channel, Chunk, Footer, Header, Message, Schema
+    from mcap.records import Channel, Chunk, Footer, Header, Message, Schema, Statistics
     path = Path(path)
     data = _check_file(path)
     result = Scan()
@@ -148,6 +149,8 @@ def scan(path: str | Path) -> Scan:
                 result.channels.setdefault(item.id, item)
             elif isinstance(item, Message):
                 result.messages.append(item)
+            elif isinstance(item, Statistics):
+                result.summary_messages = item.message_count
             elif isinstance(item, Footer):
                 result.complete = True
         assert end is not None                   # records parsed: the framing was plausible

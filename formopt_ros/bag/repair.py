@@ -33,6 +33,7 @@ class RepairResult:
     unrecoverable: dict[int, int] = field(default_factory=dict)
     why: dict[int, str] = field(default_factory=dict)
     rebuilt: dict[int, str] = field(default_factory=dict)
+    summary_messages: int | None = None       # messages the damaged file's summary counts
 
     @property
     def lost(self) -> int:
@@ -109,4 +110,5 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     return RepairResult(kept, result.chunks, counts, result.complete, result.stop_reason,
                         result.stop_offset, source.stat().st_size, result.damage,
                         dict(sorted(unrecoverable.items())),
-                        {old: why[old] for old in sorted(unrecoverable)}, rebuilt)
+                        {old: why[old] for old in sorted(unrecoverable)}, rebuilt,
+                        result.summary_messages)

@@ -51,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         fail('formopt-bag', str(error))
     skipped = (f'; skipped {len(result.damage)} damaged stretch(es) at bytes '
                + ', '.join(str(d.offset) for d in result.damage[:5]) if result.damage else '')
+    if result.summary_messages is not None and result.damage:
+        lost = result.summary_messages - result.kept - result.lost
+        skipped += f' ({lost} of the {result.summary_messages} messages its summary counts)'
     state = ('the file was complete' if result.was_complete else
              f'dropped the tail from byte {result.stop_offset} of {result.size} '
              f'({result.stop_reason})')

@@ -207,8 +207,10 @@ def test_repair_keeps_every_complete_chunk(tmp_path: Path, seed: int) -> None:
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
-def test_repair_skips_a_damaged_chunk_and_keeps_the_rest(tmp_path: Path, seed: int) -> None:
-    """One flipped byte inside a chunk costs that chunk only: every other message is kept."""
+def test_repair_skips_a_damaged_chunk_and_keeps_the_rest(
+        tmp_path: Path, seed: int, capsys: pytest.CaptureFixture[str]) -> None:
+    """One flipped byte inside a chunk costs that chunk only: every other message is kept, and
+    the command says how many of the file's messages the damaged chunk held."""
     path = tmp_path / 'run.mcap'
     written = write_bag(path, 200, flush_every=20)          # 10 chunks of 20 messages
     data = bytearray(path.read_bytes())
@@ -226,7 +228,10 @@ def test_repair_skips_a_damaged_chunk_and_keeps_the_rest(tmp_path: Path, seed: i
     lost = written[20 * victim:20 * (victim + 1)]
     kept = [(r.topic, r.log_time) for r in bag.read_bag(tmp_path / 'fixed.mcap').messages]
     assert kept == [w for w in written if w not in lost]
-    assert result.kept == 180
+    assert result.kept == 180 and result.summary_messages == 200
+    capsys.readouterr()
+    assert bag_main(['repair', str(broken), str(tmp_path / 'cli.mcap')]) == 0
+    assert '(20 of the 200 messages its summary counts)' in capsys.readouterr().out
 
 
 def chunk_offsets(data: bytes) -> list[tuple[int, int]]:
