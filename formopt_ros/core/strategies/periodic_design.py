@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import minimize
 
 from formopt_ros.core.cost import Problem, weight_vector, weighted_trace
 from formopt_ros.core.model import (
@@ -387,6 +386,7 @@ class _Objective:
         angles settle to 1e-3 rad and the cost to 1e-7 ``scale`` (m^2) or ``budget`` evaluations
         per angle are spent; with ``restart``, once more from its result with a smaller simplex
         (a collapsed simplex stalls early)."""
+        from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
         best = np.asarray(start, dtype=float)
         value = math.inf
         for size in (step, 0.25 * step) if restart else (step,):
