@@ -147,11 +147,6 @@ def parse_value(name: str, text: str) -> Any:
         raise ParameterError(f"parameter '{name}': {text!r} is not a YAML value") from None
 
 
-def _override_value(node: Node, name: str) -> Any:
-    override = node._parameter_overrides.get(name)
-    return None if override is None else override.value
-
-
 def declare(node: Node, specs: list[Param],
             defaults: dict[str, Any] | None = None) -> dict[str, Any]:
     """Declare every parameter with its descriptor and return the validated values.
@@ -174,18 +169,18 @@ def declare(node: Node, specs: list[Param],
                                   'such parameter (see --help)')
     values = {}
     for spec in specs:
-        override = _override_value(node, spec.name)
-        if override is None and spec.name in node._parameter_overrides:   # e.g. -p x:=[]
-            raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got a "
-                                 'value without a type (an empty list?)')
-        if isinstance(spec.default, float) and isinstance(override, int) \
-                and not isinstance(override, bool):
-            node._parameter_overrides[spec.name] = Parameter(spec.name, value=float(override))
-        elif override is not None:
-            checked = spec.check(list(override) if isinstance(spec.default, list) and
-                                 isinstance(override, (list, tuple)) else override)
-            if checked != override:          # e.g. [1, 2] for a list of floats
-                node._parameter_overrides[spec.name] = Parameter(spec.name, value=checked)
+        given = node._parameter_overrides.get(spec.name)
+        override = None if given is None else given.value
+        if given is not None:
+            if override is None:                                   # e.g. -p x:=[]
+                raise ParameterError(f"parameter '{spec.name}' must be {spec.expected()}, got "
+                                     'a value without a type (an empty list?)')
+            if isinstance(spec.default, list) and not isinstance(override, str):
+                override = list(override)
+            # our message before rclpy's type exception; the checked value replaces the given
+            # one, so integers pass for floats (1 -> 1.0, [1, 2] -> [1.0, 2.0])
+            node._parameter_overrides[spec.name] = Parameter(spec.name,
+                                                             value=spec.check(override))
         default = defaults.get(spec.name, spec.default)
         try:
             node.declare_parameter(spec.name, default, spec.descriptor())

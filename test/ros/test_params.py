@@ -77,14 +77,19 @@ def test_help_does_not_start_the_node(node_process) -> None:
 
 
 def test_an_integer_is_accepted_for_a_float_parameter(ros_init) -> None:
-    """-p dt:=1 (an integer) sets the float parameter dt to 1.0 instead of a type error."""
+    """-p dt:=1 (an integer) sets the float parameter dt to 1.0 instead of a type error; so
+    does a list of integers for a list of floats (segment_durations:=[1, 2])."""
     from harness.ros import node_args
 
     from formopt_ros.ros.nodes.leader_sim import LeaderSim
     ros_init()
-    node = LeaderSim(node_args('leader_sim', 'leader', {'dt': 1, 'v_leader': 2}))
+    node = LeaderSim(node_args('leader_sim', 'leader', {
+        'dt': 1, 'v_leader': 2, 'path': 'segments', 'segment_durations': [1, 2],
+        'segment_speeds': [1, 2], 'segment_yaw_rates': [0, 0]}))
     try:
         assert node.params['dt'] == 1.0 and isinstance(node.params['dt'], float)
         assert node.get_parameter('v_leader').value == 2.0
+        durations = node.params['segment_durations']
+        assert durations == [1.0, 2.0] and all(isinstance(d, float) for d in durations)
     finally:
         node.destroy_node()
