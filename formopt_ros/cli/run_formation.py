@@ -194,8 +194,8 @@ def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
     from formopt_ros.ros.params import ParameterError
     from formopt_ros.ros.run_config import scenario_from
     try:
-        scenario = scenario_from({**{spec.name: spec.default
-                                     for spec in node_specs(None, ('follower', 'leader'))},
+        scenario = scenario_from({**{spec.name: spec.default for spec in
+                                     node_specs(None, FOLLOWER_NODES + ('leader_sim',))},
                                   'measurement': kind, **values})
     except ParameterError as error:
         fail(PROG, f'-p: {error}')
@@ -225,65 +225,54 @@ def check_extras(extra: dict[str, str]) -> dict[str, Any]:
     for name, text in extra.items():
         if name in _MANAGED:
             fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
-        roles = ('follower', 'leader') if name in _LEADER_KEYS else ('follower',)
-        if not node_specs(name, roles):
-            known = sorted({spec.name for role in roles for spec in node_specs(None, (role,))})
+        nodes = FOLLOWER_NODES + (('leader_sim',) if name in _LEADER_KEYS else ())
+        specs = node_specs(name, nodes)
+        if not specs:
+            known = sorted({spec.name for spec in node_specs(None, nodes)})
             close = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
             fail(PROG, f"-p {name}: no such parameter of follower_sim or estimator_planner"
                        + (f"; did you mean '{close[0]}'?" if close else ''))
         try:
-            value = parse_value(name, text)
+            values[name] = parse_value(name, text)
+            for spec in specs:
+                values[name] = spec.check(values[name])
         except ParameterError as error:
             fail(PROG, f'-p {name}:={text}: {error}')
-        problem = check_values({name: value}, roles)
-        if problem:
-            fail(PROG, f'-p {name}:={text}: {problem}')
-        values[name] = node_specs(name, roles)[0].check(value)
     return values
 
 
 def check_formation(formation: Formation, path: Path) -> None:
     """Refuse, before anything starts, a formation whose values a node would refuse at start
     (e.g. a noise of 1e300: the file's own checks only ask for a positive number)."""
+    from formopt_ros.ros.params import ParameterError
     from formopt_ros.ros.run_config import follower_values
     from formopt_ros.wire.description import path_parameters
-    leader = {'dt': formation.dt, **path_parameters(formation.leader)}
-    problem = check_values(leader, ('leader',))
-    if problem:
-        fail(PROG, f'--formation {path}: leader {formation.leader_id!r}: {problem}')
-    for follower in formation.followers:
-        problem = check_values(follower_values(follower, formation.trial, formation.leader_id),
-                               ('follower',))
-        if problem:
-            fail(PROG, f'--formation {path}: follower {follower.id!r}: {problem}')
+    robots: list[tuple[str, tuple[str, ...], dict[str, Any]]] = [
+        (f'leader {formation.leader_id!r}', ('leader_sim',),
+         {'dt': formation.dt, **path_parameters(formation.leader)})]
+    robots += [(f'follower {f.id!r}', FOLLOWER_NODES,
+                follower_values(f, formation.trial, formation.leader_id))
+               for f in formation.followers]
+    for robot, nodes, values in robots:
+        try:
+            for name, value in values.items():
+                for spec in node_specs(name, nodes):
+                    spec.check(value)
+        except ParameterError as error:
+            fail(PROG, f'--formation {path}: {robot}: {error}')
 
 
-def node_specs(name: str | None, roles: tuple[str, ...]) -> list[Any]:
-    """The parameter specs called ``name`` (None: all) of the nodes of ``roles`` ('leader':
-    leader_sim; 'follower': follower_sim and estimator_planner)."""
-    from formopt_ros.ros.nodes import estimator_planner, follower_sim, leader_sim
-    lists = {'leader': (leader_sim.PARAMS,),
-             'follower': (follower_sim.PARAMS, estimator_planner.PARAMS)}
-    return [spec for role in roles for params in lists[role] for spec in params
+#: The nodes of a follower (a -p of the single-follower flags goes to both).
+FOLLOWER_NODES = ('follower_sim', 'estimator_planner')
+
+
+def node_specs(name: str | None, nodes: tuple[str, ...]) -> list[Any]:
+    """The parameter specs called ``name`` (None: all) of ``nodes`` ('leader_sim',
+    'follower_sim', 'estimator_planner')."""
+    import importlib
+    return [spec for node in nodes
+            for spec in importlib.import_module(f'formopt_ros.ros.nodes.{node}').PARAMS
             if name is None or spec.name == name]
-
-
-def follower_sim_specs() -> list[Any]:
-    """follower_sim's parameter specs (it refuses the estimator's, e.g. strategy options)."""
-    from formopt_ros.ros.nodes import follower_sim
-    return list(follower_sim.PARAMS)
-
-
-def check_values(values: dict[str, Any], roles: tuple[str, ...]) -> str:
-    """Why a node of ``roles`` would refuse one of ``values`` (its own check), or ''."""
-    from formopt_ros.ros.params import ParameterError
-    for name, value in values.items():
-        for spec in node_specs(name, roles):
-            try:
-                spec.check(value)
-            except ParameterError as error:
-                return str(error)
-    return ''
 
 
 def prepare_out(out: Path) -> Path:
@@ -379,6 +368,7 @@ def run(args: Any) -> int:
         **common, **source, **({} if formation_file else {
             'followers': [f.id for f in formation.followers], **leader_extra(extra)})})
     nodes = {}
+    sim_names = {spec.name for spec in node_specs(None, ('follower_sim',))}
     for follower in formation.followers:
         ns = f'{prefix}/{follower.id}'
         params = {**common, **source}
@@ -386,7 +376,6 @@ def run(args: Any) -> int:
             spec = follower
             params.update({'measurement': spec.scenario.measurement, 'seed': spec.seed,
                            **extra})
-        sim_names = {spec.name for spec in follower_sim_specs()}
         sim = launcher.start(f'{follower.id}.follower_sim', 'follower_sim', ns,
                              {k: v for k, v in params.items()
                               if k in sim_names or k in common or k in source})
