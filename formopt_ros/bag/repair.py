@@ -60,13 +60,14 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     why = {old: 'Channel record lost' for old in
            {m.channel_id for m in result.messages} - set(result.channels)}
     rebuilt: dict[int, str] = {}                   # channel id -> type of its rebuilt schema
+    definitions: dict[str, str] = {}               # type -> its installed definition
     for old, channel in result.channels.items():
         if channel.schema_id in result.schemas:
             continue
         type_name = channel.metadata.get(TYPE_KEY, '')
         if channel.schema_id and type_name:
             try:
-                message_definition(type_name)
+                definitions.setdefault(type_name, message_definition(type_name))
                 rebuilt[old] = type_name
                 continue
             except BagError as error:
@@ -85,12 +86,12 @@ def repair(source: str | Path, target: str | Path) -> RepairResult:
     with stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile=result.profile or PROFILE, library=result.library or LIBRARY)
+        used = {c.schema_id for c in usable.values()}
         schema_ids = {old: writer.register_schema(s.name, s.encoding, s.data)
-                      for old, s in result.schemas.items()
-                      if old in {c.schema_id for c in usable.values()}}
-        for type_name in sorted(set(rebuilt.values())):
+                      for old, s in result.schemas.items() if old in used}
+        for type_name in sorted(definitions):
             schema_ids[('rebuilt', type_name)] = writer.register_schema(
-                type_name, SCHEMA_ENCODING, message_definition(type_name).encode())
+                type_name, SCHEMA_ENCODING, definitions[type_name].encode())
         channel_ids = {}
         for old, channel in usable.items():
             schema_id = schema_ids[('rebuilt', rebuilt[old]) if old in rebuilt
