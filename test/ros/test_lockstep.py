@@ -46,11 +46,12 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
 
 
 def test_diagnostics_every_status_period_while_steps_complete(formation) -> None:
-    """/diagnostics comes every status_period (here 0.1 s) also while every step completes
+    """/diagnostics comes every status_period (here 0.5 s) also while every step completes
     (per-step status messages do not hold it back): >= 4 OK diagnostics with rising step
-    counts while the run advances."""
+    counts while the run advances. (At 0.1 s a 0.2 s hiccup of a loaded machine already reads
+    as a stall, WARN, by design.)"""
     run = formation({'measurement': 'range', 'seed': SEED, 'steps': 10**6,
-                     'status_period': 0.1})
+                     'status_period': 0.5})
     diagnostics = run.published.setdefault('/diagnostics', [])
     assert run.spin_until(lambda: len(diagnostics) >= 5, 30.0), len(diagnostics)
     status = [message.status[0] for message in diagnostics[1:]]     # [0]: maybe before start
