@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -16,7 +17,8 @@ from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.strategies import baselines, certificate, ram, rq
 from formopt_ros.core.strategies.certificate import (
-    BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix)
+    BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix,
+    integer_positive_definite)
 from harness.problems import (
     clustered_interior_problem, dense_reference, families, hard_problem,
     interior_bearing_problem, quick_reference, top_vector_inside)
@@ -109,25 +111,88 @@ def test_certificate_names_interior_and_boundary_optima() -> None:
     assert names[INTERIOR] > 150 and names[BOUNDARY] > 10
 
 
+def rational_bound_matrix(problem: Problem, bound: float, mu: float) -> list[Fraction]:
+    """The reference: S = bound B - A + mu G of certificate.py's docstring in Fractions, entry
+    by entry from the definitions (W = diag(1, 1, |p_o|), the q-disc's centre and radius)."""
+    P = [[Fraction(float(v)) for v in row] for row in problem.P]
+    x_o, y_o = map(Fraction, problem.slot)
+    r, R = Fraction(float(problem.r)), Fraction(float(problem.sigma)) ** 2
+    w22 = x_o * x_o + y_o * y_o
+    W2 = [1, 1, w22]
+    M = [[sum(P[i][k] * W2[k] * P[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    lam, nu = Fraction(bound), Fraction(mu)
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    if problem.measurement == RANGE:
+        u = (x_o * x_o / w22, x_o * y_o / w22, y_o * y_o / w22)
+        cos2 = 1 - r * r / w22
+        G = [cos2 - u[0], -u[1], 0, cos2 - u[2], 0, 0]
+        B = [P[0][0] + R, P[0][1], 0, P[1][1] + R, 0, 1]
+        A = [M[i][j] if j < 2 else 0 for i, j in pairs]
+    else:
+        k = 1 / (w22 - r * r)
+        c0, c1, rho = -y_o * k, x_o * k, r * k
+        G = [1, 0, c0, 1, c1, c0 * c0 + c1 * c1 - rho * rho]
+        B = [P[i][j] + (R if (i, j) == (2, 2) else 0) for i, j in pairs]
+        A = [M[i][j] for i, j in pairs]
+    return [lam * b - a + nu * g for a, b, g in zip(A, B, G)]
+
+
+def rational_positive_definite(S: list[Fraction]) -> bool:
+    """Sylvester's criterion on the six entries, in Fractions."""
+    s00, s01, s02, s11, s12, s22 = S
+    return s00 > 0 and s00 * s11 - s01 * s01 > 0 and (
+        s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
+        + s02 * (s01 * s12 - s11 * s02)) > 0
+
+
+def unscaled(problem: Problem, T: tuple[int, ...], E: int) -> list[Fraction]:
+    """S from exact_bound_matrix's (T, E): T = c K S K as its docstring states."""
+    x_o, y_o = map(Fraction, problem.slot)
+    w22 = x_o * x_o + y_o * y_o
+    if problem.measurement == RANGE:
+        c = w22 * 2 ** (6 * E)
+        return [Fraction(t) / c for t in T[:5]] + [Fraction(T[5]) / 2 ** E]
+    K = (1, 1, (w22 - Fraction(float(problem.r)) ** 2) * 2 ** (2 * E))
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    return [Fraction(t) / (2 ** (4 * E) * K[i] * K[j]) for t, (i, j) in zip(T, pairs)]
+
+
 @pytest.mark.parametrize('kind', KINDS)
-def test_exact_bound_matrix_matches_floating_point(kind: str) -> None:
-    """The exact rational S = lambda B - A + mu G equals the floating-point one (Jacobi-scaled
-    entries, 1e-12 of the largest)."""
+def test_exact_bound_matrix_equals_rational_reference(kind: str) -> None:
+    """The integer matrix of exact_bound_matrix is the rational S = lambda B - A + mu G up to
+    the congruence its docstring states, exactly, on 100 hard problems; its positive
+    definiteness decides like Sylvester's criterion on the rational S at bounds just below,
+    at and just above the optimal gain (1e-13 relative); and the floating-point S agrees with
+    it to 1e-12 of its scale."""
     rng = np.random.default_rng(15 + KINDS.index(kind))
+    decisions = Counter()
     for _ in range(100):
         problem = hard_problem(rng, kind)
         solution = rq.rq_optimum(problem)
         g = problem.gain_at(*solution.p)
         mu = solution.details['certificate_multiplier']
+        T, E = exact_bound_matrix(problem, g, mu)
+        reference = rational_bound_matrix(problem, g, mu)
+        if kind == RANGE:
+            assert T[2] == T[4] == 0 and reference[2] == reference[4] == 0
+            assert unscaled(problem, T, E)[:5] == reference[:5]
+        else:
+            assert unscaled(problem, T, E) == reference
+        for factor in (1 - 1e-13, 1.0, 1 + 1e-13):
+            bound = g * factor
+            decision = integer_positive_definite(exact_bound_matrix(problem, bound, mu)[0])
+            assert decision == rational_positive_definite(
+                rational_bound_matrix(problem, bound, mu))
+            decisions[decision] += 1
         A, B, G, _ = certificate.quotient_system(problem)
-        exact = exact_bound_matrix(problem, g, mu)
         d = [1 / math.sqrt(B[i]) for i in (0, 3, 5)]
         pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-        scaled = [float(e) * d[i] * d[j] for e, (i, j) in zip(exact, pairs)]
+        scaled = [float(e) * d[i] * d[j] for e, (i, j) in zip(reference, pairs)]
         floating = [(g * b - a + mu * c) * d[i] * d[j]
                     for a, b, c, (i, j) in zip(A, B, G, pairs)]
         size = max(g, max(A[0] * d[0] ** 2, A[3] * d[1] ** 2, A[5] * d[2] ** 2))
         np.testing.assert_allclose(scaled, floating, rtol=0, atol=1e-12 * size)
+    assert decisions[True] > 50 and decisions[False] > 50, decisions
 
 
 def test_rq_exhaustive_route_agrees_with_fast_path() -> None:

@@ -22,15 +22,15 @@ The residual test: S is formed in floating point, so the test demands positive d
 every matrix within a rounding bound of the computed S (a shifted LDL' factorisation, after a
 Jacobi scaling that makes B's diagonal 1). When cancellation in S defeats that bound (large
 entries, a small eigenvalue: ill-conditioned priors, or a gain close to tr(W P W)), the same
-test runs again in exact rational arithmetic on the exact data (P, p_o, r, sigma and p are
-dyadic rationals), which takes about 0.3 ms. A point that is not optimal fails the test,
-however accurate the arithmetic: a better feasible point h makes h'Sh <= mu h'Gh <= 0.
+test runs again in exact arithmetic on the exact data (P, p_o, r, sigma and p are dyadic
+rationals, so integers after one common scaling: :func:`exact_bound_matrix`), which takes
+about 10 us. A point that is not optimal fails the test, however accurate the arithmetic: a
+better feasible point h makes h'Sh <= mu h'Gh <= 0.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from fractions import Fraction
 from typing import Any
 
 from formopt_ros.core.cost import Entries, Problem, positive_definite_entries
@@ -79,14 +79,8 @@ def homogeneous(problem: Problem, x: float, y: float) -> tuple[float, float, flo
     return -y / d2, x / d2, -1.0
 
 
-def _times(E: Entries, v0: float, v1: float, v2: float) -> tuple[float, float, float]:
-    """E v for the symmetric matrix with entries E."""
-    return (E[0] * v0 + E[1] * v1 + E[2] * v2, E[1] * v0 + E[3] * v1 + E[4] * v2,
-            E[2] * v0 + E[4] * v1 + E[5] * v2)
-
-
 def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
-            exact: bool = True) -> tuple[str, dict[str, Any]]:
+            exact: bool | None = True) -> tuple[str, dict[str, Any]]:
     """Try to prove that p (2,) is a global optimum of ``problem`` up to a small gap.
 
     Args:
@@ -94,37 +88,47 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
         p: the candidate, m, feasible.
         gain: its gain if already known (m^2, from ``problem.gain_at``), else computed.
         exact: when the floating-point test is inconclusive, repeat it in exact arithmetic
-            (about 0.3 ms; False for a tentative candidate that a cheaper search may replace).
+            (about 10 us); False: never (a tentative candidate that a cheaper search may
+            replace); None: only when p is a KKT point on the boundary (mu > 0), the one kind
+            of tentative candidate that is likely optimal.
 
     Returns:
         (name, details): INTERIOR or BOUNDARY when the proof holds, NONE otherwise; details
         hold 'certificate_gap' (relative cost gap proved, or inf), 'certificate_multiplier'
         (mu) and 'certificate_residual' (|(g B - A + mu G) h| relative to the scale of S).
+
+    The matrices are used unscaled and only S is scaled, entry by entry, by the Jacobi scaling
+    D = diag(B)^-1/2: D S D is positive definite exactly when S is, whatever the rounding of D,
+    and each scaled entry carries a few more roundings than its terms, far inside the bound.
     """
     x, y = float(p[0]), float(p[1])
     g = problem.gain_at(x, y) if gain is None else gain
     cost = problem.base_cost - g
-    (a00, a01, a02, a11, a12, a22), (b00, b01, b02, b11, b12, b22), G, g_size = \
-        quotient_system(problem)
-    # Jacobi scaling D = diag(B)^-1/2: the entries of D X D are X_ij dd_ij
+    (a00, a01, a02, a11, a12, a22), (b00, b01, b02, b11, b12, b22), \
+        (k00, k01, k02, k11, k12, k22), g_size = quotient_system(problem)
     d0, d1, d2 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11), 1.0 / math.sqrt(b22)
-    dd = (d0 * d0, d0 * d1, d0 * d2, d1 * d1, d1 * d2, d2 * d2)
-    A = (a00 * dd[0], a01 * dd[1], a02 * dd[2], a11 * dd[3], a12 * dd[4], a22 * dd[5])
-    B = (b00 * dd[0], b01 * dd[1], b02 * dd[2], b11 * dd[3], b12 * dd[4], b22 * dd[5])
-    G = (G[0] * dd[0], G[1] * dd[1], G[2] * dd[2], G[3] * dd[3], G[4] * dd[4], G[5] * dd[5])
     h0, h1, h2 = homogeneous(problem, x, y)
+    # residuals in the scaled coordinates h_s = D^-1 h: (D X D) h_s = D (X h)
+    s00, s01, s02 = g * b00 - a00, g * b01 - a01, g * b02 - a02
+    s11, s12, s22 = g * b11 - a11, g * b12 - a12, g * b22 - a22
+    v0 = d0 * (s00 * h0 + s01 * h1 + s02 * h2)
+    v1 = d1 * (s01 * h0 + s11 * h1 + s12 * h2)
+    v2 = d2 * (s02 * h0 + s12 * h1 + s22 * h2)
+    w0 = d0 * (k00 * h0 + k01 * h1 + k02 * h2)
+    w1 = d1 * (k01 * h0 + k11 * h1 + k12 * h2)
+    w2 = d2 * (k02 * h0 + k12 * h1 + k22 * h2)
     h0, h1, h2 = h0 / d0, h1 / d1, h2 / d2
-    S0 = (g * B[0] - A[0], g * B[1] - A[1], g * B[2] - A[2], g * B[3] - A[3],
-          g * B[4] - A[4], g * B[5] - A[5])
-    v0, v1, v2 = _times(S0, h0, h1, h2)
-    w0, w1, w2 = _times(G, h0, h1, h2)
     ww = w0 * w0 + w1 * w1 + w2 * w2
     hh = h0 * h0 + h1 * h1 + h2 * h2
     inside = h0 * w0 + h1 * w1 + h2 * w2 < -1e-9 * hh * math.sqrt(ww)
     # KKT multiplier; 0 inside the disc (the constraint is not active there)
     mu = 0.0 if inside or ww == 0.0 else max(0.0, -(w0 * v0 + w1 * v1 + w2 * v2) / ww)
-    scale = (abs(g) * max(map(abs, B)) + max(A[0], A[3], A[5])
-             + mu * max(max(map(abs, G)), g_size * max(dd[0], dd[3], dd[5])))
+    e00, e01, e02, e11, e12, e22 = d0 * d0, d0 * d1, d0 * d2, d1 * d1, d1 * d2, d2 * d2
+    # bound on the scaled entries' terms: D B D has unit diagonal, so its entries are <= 1
+    scale = abs(g) + max(a00 * e00, a11 * e11, a22 * e22)
+    if mu > 0.0:
+        scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k02) * e02, abs(k11) * e11,
+                           abs(k12) * e12, abs(k22) * e22) + g_size * max(e00, e11, e22))
     residual = (math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2 + (v2 + mu * w2) ** 2)
                 / (scale * math.sqrt(hh)))
     details: dict[str, Any] = {'certificate_gap': math.inf, 'certificate_multiplier': mu,
@@ -134,42 +138,77 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
     name = INTERIOR if mu == 0.0 else BOUNDARY
     for rtol in GAP_RTOLS:
         bound = g + rtol * cost
-        S = [bound * b - a + mu * c for a, b, c in zip(A, B, G)]
+        S00 = (bound * b00 - a00 + mu * k00) * e00
+        S11 = (bound * b11 - a11 + mu * k11) * e11
+        S22 = (bound * b22 - a22 + mu * k22) * e22
         # every matrix within the rounding bound of S is positive definite (shifted LDL')
         delta = (3.0 * ENTRY_ERROR * (scale + rtol * cost)
-                 + 16.0 * EPS * max(abs(S[0]), abs(S[3]), abs(S[5])))
-        if positive_definite_entries((S[0] - delta, S[1], S[2], S[3] - delta, S[4],
-                                      S[5] - delta)):
+                 + 16.0 * EPS * max(abs(S00), abs(S11), abs(S22)))
+        if positive_definite_entries((S00 - delta, (bound * b01 - a01 + mu * k01) * e01,
+                                      (bound * b02 - a02 + mu * k02) * e02, S11 - delta,
+                                      (bound * b12 - a12 + mu * k12) * e12, S22 - delta)):
             details['certificate_gap'] = rtol
             return name, details
-    for rtol in GAP_RTOLS if exact else ():
-        if positive_definite_entries(exact_bound_matrix(problem, g + rtol * cost, mu)):
+    for rtol in GAP_RTOLS if exact or (exact is None and mu > 0.0) else ():
+        if integer_positive_definite(exact_bound_matrix(problem, g + rtol * cost, mu)[0]):
             details.update(certificate_gap=rtol, certificate_arithmetic='exact')
             return name, details
     return NONE, details
 
 
-def exact_bound_matrix(problem: Problem, bound: float, mu: float) -> Entries:
-    """S = bound B - A + mu G (module docstring) in exact rational arithmetic, from the exact
-    data: the float inputs are dyadic rationals, |p_o|^2 = x_o^2 + y_o^2 and R = sigma^2."""
-    p00, p01, p02, p11, p12, p22 = map(Fraction, problem.entries)
-    x_o, y_o = map(Fraction, problem.slot)
-    r, R = Fraction(float(problem.r)), Fraction(float(problem.sigma)) ** 2
-    w22 = x_o * x_o + y_o * y_o
-    lam, nu = Fraction(bound), Fraction(mu)
-    m00 = p00 * p00 + p01 * p01 + w22 * p02 * p02
-    m01 = p00 * p01 + p01 * p11 + w22 * p02 * p12
-    m11 = p01 * p01 + p11 * p11 + w22 * p12 * p12
-    if problem.measurement == RANGE:
-        cos2 = 1 - r * r / w22
-        return (lam * (p00 + R) - m00 + nu * (cos2 - x_o * x_o / w22),
-                lam * p01 - m01 - nu * x_o * y_o / w22, Fraction(0),
-                lam * (p11 + R) - m11 + nu * (cos2 - y_o * y_o / w22), Fraction(0), lam)
-    m02 = p00 * p02 + p01 * p12 + w22 * p02 * p22
-    m12 = p01 * p02 + p11 * p12 + w22 * p12 * p22
-    m22 = p02 * p02 + p12 * p12 + w22 * p22 * p22
-    k = 1 / (w22 - r * r)
-    c0, c1, rho = -y_o * k, x_o * k, r * k
-    return (lam * p00 - m00 + nu, lam * p01 - m01, lam * p02 - m02 + nu * c0,
-            lam * p11 - m11 + nu, lam * p12 - m12 + nu * c1,
-            lam * (p22 + R) - m22 + nu * (c0 * c0 + c1 * c1 - rho * rho))
+def exact_bound_matrix(problem: Problem, bound: float,
+                       mu: float) -> tuple[tuple[int, int, int, int, int, int], int]:
+    """S = bound B - A + mu G (module docstring) in exact integer arithmetic on the exact data,
+    up to a positive congruence: (T, E), T the six entries of an integer matrix with
+    T = c K S K for a constant c > 0 and a positive diagonal K, so T is positive definite
+    exactly when S is.
+
+    Every double is an integer times a power of two: with 2^-E the finest unit of the inputs
+    (P, p_o, r, sigma, bound, mu), each input x is X 2^-E for an integer X, and a product of k
+    inputs is an integer times 2^-kE (its degree k); a term of lower degree is shifted up to
+    the degree of its entry. G's divisions are cleared by the congruence. Bearing: c = 2^4E,
+    K = diag(1, 1, m 2^2E) with m = |p_o|^2 - r^2 (G's third column times m is (-y_o, x_o, 1),
+    and m^2 G22 = m). Range: the leading 2x2 block times c = |p_o|^2 2^6E, and T22 = bound
+    (the third row and column of S are bound e3, so only bound > 0 matters).
+    """
+    values = (*problem.entries, *problem.slot, float(problem.r), float(problem.sigma),
+              float(bound), float(mu))
+    ratios = [v.as_integer_ratio() for v in values]
+    E = max(d.bit_length() for _, d in ratios) - 1
+    p00, p01, p02, p11, p12, p22, x_o, y_o, r, sigma, lam, nu = (
+        n << (E - d.bit_length() + 1) for n, d in ratios)
+
+    def up(value: int, degrees: int) -> int:
+        """value times 2^(degrees E): a term raised by ``degrees`` to the entry's degree."""
+        return value << (degrees * E)
+
+    w22 = x_o * x_o + y_o * y_o                                       # degree 2
+    R = sigma * sigma                                                 # degree 2
+    m00 = up(p00 * p00 + p01 * p01, 2) + w22 * p02 * p02              # degree 4
+    m01 = up(p00 * p01 + p01 * p11, 2) + w22 * p02 * p12
+    m11 = up(p01 * p01 + p11 * p11, 2) + w22 * p12 * p12
+    if problem.measurement == RANGE:                                   # S |p_o|^2, degree 6
+        return ((up(lam * (up(p00, 1) + R), 1) - m00) * w22 + up(nu * (y_o * y_o - r * r), 3),
+                up(lam * p01, 2) * w22 - m01 * w22 - up(nu * x_o * y_o, 3), 0,
+                (up(lam * (up(p11, 1) + R), 1) - m11) * w22 + up(nu * (x_o * x_o - r * r), 3),
+                0, lam), E
+    m02 = up(p00 * p02 + p01 * p12, 2) + w22 * p02 * p22
+    m12 = up(p01 * p02 + p11 * p12, 2) + w22 * p12 * p22
+    m22 = up(p02 * p02 + p12 * p12, 2) + w22 * p22 * p22
+    m = w22 - r * r                                                   # degree 2
+    return (up(lam * p00, 2) - m00 + up(nu, 3),
+            up(lam * p01, 2) - m01,
+            (up(lam * p02, 2) - m02) * m - up(nu * y_o, 4),
+            up(lam * p11, 2) - m11 + up(nu, 3),
+            (up(lam * p12, 2) - m12) * m + up(nu * x_o, 4),
+            (up(lam * (up(p22, 1) + R), 1) - m22) * m * m + up(nu * m, 5)), E
+
+
+def integer_positive_definite(T: tuple[int, int, int, int, int, int]) -> bool:
+    """True when the symmetric integer matrix with entries (00, 01, 02, 11, 12, 22) is positive
+    definite: its leading principal minors are positive (Sylvester), in exact arithmetic."""
+    t00, t01, t02, t11, t12, t22 = T
+    minor2 = t00 * t11 - t01 * t01
+    return t00 > 0 and minor2 > 0 and (
+        t00 * (t11 * t22 - t12 * t12) - t01 * (t01 * t22 - t12 * t02)
+        + t02 * (t01 * t12 - t11 * t02)) > 0
