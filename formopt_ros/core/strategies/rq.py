@@ -42,8 +42,9 @@ NEWTON_ITERATIONS = 30
 NEWTON_STEP_TOLERANCE = 1e-9
 #: Largest Newton step on the boundary circle, rad.
 NEWTON_MAX_STEP = 0.5
-_SAMPLES = [(2.0 * math.pi * k / BOUNDARY_SAMPLES, math.cos(2.0 * math.pi * k / BOUNDARY_SAMPLES),
-             math.sin(2.0 * math.pi * k / BOUNDARY_SAMPLES)) for k in range(BOUNDARY_SAMPLES)]
+#: (t, cos t, sin t, cos 2t, sin 2t) of the samples.
+_SAMPLES = [(t, math.cos(t), math.sin(t), math.cos(2.0 * t), math.sin(2.0 * t))
+            for t in (2.0 * math.pi * k / BOUNDARY_SAMPLES for k in range(BOUNDARY_SAMPLES))]
 
 
 def generalized_eigh(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,61 +151,77 @@ def _q_point(c0: float, c1: float, rho: float, t: float) -> tuple[float, float]:
 
 
 def _best_two(num: tuple[float, ...], den: tuple[float, ...],
-              starts: list[tuple[float, float, float]]) -> list[float]:
-    """The angles (of (angle, cos, sin) starts) with the highest and second-highest quotient
-    of the two degree-2 trigonometric series (k0, k1c, k1s, k2c, k2s)."""
+              starts: list[tuple[float, float, float, float, float]]) -> tuple[float, float]:
+    """The angles of the (t, cos t, sin t, cos 2t, sin 2t) starts with the highest and
+    second-highest quotient of the two degree-2 trigonometric series (k0, k1c, k1s, k2c, k2s)."""
     n0, n1c, n1s, n2c, n2s = num
     d0, d1c, d1s, d2c, d2s = den
     best, second = (-math.inf, 0.0), (-math.inf, 0.0)
-    for t, c, s in starts:
-        c2, s2 = c * c - s * s, 2.0 * s * c
+    for t, c, s, c2, s2 in starts:
         value = ((n0 + n1c * c + n1s * s + n2c * c2 + n2s * s2)
                  / (d0 + d1c * c + d1s * s + d2c * c2 + d2s * s2))
         if value > best[0]:
             best, second = (value, t), best
         elif value > second[0]:
             second = (value, t)
-    return [best[1], second[1]]
+    return best[1], second[1]
+
+
+def _interior_optimum(problem: Problem) -> tuple[tuple[float, float] | None, float | None]:
+    """(the point of the top generalised eigenvector of (M, N) if it maps inside the q-disc,
+    else None; the q-circle angle nearest that eigenvector, or None when there is none)."""
+    top = top_generalized_eigenvector(*problem.forms)
+    if top is None or top[1][2] == 0.0:
+        return None, None
+    c0, c1, rho = problem.q_circle
+    h = top[1]
+    q0, q1 = -h[0] / h[2], -h[1] / h[2]
+    e0, e1 = q0 - c0, q1 - c1
+    angle = math.atan2(e1, e0)
+    if e0 * e0 + e1 * e1 < rho * rho:
+        n2 = q0 * q0 + q1 * q1
+        return (q1 / n2, -q0 / n2), angle
+    return None, angle
 
 
 def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
-    """The certified fast path (module docstring), or None when it cannot certify."""
+    """The certified fast path (module docstring), or None when it cannot certify.
+
+    The boundary comes first: on most problems the best sample, polished by Newton's method,
+    is proved optimal at once, and the eigenvector is not needed. When it is not, the top
+    eigenvector (an interior optimum, or a start next to it) and the runner-up sample follow.
+    """
     M, N = problem.forms
     c0, c1, rho = problem.q_circle
-    top = top_generalized_eigenvector(M, N)
-    starts = list(_SAMPLES)
-    if top is not None:
-        _, h = top
-        if h[2] != 0.0:
-            q0, q1 = -h[0] / h[2], -h[1] / h[2]
-            e0, e1 = q0 - c0, q1 - c1
-            if e0 * e0 + e1 * e1 < rho * rho:
-                n2 = q0 * q0 + q1 * q1
-                p = (q1 / n2, -q0 / n2)
-                name, details = certify(problem, p)
-                if name in PROVED:
-                    return make_solution(problem, p, method, False, 1, certificate=name,
-                                         details={'interior': True, **details})
-            e = math.hypot(e0, e1)
-            starts.append((math.atan2(e1, e0), e0 / e, e1 / e))
     num, den = _circle_series(M, c0, c1, rho), _circle_series(N, c0, c1, rho)
+    best, second = _best_two(num, den, _SAMPLES)
     tried: list[tuple[float, float]] = []
-    for start in _best_two(num, den, starts):     # the best start, then the runner-up
-        t, _ = _boundary_newton(num, den, start)
+    starts = [best]
+    while starts:
+        t, _ = _boundary_newton(num, den, starts.pop(0))
         p = _q_point(c0, c1, rho, t)
         g = problem.gain_at(*p)
-        name, details = certify(problem, p, g, exact=False)
+        name, details = certify(problem, p, g, exact=None if not tried else False)
         if name in PROVED:
-            return make_solution(problem, p, method, True, len(starts), certificate=name,
-                                 details={'interior': False, **details}, gain=g)
+            return make_solution(problem, p, method, True, BOUNDARY_SAMPLES + len(tried),
+                                 certificate=name, details={'interior': False, **details},
+                                 gain=g)
         tried.append((g, t))
+        if len(tried) == 1:                 # not proved: the interior, then two more starts
+            inside, angle = _interior_optimum(problem)
+            if inside is not None:
+                name, details = certify(problem, inside)
+                if name in PROVED:
+                    return make_solution(problem, inside, method, False, 2, certificate=name,
+                                         details={'interior': True, **details})
+            starts = [second] if angle is None else [angle, second]
     g, t = max(tried)
     p = _q_point(c0, c1, rho, t)
     name, details = certify(problem, p, g)
     if name not in PROVED:
         return None
-    return make_solution(problem, p, method, True, len(starts), certificate=name,
-                         details={'interior': False, **details}, gain=g)
+    return make_solution(problem, p, method, True, BOUNDARY_SAMPLES + len(tried),
+                         certificate=name, details={'interior': False, **details}, gain=g)
 
 
 def boundary_candidates(problem: Problem) -> np.ndarray:
