@@ -42,9 +42,11 @@ NEWTON_ITERATIONS = 30
 NEWTON_STEP_TOLERANCE = 1e-9
 #: Largest Newton step on the boundary circle, rad.
 NEWTON_MAX_STEP = 0.5
-#: (t, cos t, sin t, cos 2t, sin 2t) of the samples.
-_SAMPLES = [(t, math.cos(t), math.sin(t), math.cos(2.0 * t), math.sin(2.0 * t))
-            for t in (2.0 * math.pi * k / BOUNDARY_SAMPLES for k in range(BOUNDARY_SAMPLES))]
+#: Angle between neighbouring samples, rad.
+SAMPLE_STEP = 2.0 * math.pi / BOUNDARY_SAMPLES
+#: (cos t, sin t, cos 2t, sin 2t) of the first half of the samples (t + pi flips cos t, sin t).
+_HALF_SAMPLES = [(math.cos(t), math.sin(t), math.cos(2.0 * t), math.sin(2.0 * t))
+                 for t in (SAMPLE_STEP * k for k in range(BOUNDARY_SAMPLES // 2))]
 
 
 def generalized_eigh(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,34 +115,33 @@ def _circle_series(X: Entries, c0: float, c1: float,
             0.5 * r2 * (x00 - x11), r2 * x01)
 
 
-def _boundary_newton(num: tuple[float, ...], den: tuple[float, ...],
-                     t: float) -> tuple[float, float]:
-    """Newton's method on F = n'd - nd' (the numerator of g') from angle t, safeguarded to climb:
-    (angle, quotient there)."""
+def _boundary_newton(num: tuple[float, ...], den: tuple[float, ...], t: float) -> float:
+    """Newton's method on F = n'd - nd' (the numerator of g') from angle t (rad), safeguarded
+    to climb: the angle where it stops."""
     n0, n1c, n1s, n2c, n2s = num
     d0, d1c, d1s, d2c, d2s = den
-    g = 0.0
+    cos, sin = math.cos, math.sin
     for _ in range(NEWTON_ITERATIONS):
-        c, s = math.cos(t), math.sin(t)
+        c, s = cos(t), sin(t)
         c2, s2 = c * c - s * s, 2.0 * s * c
-        n = n0 + n1c * c + n1s * s + n2c * c2 + n2s * s2
-        d = d0 + d1c * c + d1s * s + d2c * c2 + d2s * s2
-        n_t = -n1c * s + n1s * c - 2.0 * (n2c * s2 - n2s * c2)
-        d_t = -d1c * s + d1s * c - 2.0 * (d2c * s2 - d2s * c2)
-        n_tt = -n1c * c - n1s * s - 4.0 * (n2c * c2 + n2s * s2)
-        d_tt = -d1c * c - d1s * s - 4.0 * (d2c * c2 + d2s * s2)
-        g = n / d
+        # each series: first harmonic a, second b; x = k0 + a + b, x'' = -a - 4 b
+        n1, n2 = n1c * c + n1s * s, n2c * c2 + n2s * s2
+        d1, d2 = d1c * c + d1s * s, d2c * c2 + d2s * s2
+        n, d = n0 + n1 + n2, d0 + d1 + d2
+        n_t = n1s * c - n1c * s + 2.0 * (n2s * c2 - n2c * s2)
+        d_t = d1s * c - d1c * s + 2.0 * (d2s * c2 - d2c * s2)
         F = n_t * d - n * d_t
-        slope = n_tt * d - n * d_tt
+        slope = (-n1 - 4.0 * n2) * d + n * (d1 + 4.0 * d2)
         if slope < 0.0:
             step = -F / slope
-            step = max(-NEWTON_MAX_STEP, min(NEWTON_MAX_STEP, step))
+            step = -NEWTON_MAX_STEP if step < -NEWTON_MAX_STEP else (
+                NEWTON_MAX_STEP if step > NEWTON_MAX_STEP else step)
         else:                   # not concave here: climb along the gradient
-            step = math.copysign(0.1, F)
+            step = 0.1 if F >= 0.0 else -0.1
         t += step
-        if abs(step) <= NEWTON_STEP_TOLERANCE:
+        if -NEWTON_STEP_TOLERANCE <= step <= NEWTON_STEP_TOLERANCE:
             break
-    return t, g
+    return t
 
 
 def _q_point(c0: float, c1: float, rho: float, t: float) -> tuple[float, float]:
@@ -150,21 +151,32 @@ def _q_point(c0: float, c1: float, rho: float, t: float) -> tuple[float, float]:
     return q1 / n2, -q0 / n2
 
 
-def _best_two(num: tuple[float, ...], den: tuple[float, ...],
-              starts: list[tuple[float, float, float, float, float]]) -> tuple[float, float]:
-    """The angles of the (t, cos t, sin t, cos 2t, sin 2t) starts with the highest and
-    second-highest quotient of the two degree-2 trigonometric series (k0, k1c, k1s, k2c, k2s)."""
+def _boundary_starts(num: tuple[float, ...], den: tuple[float, ...]) -> tuple[float, float]:
+    """Newton's starts on the q-circle, rad: the best of BOUNDARY_SAMPLES equally spaced samples
+    of the quotient of the two degree-2 series (k0, k1c, k1s, k2c, k2s), moved to the vertex of
+    the parabola through it and its neighbours (one Newton step fewer, on average); and the
+    runner-up sample."""
     n0, n1c, n1s, n2c, n2s = num
     d0, d1c, d1s, d2c, d2s = den
-    best, second = (-math.inf, 0.0), (-math.inf, 0.0)
-    for t, c, s, c2, s2 in starts:
-        value = ((n0 + n1c * c + n1s * s + n2c * c2 + n2s * s2)
-                 / (d0 + d1c * c + d1s * s + d2c * c2 + d2s * s2))
-        if value > best[0]:
-            best, second = (value, t), best
-        elif value > second[0]:
-            second = (value, t)
-    return best[1], second[1]
+    half = BOUNDARY_SAMPLES // 2
+    values = [0.0] * BOUNDARY_SAMPLES
+    for k, (c, s, c2, s2) in enumerate(_HALF_SAMPLES):
+        n_even, n_odd = n0 + n2c * c2 + n2s * s2, n1c * c + n1s * s
+        d_even, d_odd = d0 + d2c * c2 + d2s * s2, d1c * c + d1s * s
+        values[k] = (n_even + n_odd) / (d_even + d_odd)
+        values[k + half] = (n_even - n_odd) / (d_even - d_odd)
+    best, second = 0, 1
+    if values[1] > values[0]:
+        best, second = 1, 0
+    for k in range(2, BOUNDARY_SAMPLES):
+        if values[k] > values[best]:
+            best, second = k, best
+        elif values[k] > values[second]:
+            second = k
+    before, here, after = values[best - 1], values[best], values[(best + 1) % BOUNDARY_SAMPLES]
+    curvature = before - 2.0 * here + after
+    shift = 0.0 if not curvature < 0.0 else 0.5 * (before - after) / curvature
+    return SAMPLE_STEP * (best + max(-1.0, min(1.0, shift))), SAMPLE_STEP * second
 
 
 def _interior_optimum(problem: Problem) -> tuple[tuple[float, float] | None, float | None]:
@@ -194,11 +206,11 @@ def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
     M, N = problem.forms
     c0, c1, rho = problem.q_circle
     num, den = _circle_series(M, c0, c1, rho), _circle_series(N, c0, c1, rho)
-    best, second = _best_two(num, den, _SAMPLES)
+    best, second = _boundary_starts(num, den)
     tried: list[tuple[float, float]] = []
     starts = [best]
     while starts:
-        t, _ = _boundary_newton(num, den, starts.pop(0))
+        t = _boundary_newton(num, den, starts.pop(0))
         p = _q_point(c0, c1, rho, t)
         g = problem.gain_at(*p)
         name, details = certify(problem, p, g, exact=None if not tried else False)
