@@ -226,6 +226,8 @@ class EstimatorPlannerNode(Node):
 
     def _publish(self, outcome: StepOutcome) -> None:
         stamp = self._stamp(outcome.stamp_ns)
+        if outcome.plan is not None:
+            self._send(outcome.plan)        # first: the leader and the follower wait for it
         self.estimate_pub.publish(conversions.estimate(stamp, self.leader_id, outcome.x,
                                                        outcome.P))
         self.tf_pub.publish(conversions.tf_message([conversions.transform(
@@ -233,8 +235,6 @@ class EstimatorPlannerNode(Node):
         self.published['estimate'] += 1
         self.published['tf'] += 1
         self.last_progress = time.monotonic()
-        if outcome.plan is not None:
-            self._send(outcome.plan)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
         if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
             self.last_markers = time.monotonic()

@@ -37,6 +37,11 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
 SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and publishes its '
            'odometry, one range or bearing measurement per step, its true pose and its frames '
            'on /tf.')
+#: Publication order of a step's messages: what the estimator reads first (a lockstep step is
+#: published when complete): odometry, the truth (before the measurement, so that the
+#: estimator knows the truth of a step when it processes it, also the last one), the
+#: measurement; /tf, which no node of the run reads, follows off the critical path.
+WAITED_FOR = {'odometry': 0, 'truth': 1, 'measurement': 2}
 
 
 def frames(follower_id: str) -> dict[str, str]:
@@ -227,6 +232,8 @@ class FollowerSim(Node):
 
     def _substep(self, v_cmd: float, omega_cmd: float, leader: tuple[float, float],
                  stamp: Any, keep: bool = True) -> None:
+        """Drive one sub-step; its odometry and /tf are kept for the step's cache and, in
+        realtime, published at once (lockstep: by _try_execute, when the step is complete)."""
         self.truth.execute(v_cmd, omega_cmd, leader[0], leader[1])
         self.odom_pose = integrate_unicycle(self.odom_pose, v_cmd, omega_cmd, self.scenario.dt)
         odom = self._odometry(stamp, v_cmd, omega_cmd)
@@ -235,9 +242,11 @@ class FollowerSim(Node):
         for key, msg in (('odometry', odom), ('tf', tf)):
             if keep:
                 self.step_messages.append((key, msg))
-            self._publish(key, msg)
+            if not self.lockstep:
+                self._publish(key, msg)
 
     def _finish_step(self, step: int, stamp: Any) -> None:
+        """Measure; the step's cache holds its messages in the order of WAITED_FOR."""
         s = self.scenario
         truth = conversions.pose_stamped(stamp, self.leader_id, self.truth.x)
         meas = conversions.measurement(stamp, self.follower_id, self.follower_id, step,
@@ -245,11 +254,13 @@ class FollowerSim(Node):
                                        self.params['run_id'])
         tf = conversions.tf_message([conversions.transform(
             stamp, self.leader_id, self.frames['truth'], self.truth.x)])
-        for key, msg in (('truth', truth), ('tf', tf), ('measurement', meas)):
+        for key, msg in (('truth', truth), ('measurement', meas), ('tf', tf)):
             self.step_messages.append((key, msg))
-            self._publish(key, msg)
+            if not self.lockstep:
+                self._publish(key, msg)
         self.executed = step
-        self.cache, self.step_messages = self.step_messages, []
+        self.cache = sorted(self.step_messages, key=lambda item: WAITED_FOR.get(item[0], 3))
+        self.step_messages = []
 
     def _try_execute(self) -> None:
         """Lockstep: run the pending waypoint once the leader's sub-steps are known."""
@@ -264,6 +275,8 @@ class FollowerSim(Node):
             self._substep(msg.linear_velocity[j], msg.angular_velocity[j], self.leader.pop(n),
                           conversions.stamp(self.timebase.substep_end(n)))
         self._finish_step(msg.step, conversions.stamp(self.timebase.measurement_stamp(msg.step)))
+        for key, item in self.cache:
+            self._publish(key, item)
         self.pending = None
         self.checkpoint.save(self._state())
 

@@ -129,16 +129,20 @@ class LeaderSim(Node):
             self.get_clock().now().to_msg()
         return conversions.odometry(time, ODOM_FRAME, self.leader_id, self.pose, v, omega)
 
-    def _publish(self, stamp_ns: int | None, odom: Odometry,
-                 pose: tuple[float, float, float]) -> None:
-        if self.clock_pub is not None and stamp_ns is not None:
-            self.clock_pub.publish(conversions.clock(stamp_ns))
-            self.published['clock'] += 1
-        self.odom_pub.publish(odom)
-        self.tf_pub.publish(conversions.tf_message([conversions.transform(
-            odom.header.stamp, ODOM_FRAME, self.leader_id, pose)]))
-        self.published['odometry'] += 1
-        self.published['tf'] += 1
+    def _publish(self, entries: list[tuple[int | None, Odometry, tuple[float, float, float]]]
+                 ) -> None:
+        """Per sub-step /clock (lockstep) and the odometry, which the followers and estimators
+        wait for; then the /tf of each sub-step, which no node of the run waits for."""
+        for stamp_ns, odom, _ in entries:
+            if self.clock_pub is not None and stamp_ns is not None:
+                self.clock_pub.publish(conversions.clock(stamp_ns))
+                self.published['clock'] += 1
+            self.odom_pub.publish(odom)
+            self.published['odometry'] += 1
+        for _, odom, pose in entries:
+            self.tf_pub.publish(conversions.tf_message([conversions.transform(
+                odom.header.stamp, ODOM_FRAME, self.leader_id, pose)]))
+            self.published['tf'] += 1
 
     def _waypoint_callback(self, follower: str) -> Callable[[Waypoint], None]:
         def callback(msg: Waypoint) -> None:
@@ -159,8 +163,7 @@ class LeaderSim(Node):
             self.throttle.warn('waypoint', f'ignoring waypoint on {follower}: {problem}')
             return
         if msg.step == self.served_step and msg.step <= self.requested[follower]:
-            for entry in self.cache:
-                self._publish(*entry)
+            self._publish(self.cache)
             return
         self.requested[follower] = max(self.requested[follower], int(msg.step))
         self.serve()
@@ -179,14 +182,13 @@ class LeaderSim(Node):
             self.cache.append((stamp, self._advance(stamp), self.pose))
         self.served_step = step
         self.checkpoint.save(self._state())
-        for entry in self.cache:
-            self._publish(*entry)
+        self._publish(self.cache)
 
     def on_tick(self) -> None:
         """Realtime: one sub-step per tick, once the publishers are matched."""
         if self._may_run():
             odom = self._advance(None)
-            self._publish(None, odom, self.pose)
+            self._publish([(None, odom, self.pose)])
             self.checkpoint.save(self._state())
 
     def summary(self) -> dict[str, Any]:
