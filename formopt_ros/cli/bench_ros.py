@@ -44,9 +44,8 @@ def formation_run(args: Any, mode: str, followers: int, steps: int, dt: float,
                   out: Path) -> tuple[Probe, float, dict[str, int | None]]:
     """One run: (what the probe saw, the time the processes were started, exit codes)."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
 
-    from formopt_ros.ros.runtime import fast_announcements
+    from formopt_ros.ros.runtime import fast_announcements, make_executor
     fast_announcements()
 
     from formopt_ros.ros import qos
@@ -94,9 +93,11 @@ def formation_run(args: Any, mode: str, followers: int, steps: int, dt: float,
 
         for name, type_name in formation_topics('leader', ids, prefix).items():
             if not name.endswith('/description') and name != '/tf_static':
+                # like the recorder, raw CDR; deserialised only where the probe reads a field
+                read = name.rpartition('/')[2] in ('waypoint', 'status', 'measurement')
                 node.create_subscription(message_class(type_name), name, receive(name),
-                                         qos.STREAM)
-        executor = SingleThreadedExecutor()
+                                         qos.STREAM, raw=not read)
+        executor = make_executor()
         executor.add_node(node)
         deadline = started + args.timeout
         while any(steps not in s for s in probe.statuses.values()):
