@@ -9,13 +9,16 @@ in h, so its only local maximum over the projective plane is the top generalised
 (M, N). If that eigenvector maps into the q-disc (the image of the feasible disc under
 p -> (-y, x)/|p|^2) it is the global optimum; otherwise the optimum lies on the boundary
 circle q(t) = c + rho [cos t, sin t], where num and den are trigonometric polynomials of degree
-2. The fast path, in Python floats: the top eigenpair in closed form (Cholesky reduction, the
-trigonometric solution of the cubic); on the boundary, Newton's method on the stationarity
-condition n'd - nd' = 0 from the best, then the second best, of 12 samples and the circle
-point nearest the eigenvector. Every answer must pass :func:`~.certificate.certify`; when it
-does not, the exhaustive route runs: numpy's generalised eigenvector and every root of the
-degree-6 stationarity polynomial in z = e^{it} (companion matrix), each polished by Newton
-steps; its best point is certified again, or named 'all-critical-points'.
+2. The fast path, in Python floats, tries the boundary first (where the optimum lies on the
+study's and the benchmark's problems): Newton's method on the stationarity condition
+n'd - nd' = 0 from the best of 12 samples (moved to the vertex of the parabola through it and
+its neighbours). Only when that point is not proved optimal, the top eigenpair in closed form
+(Cholesky reduction, the trigonometric solution of the cubic): an interior optimum, or else
+Newton from the circle point nearest the eigenvector and from the second-best sample. Every
+answer must pass :func:`~.certificate.certify`; when it does not, the exhaustive route runs:
+numpy's generalised eigenvector and every root of the degree-6 stationarity polynomial in
+z = e^{it} (companion matrix), each polished by Newton steps; its best point is certified
+again, or named 'all-critical-points'.
 """
 from __future__ import annotations
 
