@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from formopt_interfaces.msg import Waypoint
@@ -129,7 +129,7 @@ class LeaderSim(Node):
             self.get_clock().now().to_msg()
         return conversions.odometry(time, ODOM_FRAME, self.leader_id, self.pose, v, omega)
 
-    def _publish(self, entries: list[tuple[int | None, Odometry, tuple[float, float, float]]]
+    def _publish(self, entries: Sequence[tuple[int | None, Odometry, tuple[float, float, float]]]
                  ) -> None:
         """Per sub-step /clock (lockstep) and the odometry, which the followers and estimators
         wait for; then the /tf of each sub-step, which no node of the run waits for."""
