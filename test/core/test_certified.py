@@ -96,6 +96,48 @@ def test_certificate_proves_optima_and_refuses_other_points(kind: str) -> None:
     assert refused > 400
 
 
+def test_exact_stage_runs_when_asked_and_for_kkt_points_only(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """certify(exact=True) proves, in exact arithmetic, hard boundary optima whose floating-point
+    test is inconclusive; exact=False never runs that stage; exact=None runs it for such a
+    KKT point (mu > 0) but not for a boundary point of a problem whose optimum is interior
+    (mu = 0 there), which stays unproved without the exact stage's cost (exact=True runs it
+    there, and fails)."""
+    calls = Counter()
+    original = certificate.exact_bound_matrix
+
+    def counted(*args: object) -> tuple[tuple[int, ...], int]:
+        calls['exact'] += 1
+        return original(*args)  # type: ignore[arg-type]
+    monkeypatch.setattr(certificate, 'exact_bound_matrix', counted)
+    rng = np.random.default_rng(16)
+    exact_boundary = kkt_free = 0
+    for _ in range(400):
+        problem = hard_problem(rng, BEARING)
+        solution = rq.rq_optimum(problem)
+        if solution.details.get('certificate_arithmetic') != 'exact' or not solution.on_boundary:
+            continue
+        p = tuple(map(float, solution.p))
+        assert certify(problem, p, exact=False)[0] == NONE
+        name, details = certify(problem, p, exact=None)
+        assert name == BOUNDARY and details['certificate_arithmetic'] == 'exact'
+        exact_boundary += 1
+    for _ in range(100):
+        problem = clustered_interior_problem(rng)
+        if not top_vector_inside(problem):
+            continue
+        x_o, y_o = problem.slot
+        for angle in np.linspace(0.0, 2 * math.pi, 8, endpoint=False):
+            p = (x_o + problem.r * math.cos(angle), y_o + problem.r * math.sin(angle))
+            before = calls['exact']
+            name, details = certify(problem, p, exact=None)
+            if details['certificate_multiplier'] == 0.0:
+                assert name == NONE and calls['exact'] == before
+                assert certify(problem, p)[0] == NONE and calls['exact'] > before
+                kkt_free += 1
+    assert exact_boundary >= 10 and kkt_free >= 50, (exact_boundary, kkt_free)
+
+
 def test_certificate_names_interior_and_boundary_optima() -> None:
     """Interior optima (the top generalised eigenvector is feasible) are certified
     'interior-eigenvector' (mu = 0), boundary optima 'boundary-bound' (mu > 0)."""
