@@ -336,7 +336,7 @@ class Problem(_QuotientForms):
     @lazy_property
     def slot(self) -> tuple[float, float]:
         """p_o as Python floats, m."""
-        x_o, y_o = self.p_o.tolist()
+        x_o, y_o = self.p_o.tolist() if isinstance(self.p_o, np.ndarray) else self.p_o
         return float(x_o), float(y_o)
 
     @lazy_property
