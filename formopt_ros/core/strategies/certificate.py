@@ -129,11 +129,12 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
     if mu > 0.0:
         scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k02) * e02, abs(k11) * e11,
                            abs(k12) * e12, abs(k22) * e22) + g_size * max(e00, e11, e22))
+    size = scale * math.sqrt(hh)         # 0 when the data underflow (P ~ 1e-100, sigma ~ 1e100)
     residual = (math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2 + (v2 + mu * w2) ** 2)
-                / (scale * math.sqrt(hh)))
+                / size) if size > 0.0 else math.inf
     details: dict[str, Any] = {'certificate_gap': math.inf, 'certificate_multiplier': mu,
                                'certificate_residual': residual}
-    if not (cost > 0.0 and math.isfinite(scale)):
+    if not (cost > 0.0 and 0.0 < size < math.inf):
         return NONE, details
     name = INTERIOR if mu == 0.0 else BOUNDARY
     for rtol in GAP_RTOLS:
