@@ -187,8 +187,8 @@ def report_markdown(summary: dict[str, Any]) -> str:
 
 def add_scenario_options(parser: ArgumentParser) -> None:
     """--r-fraction, --sigma-scale and the leader path: variants of the paper's scenario."""
-    parser.add_argument('--r-fraction', type=number(0.0, 0.999, low_open=True), default=None,
-                        help='allowed deviation r as a fraction of |p_o|, in (0, 0.999] '
+    parser.add_argument('--r-fraction', type=number(1e-6, 0.999), default=None,
+                        help='allowed deviation r as a fraction of |p_o|, in [1e-6, 0.999] '
                              '(default: the paper, 0.1)')
     parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
                         help="factor on the paper's range / bearing noise std 0.1 m / 0.02 rad "

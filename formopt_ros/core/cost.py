@@ -151,16 +151,25 @@ def quotient_gain(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[A
 #: boundary series lose every digit: at r = 0.999999 |p_o| RQ and RAM returned points worse
 #: than the slot. Up to this bound the slow tier finds no wrong answer ('r near |p_o|').
 MAX_DEVIATION = 0.999
+#: Smallest allowed deviation r as a fraction of |p_o|: a point p_o + r u carries rounding of
+#: about eps |p_o|, which for r below ~1e-7 |p_o| exceeds the 1e-9 r by which a point may lie
+#: outside the disc (measured: r = 1.4e-8 |p_o| gave points 2.7e-9 r outside).
+MIN_DEVIATION = 1e-6
 
 
 def check_disc(x_o: float, y_o: float, r: float) -> float:
     """|p_o| (m) when the disc of radius r (m) around p_o = (x_o, y_o) is a valid feasible
-    set: r <= MAX_DEVIATION |p_o| and every square of the problem a normal float; else
-    ValueError saying which."""
+    set: MIN_DEVIATION |p_o| <= r <= MAX_DEVIATION |p_o| and every square of the problem a
+    normal float; else ValueError saying which."""
     d_o = math.hypot(x_o, y_o)
     if not r <= MAX_DEVIATION * d_o:
         raise ValueError(f'r must be at most {MAX_DEVIATION} |p_o| = {MAX_DEVIATION * d_o:.6g} '
                          f'm so that the disc keeps clear of the leader, got r = {r:.6g} m')
+    if not r >= MIN_DEVIATION * d_o:
+        raise ValueError(f'r must be at least {MIN_DEVIATION:g} |p_o| = '
+                         f'{MIN_DEVIATION * d_o:.6g} m (the points of a smaller disc carry '
+                         f'rounding of ~1e-16 |p_o|, more than its 1e-9 r tolerance), '
+                         f'got r = {r:.6g} m')
     margin = d_o * d_o - r * r
     if not (math.isfinite(d_o * d_o) and margin >= sys.float_info.min
             and r * r >= sys.float_info.min):
@@ -284,7 +293,8 @@ class Problem(_QuotientForms):
     Attributes:
         P: prior covariance of [x, y, phi] at the next step, shape (3, 3) (m^2, m rad, rad^2).
         p_o: formation slot in the leader frame, shape (2,), m.
-        r: allowed deviation from the slot, m; 0 < r < |p_o| (the disc must not reach the leader).
+        r: allowed deviation from the slot, m; 1e-6 |p_o| <= r <= 0.999 |p_o| (the disc must not
+            reach the leader).
         sigma: measurement noise standard deviation, m (range) or rad (bearing).
         measurement: 'range' or 'bearing'.
         validate: check every input (default). Loops that check their setting once (the

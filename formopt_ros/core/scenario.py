@@ -156,7 +156,7 @@ class Scenario:
     Attributes:
         measurement: 'range' or 'bearing'.
         p_o: formation slot in the leader frame, m.
-        r: allowed deviation from the slot, m; 0 < r < |p_o|.
+        r: allowed deviation from the slot, m; 1e-6 |p_o| <= r <= 0.999 |p_o|.
         sigma: measurement noise standard deviation, m or rad.
         leader: the leader's path.
         dt: sub-step length, s.

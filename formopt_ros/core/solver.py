@@ -31,7 +31,7 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
         P: prior covariance of [x, y, phi] at the next step, shape (3, 3), symmetric positive
             definite (m^2, m rad, rad^2); the paper uses the covariance propagated to p_o.
         p_o: formation slot in the leader frame, shape (2,), m.
-        r: allowed deviation, m; 0 < r < |p_o|.
+        r: allowed deviation, m; 1e-6 |p_o| <= r <= 0.999 |p_o|.
         sigma: measurement noise standard deviation: m for 'range', rad for 'bearing'.
         measurement: 'range' or 'bearing'.
         method: 'ram' (paper, analytic), 'rq' (exact eigen solver), 'gbs' (grid), 'mtf'
@@ -53,7 +53,7 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
 
     Raises:
         ValueError: for a non-SPD or non-finite P, a variance of P outside
-            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), bad p_o, r <= 0 or r > 0.999 |p_o|,
+            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), bad p_o, r outside [1e-6, 0.999] |p_o|,
             sigma <= 0 or above ``cost.SIGMA_MAX`` (1e100), or an unknown measurement, method
             or option.
     """

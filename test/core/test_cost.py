@@ -51,6 +51,8 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
              ('r beyond leader', {'r': 5.0}, r'r must be at most 0.999'),
              ('r just below |p_o|', {'r': 0.999999 * math.hypot(*GOOD_P_O)},
               r'r must be at most 0.999'),
+             ('r below 1e-6 |p_o|', {'r': 0.9e-6 * math.hypot(*GOOD_P_O)},
+              r'r must be at least 1e-06 \|p_o\|'),
              ('r None', {'r': None}, r'r must be a finite number'),
              ('r text', {'r': '0.3'}, r'r must be a finite number'),
              ('r bool', {'r': True}, r'r must be a finite number'),
@@ -183,15 +185,20 @@ def test_q_disc_maps_boundary_circle_and_inverts() -> None:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
-    """Across VARIANCE_RANGE (variances log-uniform over 125 decades, correlations up to 0.9,
-    sigma in [1e-6, 1]) every method returns a feasible finite point, without an exception;
-    RAM's answers are certified or visibly replaced by RQ's (seeded: 150 problems)."""
+    """Across VARIANCE_RANGE (variances log-uniform over 125 decades, correlations up to 0.9),
+    sigma in [1e-6, 1] and, for a third of the problems, up to SIGMA_MAX = 1e100, and r at
+    0.3 m, at MIN_DEVIATION and at MAX_DEVIATION of |p_o|: every method returns a feasible
+    finite point, without an exception (sigma = 1e100 with P = 1e-100 I once divided by zero
+    in the certificate); RQ's answers carry a proof, the enumeration of all critical points, or
+    'none' with the reason; RAM's are proved or visibly RQ's (seeded: 150 problems)."""
     import warnings
 
-    from formopt_ros.core.cost import VARIANCE_RANGE
+    from formopt_ros.core.cost import MAX_DEVIATION, MIN_DEVIATION, VARIANCE_RANGE
     from formopt_ros.core.solver import solve
+    from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED
     rng = np.random.default_rng(11)
     low, high = np.log10(VARIANCE_RANGE)
+    d_o = math.hypot(*GOOD_P_O)
     solved = 0
     while solved < 150:
         d = 10.0 ** rng.uniform(low, high, 3)
@@ -200,13 +207,30 @@ def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
         if np.linalg.eigvalsh(correlation).min() <= 1e-3:
             continue
         P = np.sqrt(d)[:, None] * correlation * np.sqrt(d)[None, :]
-        sigma = 10.0 ** rng.uniform(-6, 0)
+        sigma = 10.0 ** rng.uniform(-6, 0 if solved % 3 else 100)
+        r = (0.3, MIN_DEVIATION * d_o, MAX_DEVIATION * d_o)[solved % 5 % 3]
         for method in ('ram', 'rq', 'gbs', 'mtf', 'periodic'):
             with warnings.catch_warnings():
                 warnings.simplefilter('ignore', RuntimeWarning)
-                solution = solve(P, GOOD_P_O, 0.3, sigma, measurement=kind, method=method)
-            assert np.all(np.isfinite(solution.p)), (method, d, sigma)
-            assert np.hypot(*(solution.p - GOOD_P_O)) <= 0.3 * (1 + 1e-9), (method, d, sigma)
+                solution = solve(P, GOOD_P_O, r, sigma, measurement=kind, method=method)
+            label = (method, d, sigma, r)
+            assert np.all(np.isfinite(solution.p)) and math.isfinite(solution.cost), label
+            assert np.hypot(*(solution.p - GOOD_P_O)) <= r * (1 + 1e-9), label
             if method in ('ram', 'rq'):
-                assert solution.certificate != 'none' or solution.fallback == 'rq', (method, d)
+                assert solution.certificate in (*PROVED, CRITICAL_POINTS) or (
+                    solution.details.get('reason') and (method == 'rq' or solution.fallback)
+                ), (label, solution.certificate, solution.details)
         solved += 1
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_extremes_of_the_admissible_range_solve_without_exception(kind: str) -> None:
+    """P = 1e-100 I with sigma = 1e100 (the certificate's scale underflows to 0: it once divided
+    by zero) and P = 1e25 I with sigma = 1e-6: every method returns a feasible finite point."""
+    from formopt_ros.core.solver import METHODS, solve
+    for P, sigma in ((np.eye(3) * 1e-100, 1e100), (np.eye(3) * 1e25, 1e-6)):
+        for method in METHODS:
+            solution = solve(P, GOOD_P_O, 0.3, sigma, measurement=kind, method=method,
+                             rng=np.random.default_rng(0))
+            assert math.isfinite(solution.cost) and np.all(np.isfinite(solution.p)), method
+            assert np.hypot(*(solution.p - GOOD_P_O)) <= 0.3 * (1 + 1e-9), method
