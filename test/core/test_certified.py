@@ -15,12 +15,12 @@ from formopt_ros.core import Problem
 from formopt_ros.core.cost import ProblemBatch
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.model import BEARING, RANGE
-from formopt_ros.core.strategies import baselines, certificate, ram, rq
+from formopt_ros.core.strategies import PlanContext, baselines, certificate, ram, rq
 from formopt_ros.core.strategies.certificate import (
     BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix,
     integer_positive_definite)
 from harness.problems import (
-    clustered_interior_problem, dense_reference, families, hard_problem,
+    beyond_double_problem, clustered_interior_problem, dense_reference, families, hard_problem,
     interior_bearing_problem, quick_reference, top_vector_inside)
 
 KINDS = (RANGE, BEARING)
@@ -235,6 +235,57 @@ def test_exact_bound_matrix_equals_rational_reference(kind: str) -> None:
         size = max(g, max(A[0] * d[0] ** 2, A[3] * d[1] ** 2, A[5] * d[2] ** 2))
         np.testing.assert_allclose(scaled, floating, rtol=0, atol=1e-12 * size)
     assert decisions[True] > 50 and decisions[False] > 50, decisions
+
+
+def exact_cost(problem: Problem, p: np.ndarray) -> Fraction:
+    """tr(W P_post W) at p in exact rational arithmetic on the exact data (m^2): the gain is a
+    ratio of rational functions of p (range: p'Ap / (p'Bp + R |p|^2); bearing: h'Mh / h'Nh
+    with h = [-y, x, -|p|^2] / |p|^2)."""
+    P = [[Fraction(float(v)) for v in row] for row in problem.P]
+    x_o, y_o = map(Fraction, problem.slot)
+    w22 = x_o * x_o + y_o * y_o
+    W2 = (1, 1, w22)
+    M = [[sum(P[i][k] * W2[k] * P[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    R = Fraction(float(problem.sigma)) ** 2
+    x, y = Fraction(float(p[0])), Fraction(float(p[1]))
+    d2 = x * x + y * y
+    h = (x, y, Fraction(0)) if problem.measurement == RANGE else (-y, x, -d2)
+    quad = [[M, P][k] for k in range(2)]
+    num, den = (sum(h[i] * X[i][j] * h[j] for i in range(3) for j in range(3)) for X in quad)
+    den += R * (d2 if problem.measurement == RANGE else d2 * d2)
+    return P[0][0] + P[1][1] + w22 * P[2][2] - num / den
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
+    """Condition numbers of P from 1e16 to 1e34 (beyond_double_problem; 150 per sensor), where
+    rounding defeats proofs and root finders: RQ's and RAM's answers are feasible and, in exact
+    arithmetic, no worse than the best of the slot and 720 boundary samples (plus 16 eps
+    tr(W P W)); an answer neither proved nor from a complete enumeration says 'none' and why.
+    Also the problem where RQ returned the worst point of the disc (cost tr(W P W), the slot
+    1e-9) with the label 'all-critical-points'."""
+    rng = np.random.default_rng(17 + KINDS.index(kind))
+    problems = [beyond_double_problem(rng, kind) for _ in range(150)]
+    if kind == BEARING:
+        p_o = np.array([-0.188, 0.0065])
+        problems.append(Problem(np.diag([21.5, 1.5e-17, 1e-21]), p_o,
+                                0.999 * math.hypot(*p_o), 6e-6, BEARING))
+    angles = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
+    labels = Counter()
+    for problem in problems:
+        samples = np.vstack([problem.p_o, problem.p_o + problem.r * np.stack(
+            [np.cos(angles), np.sin(angles)], axis=1)])
+        top = samples[np.argsort(problem.gain(samples))[-4:]]     # the best by float gain
+        best = min([exact_cost(problem, problem.p_o)] + [exact_cost(problem, p) for p in top])
+        allowed = best + Fraction(16 * EPS) * Fraction(problem.base_cost)
+        for solution in (rq.rq_optimum(problem), ram.RelaxedAlgebraicMethod().plan(
+                problem, PlanContext())):
+            labels[solution.certificate] += 1
+            assert problem.feasible(solution.p), solution
+            assert exact_cost(problem, solution.p) <= allowed, (problem, solution)
+            if solution.certificate == NONE:
+                assert solution.details['reason'], solution
+    assert labels[NONE] >= (kind == BEARING) and sum(labels[k] for k in PROVED) >= 150, labels
 
 
 def test_rq_exhaustive_route_agrees_with_fast_path() -> None:

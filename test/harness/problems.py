@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from formopt_ros.core import Problem
+from formopt_ros.core.cost import MAX_DEVIATION
 from formopt_ros.core.model import BEARING, RANGE
 
 Generator = Callable[[np.random.Generator], Problem]
@@ -194,6 +195,27 @@ def ill_conditioned_problem(rng: np.random.Generator, kind: str) -> Problem:
                 return Problem(P, p_o, r, random_sigma(rng, kind), kind)
             except ValueError:      # rounding made it indefinite: draw again
                 continue
+
+
+def beyond_double_problem(rng: np.random.Generator, kind: str) -> Problem:
+    """Condition numbers of P from 1e16 to 1e34, variances from 1e-40 to 1e4, r often at
+    0.99-0.999 |p_o|, sigma from 1e-6: rounding defeats the proofs and the root finders (RQ
+    once returned the worst point of the disc here). Redrawn until the Problem validates."""
+    while True:
+        log_condition = rng.uniform(16.0, 34.0)
+        eigenvalues = 10.0 ** -np.array([0.0, rng.uniform(0.0, log_condition), log_condition])
+        Q = random_rotation(rng)
+        D = np.diag(10.0 ** rng.uniform(-2.0, 2.0, 3))
+        P = D @ (Q @ np.diag(eigenvalues) @ Q.T) @ D * 10.0 ** rng.uniform(-3.0, 2.0)
+        d_o = rng.uniform(0.1, 10.0)
+        angle = rng.uniform(-math.pi, math.pi)
+        fraction = (rng.uniform(0.01, 0.5), 0.99, MAX_DEVIATION)[int(rng.integers(3))]
+        sigma = 10.0 ** rng.uniform(-6.0, 0.0) * (1.0 if kind == RANGE else 0.1)
+        try:
+            return Problem(0.5 * (P + P.T), d_o * np.array([math.cos(angle), math.sin(angle)]),
+                           fraction * d_o, sigma, kind)
+        except ValueError:          # not positive definite in floating point: draw again
+            continue
 
 
 def flat_range_problem(rng: np.random.Generator) -> Problem:

@@ -41,8 +41,9 @@ class Solution:
             'interior-eigenvector' or 'boundary-bound' for a floating-point-checked proof that
             no feasible point is cheaper by more than ``details['certificate_gap']`` (relative),
             'all-critical-points' when every stationary point was enumerated by a polynomial
-            root finder and p is the best of them, 'none' when nothing was proved (see
-            :mod:`formopt_ros.core.strategies.certificate`).
+            root finder and p is the best of them (bearing: nor is a boundary sample or the slot),
+            'none' when nothing was proved (RQ and RAM then say why in ``details['reason']``;
+            see :mod:`formopt_ros.core.strategies.certificate`).
         details: method-specific diagnostics (the certificate's gap, multiplier and residual).
     """
 

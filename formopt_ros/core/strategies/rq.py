@@ -18,23 +18,27 @@ Newton from the circle point nearest the eigenvector and from the second-best sa
 answer must pass :func:`~.certificate.certify`; when it does not, the exhaustive route runs:
 numpy's generalised eigenvector and every root of the degree-6 stationarity polynomial in
 z = e^{it} (companion matrix), each polished by Newton steps; its best point is certified
-again, or named 'all-critical-points'.
+again, or named 'all-critical-points' unless a boundary sample, the slot or a point of the fast
+path is better (rounding lost a root): that point is then returned as 'none', with the reason.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
-from formopt_ros.core.linalg import top_eigenpair3
+from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED, certify
+from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, NONE, PROVED, certify
 from formopt_ros.core.strategies.common import (
     boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
     range_plan_from_direction)
 
+#: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
+GAIN_ROUNDING = 16 * EPS
 #: Distance of a root of the boundary polynomial from |z| = 1 up to which it counts as real.
 UNIT_CIRCLE_TOLERANCE = 1e-3
 #: Samples of the boundary quotient when the start next to the eigenvector is not certified.
@@ -45,6 +49,10 @@ NEWTON_ITERATIONS = 30
 NEWTON_STEP_TOLERANCE = 1e-9
 #: Largest Newton step on the boundary circle, rad.
 NEWTON_MAX_STEP = 0.5
+#: Boundary samples, equally spaced in the angle around p_o, that the exhaustive route holds
+#: against the critical points it enumerated: when rounding loses a root (condition numbers of
+#: P beyond ~1e20), a sample or the slot beats every critical point found, and shows it.
+CHECK_SAMPLES = 360
 #: Angle between neighbouring samples, rad.
 SAMPLE_STEP = 2.0 * math.pi / BOUNDARY_SAMPLES
 #: (cos t, sin t, cos 2t, sin 2t) of the first half of the samples (t + pi flips cos t, sin t).
@@ -199,8 +207,10 @@ def _interior_optimum(problem: Problem) -> tuple[tuple[float, float] | None, flo
     return None, angle
 
 
-def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
-    """The certified fast path (module docstring), or None when it cannot certify.
+def _plan_bearing_fast(problem: Problem, method: str,
+                       tried_points: list[tuple[float, float]]) -> Solution | None:
+    """The certified fast path (module docstring), or None when it cannot certify (the points
+    it tried are then in ``tried_points``).
 
     The boundary comes first: on most problems the best sample, polished by Newton's method,
     is proved optimal at once, and the eigenvector is not needed. When it is not, the top
@@ -222,9 +232,11 @@ def _plan_bearing_fast(problem: Problem, method: str) -> Solution | None:
                                  certificate=name, details={'interior': False, **details},
                                  gain=g)
         tried.append((g, t))
+        tried_points.append(p)
         if len(tried) == 1:                 # not proved: the interior, then two more starts
             inside, angle = _interior_optimum(problem)
             if inside is not None:
+                tried_points.append(inside)
                 name, details = certify(problem, inside)
                 if name in PROVED:
                     return make_solution(problem, inside, method, False, 2, certificate=name,
@@ -252,27 +264,55 @@ def boundary_candidates(problem: Problem) -> np.ndarray:
     return boundary_points(problem, polish_boundary_angles(F, t))
 
 
-def _plan_bearing_exhaustive(problem: Problem, method: str) -> Solution:
+def _plan_bearing_exhaustive(problem: Problem, method: str,
+                             tried_points: Sequence[tuple[float, float]] = ()) -> Solution:
     """Every critical point: numpy's top generalised eigenvector (if feasible) and every boundary
-    stationary point from the companion matrix; the best one, certified if possible."""
-    values, vectors = generalized_eigh(problem.M, problem.N)
-    top = vectors[:, 2]
+    stationary point from the companion matrix; the best one, certified if possible.
+
+    The critical points are held against CHECK_SAMPLES boundary samples, the slot and the fast
+    path's points (``tried_points``). If one of those is better (beyond the gain's rounding),
+    rounding lost a critical point: that point is returned, and unless it is proved, its
+    certificate is 'none' with the reason in ``details``, never 'all-critical-points'."""
     centre, rho = problem.q_disc()
-    points = [boundary_candidates(problem)]
+    points = [np.empty((0, 2))]
     interior = False
+    with np.errstate(all='ignore'):
+        try:        # rounding can make LAPACK refuse what passed the LDL' check (cond ~1e30)
+            top = generalized_eigh(problem.M, problem.N)[1][:, 2]
+        except np.linalg.LinAlgError:
+            top = np.zeros(3)
+        try:
+            points.append(boundary_candidates(problem))
+        except (np.linalg.LinAlgError, ValueError):     # non-finite series: no roots
+            pass
     if abs(top[2]) > 1e-300:
         q = -top[:2] / top[2]
         if math.hypot(q[0] - centre[0], q[1] - centre[1]) < rho:
             points.insert(0, point_from_q(q)[None, :])
             interior = True
-    stacked = np.vstack(points)
-    gains = problem.gain(stacked)
-    best = int(np.argmax(gains))
-    p = stacked[best]
-    name, details = certify(problem, p, float(gains[best]))
-    on_boundary = not (interior and best == 0)
-    return make_solution(problem, p, method, on_boundary, 1 + len(stacked),
-                         certificate=name if name in PROVED else CRITICAL_POINTS,
+    critical = np.vstack(points)
+    critical = critical[np.all(np.isfinite(critical), axis=1)]
+    angles = np.linspace(0.0, 2.0 * math.pi, CHECK_SAMPLES, endpoint=False)
+    others = np.vstack([problem.p_o + problem.r * np.stack([np.cos(angles), np.sin(angles)], 1),
+                        problem.p_o[None, :], np.reshape(tried_points, (-1, 2))])
+    gains = problem.gain(critical) if len(critical) else np.array([-math.inf])
+    other_gains = problem.gain(others)
+    best, best_other = int(np.argmax(gains)), int(np.argmax(other_gains))
+    enumerated = not other_gains[best_other] > gains[best] + GAIN_ROUNDING * problem.base_cost
+    p, g = (critical[best], gains[best]) if enumerated else (others[best_other],
+                                                             other_gains[best_other])
+    name, details = certify(problem, p, float(g))
+    on_boundary = not (interior and best == 0) if enumerated else bool(
+        best_other != CHECK_SAMPLES and abs(math.hypot(*(p - problem.p_o)) - problem.r)
+        <= 1e-9 * problem.r)
+    if name not in PROVED:
+        name = CRITICAL_POINTS if enumerated else NONE
+    if not enumerated:
+        details['reason'] = (f'rounding lost critical points: of {len(critical)} found, none is '
+                             f'as good as the best of {CHECK_SAMPLES} boundary samples, the slot '
+                             f'and {len(tried_points)} Newton points')
+    return make_solution(problem, p, method, on_boundary, len(critical) + len(others),
+                         certificate=name,
                          details={'interior': not on_boundary, 'route': 'exhaustive',
                                   **details})
 
@@ -304,8 +344,9 @@ def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
     """Certified optimum of problem Pi_1 through generalised eigenvalues (module docstring)."""
     if problem.measurement == 'range':
         return _plan_range(problem, method)
-    fast = _plan_bearing_fast(problem, method)
-    return fast if fast is not None else _plan_bearing_exhaustive(problem, method)
+    tried: list[tuple[float, float]] = []
+    fast = _plan_bearing_fast(problem, method, tried)
+    return fast if fast is not None else _plan_bearing_exhaustive(problem, method, tried)
 
 
 class RayleighQuotient(Strategy):
