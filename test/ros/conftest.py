@@ -8,8 +8,14 @@ from typing import Any
 
 import pytest
 
-#: ROS_DOMAIN_IDs this folder uses, one per module (or per xdist worker).
-DOMAIN_IDS = range(10, 40)
+#: ROS_DOMAIN_IDs this folder uses, one per module (or per xdist worker): 30 from
+#: $FORMOPT_TEST_DOMAIN_BASE (default 10), so that a shared machine's other ROS users can be
+#: kept apart (valid bases: 0-202; ROS domain ids end at 232).
+_BASE = os.environ.get('FORMOPT_TEST_DOMAIN_BASE', '10')
+if not (_BASE.isdigit() and int(_BASE) <= 202):
+    raise pytest.UsageError(f'FORMOPT_TEST_DOMAIN_BASE must be an integer in [0, 202], '
+                            f'got {_BASE!r}')
+DOMAIN_IDS = range(int(_BASE), int(_BASE) + 30)
 HERE = Path(__file__).resolve().parent
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
