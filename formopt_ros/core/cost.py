@@ -159,9 +159,12 @@ MIN_DEVIATION = 1e-6
 
 def check_disc(x_o: float, y_o: float, r: float) -> float:
     """|p_o| (m) when the disc of radius r (m) around p_o = (x_o, y_o) is a valid feasible
-    set: MIN_DEVIATION |p_o| <= r <= MAX_DEVIATION |p_o| and every square of the problem a
-    normal float; else ValueError saying which."""
+    set: |p_o| in SLOT_DISTANCE_RANGE, MIN_DEVIATION |p_o| <= r <= MAX_DEVIATION |p_o| and
+    every square of the problem a normal float; else ValueError saying which."""
     d_o = math.hypot(x_o, y_o)
+    if not SLOT_DISTANCE_RANGE[0] <= d_o <= SLOT_DISTANCE_RANGE[1]:
+        raise ValueError(f'|p_o| = {d_o:.6g} m is outside [{SLOT_DISTANCE_RANGE[0]:g}, '
+                         f'{SLOT_DISTANCE_RANGE[1]:g}] m')
     if not r <= MAX_DEVIATION * d_o:
         raise ValueError(f'r must be at most {MAX_DEVIATION} |p_o| = {MAX_DEVIATION * d_o:.6g} '
                          f'm so that the disc keeps clear of the leader, got r = {r:.6g} m')
@@ -212,7 +215,12 @@ def _check_positive(name: str, value: float, unit: str) -> float:
 #: sigma 1e200 overflow; a sweep of 400 correlated P with variances log-uniform in the range
 #: and sigma in [1e-6, 1] solved with every method).
 VARIANCE_RANGE = (1e-100, 1e25)
-SIGMA_MAX = 1e100
+#: Admissible sigma (m or rad) and |p_o| (m). With sigma = 1e-197 (R underflows to 0) or
+#: |p_o| = 1e-146 or 1e124 the products of the certificate over- or underflowed (a review
+#: found OverflowError, IndexError and answers worse than a boundary sample there); inside
+#: these ranges a fuzz over the whole VARIANCE_RANGE found none.
+SIGMA_RANGE = (1e-9, 1e6)
+SLOT_DISTANCE_RANGE = (1e-3, 1e6)
 
 
 def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] | None = None
@@ -329,8 +337,9 @@ class Problem(_QuotientForms):
         p_o, (x_o, y_o) = _check_array('p_o', self.p_o, (2,))
         r = _check_positive('r', self.r, 'm')
         sigma = _check_positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
-        if sigma > SIGMA_MAX:
-            raise ValueError(f'sigma must be at most {SIGMA_MAX:g}, got {sigma!r}')
+        if not SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1]:
+            raise ValueError(f'sigma must lie in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}], got '
+                             f'{sigma!r}')
         d_o = check_disc(x_o, y_o, r)
         # the checked values replace the given ones (the frozen fields live in __dict__)
         self.__dict__.update(P=P, p_o=p_o, r=r, sigma=sigma, entries=entries, slot=(x_o, y_o),

@@ -53,9 +53,10 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
 
     Raises:
         ValueError: for a non-SPD or non-finite P, a variance of P outside
-            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), bad p_o, r outside [1e-6, 0.999] |p_o|,
-            sigma <= 0 or above ``cost.SIGMA_MAX`` (1e100), or an unknown measurement, method
-            or option.
+            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), |p_o| outside
+            ``cost.SLOT_DISTANCE_RANGE`` ([1e-3, 1e6] m), r outside [1e-6, 0.999] |p_o|,
+            sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), or an unknown measurement,
+            method or option.
     """
     strategy = make_strategy(method, **options)
     context = context or DEFAULT_CONTEXT

@@ -66,7 +66,8 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
              ('huge p_o', {'p_o': GOOD_P_O * 1e200, 'r': 0.1e200}, r'\|p_o\| = .* outside'),
              ('P tiny', {'P': GOOD_P * 1e-300}, r'the variances on the diagonal of P'),
              ('P huge', {'P': GOOD_P * 1e300}, r'the variances on the diagonal of P'),
-             ('sigma huge', {'sigma': 1e200}, r'sigma must be at most 1e\+100'),
+             ('sigma huge', {'sigma': 1e200}, r'sigma must lie in \[1e-09, 1e\+06\]'),
+             ('sigma tiny', {'sigma': 1e-200}, r'sigma must lie in \[1e-09, 1e\+06\]'),
              ('sigma zero', {'sigma': 0.0}, r'sigma must be'),
              ('sigma negative', {'sigma': -0.01}, r'sigma must be'),
              ('measurement', {'measurement': 'lidar'}, r'measurement must be one of')]
@@ -186,14 +187,14 @@ def test_q_disc_maps_boundary_circle_and_inverts() -> None:
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
     """Across VARIANCE_RANGE (variances log-uniform over 125 decades, correlations up to 0.9),
-    sigma in [1e-6, 1] and, for a third of the problems, up to SIGMA_MAX = 1e100, and r at
+    sigma in [1e-6, 1] and, for a third of the problems, over all of SIGMA_RANGE, and r at
     0.3 m, at MIN_DEVIATION and at MAX_DEVIATION of |p_o|: every method returns a feasible
-    finite point, without an exception (sigma = 1e100 with P = 1e-100 I once divided by zero
+    finite point, without an exception (a large sigma with P = 1e-100 I once divided by zero
     in the certificate); RQ's answers carry a proof, the enumeration of all critical points, or
     'none' with the reason; RAM's are proved or visibly RQ's (seeded: 150 problems)."""
     import warnings
 
-    from formopt_ros.core.cost import MAX_DEVIATION, MIN_DEVIATION, VARIANCE_RANGE
+    from formopt_ros.core.cost import MAX_DEVIATION, MIN_DEVIATION, SIGMA_RANGE, VARIANCE_RANGE
     from formopt_ros.core.solver import solve
     from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED
     rng = np.random.default_rng(11)
@@ -207,7 +208,8 @@ def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
         if np.linalg.eigvalsh(correlation).min() <= 1e-3:
             continue
         P = np.sqrt(d)[:, None] * correlation * np.sqrt(d)[None, :]
-        sigma = 10.0 ** rng.uniform(-6, 0 if solved % 3 else 100)
+        sigma = 10.0 ** rng.uniform(-6, 0) if solved % 3 else 10.0 ** rng.uniform(
+            *np.log10(SIGMA_RANGE))
         r = (0.3, MIN_DEVIATION * d_o, MAX_DEVIATION * d_o)[solved % 5 % 3]
         for method in ('ram', 'rq', 'gbs', 'mtf', 'periodic'):
             with warnings.catch_warnings():
@@ -225,12 +227,19 @@ def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_extremes_of_the_admissible_range_solve_without_exception(kind: str) -> None:
-    """P = 1e-100 I with sigma = 1e100 (the certificate's scale underflows to 0: it once divided
-    by zero) and P = 1e25 I with sigma = 1e-6: every method returns a feasible finite point."""
+    """The corners of the admissible range: P = 1e-100 I with the largest sigma (the
+    certificate's scale underflowed to 0 with sigma = 1e100: it divided by zero) and P = 1e25 I
+    with the smallest, at the nearest and farthest slot: every method returns a feasible finite
+    point."""
+    from formopt_ros.core.cost import SIGMA_RANGE, SLOT_DISTANCE_RANGE
     from formopt_ros.core.solver import METHODS, solve
-    for P, sigma in ((np.eye(3) * 1e-100, 1e100), (np.eye(3) * 1e25, 1e-6)):
+    extremes = ((np.eye(3) * 1e-100, SIGMA_RANGE[1]), (np.eye(3) * 1e25, SIGMA_RANGE[0]))
+    corners = [(P, sigma, d) for P, sigma in extremes for d in SLOT_DISTANCE_RANGE]
+    for P, sigma, d in corners:
+        p_o, r = GOOD_P_O / math.hypot(*GOOD_P_O) * d, 0.3 * d
         for method in METHODS:
-            solution = solve(P, GOOD_P_O, 0.3, sigma, measurement=kind, method=method,
+            solution = solve(P, p_o, r, sigma, measurement=kind, method=method,
                              rng=np.random.default_rng(0))
-            assert math.isfinite(solution.cost) and np.all(np.isfinite(solution.p)), method
-            assert np.hypot(*(solution.p - GOOD_P_O)) <= 0.3 * (1 + 1e-9), method
+            label = (method, P[0, 0], sigma, d)
+            assert math.isfinite(solution.cost) and np.all(np.isfinite(solution.p)), label
+            assert np.hypot(*(solution.p - p_o)) <= r * (1 + 1e-9), label
