@@ -237,10 +237,11 @@ def _plan_bearing_fast(problem: Problem, method: str,
             inside, angle = _interior_optimum(problem)
             if inside is not None:
                 tried_points.append(inside)
-                name, details = certify(problem, inside)
+                g = problem.gain_at(*inside)        # once, for the proof and the record
+                name, details = certify(problem, inside, g)
                 if name in PROVED:
                     return make_solution(problem, inside, method, False, 2, certificate=name,
-                                         details={'interior': True, **details})
+                                         details={'interior': True, **details}, gain=g)
             starts = [second] if angle is None else [angle, second]
     g, t = max(tried)
     p = _q_point(c0, c1, rho, t)
