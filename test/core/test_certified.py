@@ -226,7 +226,8 @@ def test_exact_bound_matrix_equals_rational_reference(kind: str) -> None:
             assert decision == rational_positive_definite(
                 rational_bound_matrix(problem, bound, mu))
             decisions[decision] += 1
-        A, B, G, _ = certificate.quotient_system(problem)
+        system = certificate.range_system if kind == RANGE else certificate.bearing_system
+        A, B, G, _ = system(problem)
         d = [1 / math.sqrt(B[i]) for i in (0, 3, 5)]
         pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
         scaled = [float(e) * d[i] * d[j] for e, (i, j) in zip(reference, pairs)]

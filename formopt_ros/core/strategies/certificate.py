@@ -7,9 +7,12 @@ homogeneous vector h of the point (see :mod:`formopt_ros.core.cost`), and the fe
 
 * bearing: h = [q0, q1, -1], A = P W^2 P, B = P + R e3 e3', and the q-disc
   |q - c|^2 <= rho^2 gives G = [[1, 0, c0], [0, 1, c1], [c0, c1, |c|^2 - rho^2]];
-* range: h = p / |p|, A = (P W^2 P)[:2, :2], B = P[:2, :2] + R I, and the bearings under which
-  the disc is seen, (u . p_o)^2 >= (|p_o|^2 - r^2) |u|^2, give G = (1 - r^2/|p_o|^2) I - u_o u_o'
-  with u_o = p_o / |p_o| (the gain is even in u, so the mirrored cone does no harm).
+* range: h = p (the quotient is homogeneous of degree 0 in h, so the direction p / |p| of the
+  gain's formula is not needed), A = (P W^2 P)[:2, :2], B = P[:2, :2] + R I, and the bearings
+  under which the disc is seen, (h . p_o)^2 >= (|p_o|^2 - r^2) |h|^2, give
+  G = (1 - r^2/|p_o|^2) I - u_o u_o' with u_o = p_o / |p_o| (the gain is even in h, so the
+  mirrored cone does no harm); the test embeds these 2x2 matrices as leading blocks of 3x3
+  ones (:func:`range_system`).
 
 If ``S = lambda B - A + mu G`` is positive definite for some mu >= 0, then every feasible h has
 h'(lambda B - A)h > -mu h'Gh >= 0, i.e. g(h) < lambda. With lambda = g(p) + gap this proves
@@ -50,33 +53,29 @@ GAP_RTOLS = (1e-12, 1e-10)
 ENTRY_ERROR = 16 * EPS
 
 
-def quotient_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
-    """(A, B, G, size of G's entries before cancellation) of the module docstring, as the six
-    distinct entries of 3x3 matrices; the range case is embedded as the leading 2x2 block
-    (third row and column of A and G zero, of B the identity's), which changes nothing."""
-    (m00, m01, m02, m11, m12, m22), N = problem.forms
-    if problem.measurement == RANGE:
-        p00, p01, _, p11, _, _ = problem.entries
-        R = problem.R
-        x_o, y_o = problem.slot
-        ux, uy = x_o / problem.d_o, y_o / problem.d_o
-        r_rel = float(problem.r) / problem.d_o
-        cos2 = 1.0 - r_rel * r_rel
-        return ((m00, m01, 0.0, m11, 0.0, 0.0), (p00 + R, p01, 0.0, p11 + R, 0.0, 1.0),
-                (cos2 - ux * ux, -ux * uy, 0.0, cos2 - uy * uy, 0.0, 0.0), 1.0)
+def bearing_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
+    """(A, B, G, size of G's entries before cancellation) of the module docstring for a bearing
+    problem, as the six distinct entries of 3x3 matrices."""
+    M, N = problem.forms
     c0, c1, rho = problem.q_circle
-    return ((m00, m01, m02, m11, m12, m22), N,
-            (1.0, 0.0, c0, 1.0, c1, c0 * c0 + c1 * c1 - rho * rho),
+    return (M, N, (1.0, 0.0, c0, 1.0, c1, c0 * c0 + c1 * c1 - rho * rho),
             c0 * c0 + c1 * c1 + rho * rho)
 
 
-def homogeneous(problem: Problem, x: float, y: float) -> tuple[float, float, float]:
-    """The vector h of the point (x, y) m: [q0, q1, -1] (bearing) or [x, y, 0]/|p| (range)."""
-    d2 = x * x + y * y
-    if problem.measurement == RANGE:
-        d = math.sqrt(d2)
-        return x / d, y / d, 0.0
-    return -y / d2, x / d2, -1.0
+def range_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
+    """(A, B, G, size of G's entries before cancellation) of the module docstring for a range
+    problem, the 2x2 system embedded as the leading block of 3x3 matrices (third row and column
+    of A and G zero, of B the identity's, which changes nothing); G's entries are
+    (y_o^2 - r^2, -x_o y_o, x_o^2 - r^2) / |p_o|^2, each term at most 1 before cancellation."""
+    (a00, a01, _, a11, _, _), _ = problem.forms
+    p00, p01, _, p11, _, _ = problem.entries
+    R = problem.R
+    x_o, y_o = problem.slot
+    r = float(problem.r)
+    w22 = problem.d_o * problem.d_o
+    return ((a00, a01, 0.0, a11, 0.0, 0.0), (p00 + R, p01, 0.0, p11 + R, 0.0, 1.0),
+            ((y_o * y_o - r * r) / w22, -x_o * y_o / w22, 0.0, (x_o * x_o - r * r) / w22, 0.0,
+             0.0), 1.0)
 
 
 def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
@@ -96,18 +95,44 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
         (name, details): INTERIOR or BOUNDARY when the proof holds, NONE otherwise; details
         hold 'certificate_gap' (relative cost gap proved, or inf), 'certificate_multiplier'
         (mu) and 'certificate_residual' (|(g B - A + mu G) h| relative to the scale of S).
+    """
+    x, y = float(p[0]), float(p[1])
+    g = problem.gain_at(x, y) if gain is None else gain
+    cost = problem.base_cost - g
+    test = _range_test if problem.measurement == RANGE else _bearing_test
+    mu, residual, gap = test(problem, x, y, g, cost)
+    details: dict[str, Any] = {'certificate_gap': math.inf if gap is None else gap,
+                               'certificate_multiplier': mu, 'certificate_residual': residual}
+    name = INTERIOR if mu == 0.0 else BOUNDARY
+    if gap is None:
+        return NONE, details
+    if gap < math.inf:
+        return name, details
+    for rtol in GAP_RTOLS if exact or (exact is None and mu > 0.0) else ():
+        if integer_positive_definite(exact_bound_matrix(problem, g + rtol * cost, mu)[0]):
+            details.update(certificate_gap=rtol, certificate_arithmetic='exact')
+            return name, details
+    return NONE, details
+
+
+#: A floating-point test's verdict: (mu, residual, gap): gap the smallest of GAP_RTOLS proved,
+#: inf when none is (the exact stage may still prove one), None when the test does not apply
+#: (cost <= 0, or S's scale over- or underflows).
+Verdict = tuple[float, float, float | None]
+
+
+def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float) -> Verdict:
+    """The floating-point test for a bearing problem (3x3), h = [q0, q1, -1].
 
     The matrices are used unscaled and only S is scaled, entry by entry, by the Jacobi scaling
     D = diag(B)^-1/2: D S D is positive definite exactly when S is, whatever the rounding of D,
     and each scaled entry carries a few more roundings than its terms, far inside the bound.
     """
-    x, y = float(p[0]), float(p[1])
-    g = problem.gain_at(x, y) if gain is None else gain
-    cost = problem.base_cost - g
     (a00, a01, a02, a11, a12, a22), (b00, b01, b02, b11, b12, b22), \
-        (k00, k01, k02, k11, k12, k22), g_size = quotient_system(problem)
+        (k00, k01, k02, k11, k12, k22), g_size = bearing_system(problem)
     d0, d1, d2 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11), 1.0 / math.sqrt(b22)
-    h0, h1, h2 = homogeneous(problem, x, y)
+    n2 = x * x + y * y
+    h0, h1, h2 = -y / n2, x / n2, -1.0
     # residuals in the scaled coordinates h_s = D^-1 h: (D X D) h_s = D (X h)
     s00, s01, s02 = g * b00 - a00, g * b01 - a01, g * b02 - a02
     s11, s12, s22 = g * b11 - a11, g * b12 - a12, g * b22 - a22
@@ -130,31 +155,61 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
         scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k02) * e02, abs(k11) * e11,
                            abs(k12) * e12, abs(k22) * e22) + g_size * max(e00, e11, e22))
     size = scale * math.sqrt(hh)         # 0 when the data underflow (P ~ 1e-100, sigma ~ 1e100)
-    residual = (math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2 + (v2 + mu * w2) ** 2)
-                / size) if size > 0.0 else math.inf
-    details: dict[str, Any] = {'certificate_gap': math.inf, 'certificate_multiplier': mu,
-                               'certificate_residual': residual}
     if not (cost > 0.0 and 0.0 < size < math.inf):
-        return NONE, details
-    name = INTERIOR if mu == 0.0 else BOUNDARY
+        return mu, math.inf, None
+    residual = math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2 + (v2 + mu * w2) ** 2) / size
+    return mu, residual, _proved_gap(
+        (b00 * e00, b01 * e01, b02 * e02, b11 * e11, b12 * e12, b22 * e22),
+        ((mu * k00 - a00) * e00, (mu * k01 - a01) * e01, (mu * k02 - a02) * e02,
+         (mu * k11 - a11) * e11, (mu * k12 - a12) * e12, (mu * k22 - a22) * e22),
+        g, cost, scale)
+
+
+def _range_test(problem: Problem, x: float, y: float, g: float, cost: float) -> Verdict:
+    """The floating-point test for a range problem: :func:`_bearing_test` for the 2x2 system
+    of :func:`range_system` (its leading blocks), h = p; S's third row and column are those of
+    bound I, which changes nothing."""
+    (a00, a01, _, a11, _, _), (b00, b01, _, b11, _, _), (k00, k01, _, k11, _, _), g_size = \
+        range_system(problem)
+    d0, d1 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11)
+    s00, s01, s11 = g * b00 - a00, g * b01 - a01, g * b11 - a11
+    v0, v1 = d0 * (s00 * x + s01 * y), d1 * (s01 * x + s11 * y)
+    w0, w1 = d0 * (k00 * x + k01 * y), d1 * (k01 * x + k11 * y)
+    h0, h1 = x / d0, y / d1
+    ww, hh = w0 * w0 + w1 * w1, h0 * h0 + h1 * h1
+    inside = h0 * w0 + h1 * w1 < -1e-9 * hh * math.sqrt(ww)
+    mu = 0.0 if inside or ww == 0.0 else max(0.0, -(w0 * v0 + w1 * v1) / ww)
+    e00, e01, e11 = d0 * d0, d0 * d1, d1 * d1
+    scale = abs(g) + max(a00 * e00, a11 * e11)
+    if mu > 0.0:
+        scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k11) * e11)
+                       + g_size * max(e00, e11, 1.0))
+    size = scale * math.sqrt(hh)
+    if not (cost > 0.0 and 0.0 < size < math.inf):
+        return mu, math.inf, None
+    residual = math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2) / size
+    return mu, residual, _proved_gap(
+        (b00 * e00, b01 * e01, 0.0, b11 * e11, 0.0, 1.0),
+        ((mu * k00 - a00) * e00, (mu * k01 - a01) * e01, 0.0, (mu * k11 - a11) * e11, 0.0,
+         0.0), g, cost, scale)
+
+
+def _proved_gap(U: Entries, V: Entries, g: float, cost: float, scale: float) -> float:
+    """The smallest rtol of GAP_RTOLS for which every symmetric matrix within the rounding bound
+    of the scaled S = bound U + V, bound = g + rtol cost, is positive definite (a shifted LDL'
+    factorisation), else inf. U = D B D and V = D (mu G - A) D, entry by entry; ``scale``
+    bounds the scaled entries' terms."""
+    u00, u01, u02, u11, u12, u22 = U
+    v00, v01, v02, v11, v12, v22 = V
     for rtol in GAP_RTOLS:
         bound = g + rtol * cost
-        S00 = (bound * b00 - a00 + mu * k00) * e00
-        S11 = (bound * b11 - a11 + mu * k11) * e11
-        S22 = (bound * b22 - a22 + mu * k22) * e22
-        # every matrix within the rounding bound of S is positive definite (shifted LDL')
+        S00, S11, S22 = bound * u00 + v00, bound * u11 + v11, bound * u22 + v22
         delta = (3.0 * ENTRY_ERROR * (scale + rtol * cost)
                  + 16.0 * EPS * max(abs(S00), abs(S11), abs(S22)))
-        if positive_definite_entries((S00 - delta, (bound * b01 - a01 + mu * k01) * e01,
-                                      (bound * b02 - a02 + mu * k02) * e02, S11 - delta,
-                                      (bound * b12 - a12 + mu * k12) * e12, S22 - delta)):
-            details['certificate_gap'] = rtol
-            return name, details
-    for rtol in GAP_RTOLS if exact or (exact is None and mu > 0.0) else ():
-        if integer_positive_definite(exact_bound_matrix(problem, g + rtol * cost, mu)[0]):
-            details.update(certificate_gap=rtol, certificate_arithmetic='exact')
-            return name, details
-    return NONE, details
+        if positive_definite_entries((S00 - delta, bound * u01 + v01, bound * u02 + v02,
+                                      S11 - delta, bound * u12 + v12, S22 - delta)):
+            return rtol
+    return math.inf
 
 
 def exact_bound_matrix(problem: Problem, bound: float,
