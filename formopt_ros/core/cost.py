@@ -198,7 +198,7 @@ def _check_array(name: str, value: object,
     return arr, flat
 
 
-def _check_positive(name: str, value: float, unit: str) -> float:
+def _check_positive(name: str, value: object, unit: str) -> float:
     if type(value) is float and 0.0 < value < math.inf:       # the common case, at once
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
@@ -221,6 +221,8 @@ VARIANCE_RANGE = (1e-100, 1e25)
 #: these ranges a fuzz over the whole VARIANCE_RANGE found none.
 SIGMA_RANGE = (1e-9, 1e6)
 SLOT_DISTANCE_RANGE = (1e-3, 1e6)
+#: numpy's float64 dtype (the quick input checks compare dtypes by identity).
+_FLOAT = np.dtype(float)
 
 
 def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] | None = None
@@ -263,6 +265,53 @@ def positive_definite_entries(entries: Entries) -> bool:
     return a22 - l20 * a02 - b12 * b12 / d1 > 0.0
 
 
+#: A checked problem: (P (3, 3) array, p_o (2,) array, r, sigma, P's six distinct entries,
+#: p_o as floats, |p_o|).
+Checked = tuple[np.ndarray, np.ndarray, float, float, Entries, tuple[float, float], float]
+
+
+def check_problem(P: object, p_o: object, r: object, sigma: object,
+                  measurement: str) -> Checked:
+    """The inputs of a :class:`Problem`, checked, or ValueError saying what is wrong.
+
+    Float arrays of the right shapes and float r and sigma are accepted by the quick checks
+    below (about a microsecond); anything else, or a failed quick check, goes through
+    :func:`check_problem_thoroughly`, which converts what it may and names what is wrong.
+    """
+    if (type(P) is np.ndarray and type(p_o) is np.ndarray and P.dtype is _FLOAT
+            and p_o.dtype is _FLOAT and P.shape == (3, 3) and p_o.shape == (2,)
+            and type(r) is float and type(sigma) is float):
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
+        x_o, y_o = p_o.tolist()
+        low, high = VARIANCE_RANGE
+        entries = (p00, p01, p02, p11, p12, p22)
+        # NaN fails every comparison; a sum with an infinite or NaN term is not finite
+        if (p01 == p10 and p02 == p20 and p12 == p21 and low <= p00 <= high
+                and low <= p11 <= high and low <= p22 <= high
+                and SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1] and 0.0 < r < math.inf
+                and math.isfinite(p01 + p02 + p12 + x_o + y_o)
+                and measurement in MEASUREMENT_KINDS and positive_definite_entries(entries)):
+            return (P.copy(), p_o.copy(), r, sigma, entries, (x_o, y_o),
+                    check_disc(x_o, y_o, r))
+    return check_problem_thoroughly(P, p_o, r, sigma, measurement)
+
+
+def check_problem_thoroughly(P: object, p_o: object, r: object, sigma: object,
+                             measurement: str) -> Checked:
+    """:func:`check_problem` for inputs of any type: numbers and array-likes are converted."""
+    if measurement not in MEASUREMENT_KINDS:
+        raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, got {measurement!r}')
+    P_checked, entries = check_covariance(P, variances=VARIANCE_RANGE)
+    p_o_checked, (x_o, y_o) = _check_array('p_o', p_o, (2,))
+    r_checked = _check_positive('r', r, 'm')
+    sigma_checked = _check_positive('sigma', sigma, 'm' if measurement == RANGE else 'rad')
+    if not SIGMA_RANGE[0] <= sigma_checked <= SIGMA_RANGE[1]:
+        raise ValueError(f'sigma must lie in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}], got '
+                         f'{sigma_checked!r}')
+    return (P_checked, p_o_checked, r_checked, sigma_checked, entries, (x_o, y_o),
+            check_disc(x_o, y_o, r_checked))
+
+
 class _QuotientForms:
     """The gain's quadratic forms, derived on first use from ``entries`` (P's six distinct
     entries), ``d_o`` and ``R``: floats for a :class:`Problem`, arrays (T,) for a
@@ -294,8 +343,24 @@ class _QuotientForms:
         return gain_coefficients(self.measurement, *self.forms, self.R)
 
 
+class _ProblemValues:
+    """The values a :class:`Problem` derives in ``__init__`` (declared here, outside the
+    dataclass, so that they are not fields)."""
+
+    #: (p00, p01, p02, p11, p12, p22) of P as Python floats.
+    entries: Entries
+    #: p_o as Python floats, m.
+    slot: tuple[float, float]
+    #: Distance of the formation slot from the leader, m.
+    d_o: float
+    #: Measurement noise variance, m^2 or rad^2.
+    R: float
+    #: tr(W P W), m^2: the cost without a measurement.
+    base_cost: float
+
+
 @dataclass(frozen=True, init=False)
-class Problem(_QuotientForms):
+class Problem(_QuotientForms, _ProblemValues):
     """Problem Pi_1 of the paper: choose p with |p - p_o| <= r minimising tr(W P_post W).
 
     Attributes:
@@ -309,9 +374,10 @@ class Problem(_QuotientForms):
             simulator, the nodes: :class:`~formopt_ros.core.scenario.Scenario` validates slot,
             r and sigma, and their own EKF makes P symmetric positive definite) pass False.
 
-    Derived on first use: ``entries`` (P's six distinct entries as floats), ``slot``, ``d_o``,
-    ``w`` (diagonal of W), ``forms`` (entries of M = P W^2 P and N = P + R e3 e3'), ``M``,
-    ``N``, ``base_cost`` = tr(W P W), the gain's ``coefficients`` and ``q_circle``.
+    Derived at construction (every strategy needs them): ``entries`` (P's six distinct
+    entries as floats), ``slot``, ``d_o``, ``R``, ``forms`` (entries of M = P W^2 P and
+    N = P + R e3 e3'), ``base_cost`` = tr(W P W) and the gain's ``coefficients``; on first use:
+    ``w`` (diagonal of W), ``M``, ``N`` and ``q_circle``.
     """
 
     P: np.ndarray
@@ -322,62 +388,31 @@ class Problem(_QuotientForms):
 
     def __init__(self, P: np.ndarray, p_o: np.ndarray, r: float, sigma: float,
                  measurement: str, validate: bool = True) -> None:
-        # written by hand: the frozen dataclass's __init__ sets each field through
-        # object.__setattr__ (0.4 us more per problem, paid once per step in loops)
-        self.__dict__.update(P=P, p_o=p_o, r=r, sigma=sigma, measurement=measurement)
         if validate:
-            self._check()
-
-    def _check(self) -> None:
-        """Check every input; store the checked values and what the checks derived."""
-        if self.measurement not in MEASUREMENT_KINDS:
-            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
-                             f'got {self.measurement!r}')
-        P, entries = check_covariance(self.P, variances=VARIANCE_RANGE)
-        p_o, (x_o, y_o) = _check_array('p_o', self.p_o, (2,))
-        r = _check_positive('r', self.r, 'm')
-        sigma = _check_positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
-        if not SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1]:
-            raise ValueError(f'sigma must lie in [{SIGMA_RANGE[0]:g}, {SIGMA_RANGE[1]:g}], got '
-                             f'{sigma!r}')
-        d_o = check_disc(x_o, y_o, r)
-        # the checked values replace the given ones (the frozen fields live in __dict__)
-        self.__dict__.update(P=P, p_o=p_o, r=r, sigma=sigma, entries=entries, slot=(x_o, y_o),
-                             d_o=d_o)
+            P, p_o, r, sigma, entries, slot, d_o = check_problem(P, p_o, r, sigma, measurement)
+        else:
+            (p00, p01, p02), (_, p11, p12), (_, _, p22) = np.asarray(P).tolist()
+            entries = (p00, p01, p02, p11, p12, p22)
+            x_o, y_o = p_o.tolist() if isinstance(p_o, np.ndarray) else p_o
+            slot = (float(x_o), float(y_o))
+            d_o = math.hypot(*slot)
+        # what every strategy needs is derived at once (a lazy property costs 0.25 us per use),
+        # and the frozen record is filled in one step (its generated __init__ sets each field
+        # through object.__setattr__)
+        R = float(sigma) * float(sigma)
+        w22 = d_o * d_o
+        forms = quotient_entries(entries, w22, R)
+        object.__setattr__(self, '__dict__', {
+            'P': P, 'p_o': p_o, 'r': r, 'sigma': sigma, 'measurement': measurement,
+            'entries': entries, 'slot': slot, 'd_o': d_o, 'R': R, 'forms': forms,
+            'base_cost': trace_entries(entries[0], entries[3], entries[5], w22),
+            'coefficients': gain_coefficients(measurement, *forms, R)})
 
     # --- derived quantities -------------------------------------------------------------------
-    @lazy_property
-    def entries(self) -> Entries:
-        """(p00, p01, p02, p11, p12, p22) of P as Python floats."""
-        (p00, p01, p02), (_, p11, p12), (_, _, p22) = self.P.tolist()
-        return p00, p01, p02, p11, p12, p22
-
-    @lazy_property
-    def slot(self) -> tuple[float, float]:
-        """p_o as Python floats, m."""
-        x_o, y_o = self.p_o.tolist() if isinstance(self.p_o, np.ndarray) else self.p_o
-        return float(x_o), float(y_o)
-
-    @lazy_property
-    def d_o(self) -> float:
-        """Distance of the formation slot from the leader, m."""
-        return math.hypot(*self.slot)
-
-    @lazy_property
-    def R(self) -> float:
-        """Measurement noise variance, m^2 or rad^2."""
-        return float(self.sigma) * float(self.sigma)
-
     @lazy_property
     def w(self) -> np.ndarray:
         """Diagonal of W, shape (3,)."""
         return np.array([1.0, 1.0, self.d_o])
-
-    @lazy_property
-    def base_cost(self) -> float:
-        """tr(W P W), m^2: the cost without a measurement."""
-        p00, _, _, p11, _, p22 = self.entries
-        return float(trace_entries(p00, p11, p22, self.d_o * self.d_o))
 
     @lazy_property
     def q_circle(self) -> tuple[float, float, float]:

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
 
-from formopt_ros.core import Problem, solve
+from formopt_ros.core import METHODS, Problem, cost, solve, solver
 from formopt_ros.core.cost import point_from_q
+from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.model import BEARING, RANGE, ekf_update, predict_measurement
 
 SEED = 4711
@@ -101,6 +103,105 @@ def test_problem_rejects_bad_input(label: str, overrides: dict, message: str, ki
         solve(**solve_arguments, measurement=measurement, method='rq')
 
 
+def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
+    """Inputs aimed at the quick checks' edges: valid problems, and each one broken in one
+    place (NaN, infinity, an asymmetry within and beyond the averaging tolerance, variances
+    and sigma at and beyond their bounds, r at its bounds, indefinite P, overflowing sums) or
+    given in another type (integers, float32, big-endian, lists, numpy scalars)."""
+    cases = []
+    low, high = cost.VARIANCE_RANGE
+    for _ in range(60):
+        problem = random_problem(rng, RANGE)
+        base = {'P': problem.P, 'p_o': problem.p_o, 'r': float(problem.r),
+                'sigma': float(problem.sigma), 'measurement': str(rng.choice([RANGE, BEARING]))}
+        cases.append(base)
+        P = problem.P
+        d_o = math.hypot(*problem.p_o)
+        i, j = sorted(rng.choice(3, 2, replace=False))
+        for value in (math.nan, math.inf, -math.inf, 1e308, -1e308):
+            broken = P.copy()
+            broken[i, j] = value
+            cases.append({**base, 'P': broken})
+            broken = broken.copy()
+            broken[j, i] = value
+            cases.append({**base, 'P': broken})
+            cases.append({**base, 'p_o': np.array([value, base['p_o'][1]])})
+            cases.append({**base, 'r': value})
+            cases.append({**base, 'sigma': value})
+        for factor in (1e-12, 1e-8):                 # within and beyond 1e-9 relative
+            broken = P.copy()
+            broken[i, j] += factor * np.abs(P).max()
+            cases.append({**base, 'P': broken})
+        for k in range(3):
+            for value in (low, high, low * 0.5, high * 2.0, 0.0, -P[k, k]):
+                broken = P.copy()
+                broken[k, k] = value
+                cases.append({**base, 'P': broken})
+        for value in (*cost.SIGMA_RANGE, cost.SIGMA_RANGE[0] * 0.99, cost.SIGMA_RANGE[1] * 1.01):
+            cases.append({**base, 'sigma': value})
+        for value in (cost.MIN_DEVIATION * d_o, cost.MAX_DEVIATION * d_o,
+                      cost.MIN_DEVIATION * d_o * 0.99, cost.MAX_DEVIATION * d_o * 1.001, 0.0):
+            cases.append({**base, 'r': value})
+        eigenvalues, vectors = np.linalg.eigh(P)
+        cases.append({**base, 'P': (vectors * eigenvalues * [-1, 1, 1]) @ vectors.T})
+        cases.append({**base, 'P': P.astype(np.float32), 'p_o': base['p_o'].astype('>f8')})
+        cases.append({**base, 'P': P.tolist(), 'p_o': tuple(base['p_o']),
+                      'r': np.float64(base['r']), 'sigma': np.float32(base['sigma'])})
+        cases.append({**base, 'P': np.round(P * 1e6).astype(int), 'r': int(base['r'] + 1)})
+        cases.append({**base, 'measurement': 'lidar'})
+    return cases
+
+
+def test_quick_checks_decide_like_the_thorough_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    """check_problem (quick checks first) accepts, converts and refuses exactly like
+    check_problem_thoroughly on 60 problems, each broken in ~50 ways aimed at the quick
+    checks' edges: the same values, or ValueError with the same message; and the quick checks
+    alone accept the valid float problems."""
+    thorough_calls = Counter()
+    thoroughly = cost.check_problem_thoroughly
+
+    def counted(*args: object) -> cost.Checked:
+        thorough_calls['calls'] += 1
+        return thoroughly(*args)  # type: ignore[arg-type]
+    monkeypatch.setattr(cost, 'check_problem_thoroughly', counted)
+    outcomes = Counter()
+    for case in quick_check_inputs(np.random.default_rng(SEED + 7)):
+        results = []
+        for check in (cost.check_problem, thoroughly):
+            try:
+                results.append(check(**case))
+            except ValueError as error:
+                results.append(str(error))
+            if check is cost.check_problem:
+                outcomes['quick alone'] += thorough_calls['calls'] == 0
+                thorough_calls.clear()
+        quick, thorough = results
+        if isinstance(thorough, str):
+            assert quick == thorough
+            outcomes['refused'] += 1
+            continue
+        assert not isinstance(quick, str), quick
+        for a, b in zip(quick, thorough):
+            assert type(a) is type(b)
+            np.testing.assert_array_equal(a, b)
+        assert quick[0] is not case['P'] and quick[1] is not case['p_o']   # copies
+        outcomes['accepted'] += 1
+    assert outcomes['accepted'] > 300 and outcomes['refused'] > 2000, outcomes
+    assert outcomes['quick alone'] >= 60 * 3, outcomes
+
+
+def test_solve_shares_only_stateless_strategies() -> None:
+    """solve() reuses one object per stateless method (PERIODIC keeps a cycle's state, so it
+    gets a new one) and answers the same problem alike on every call."""
+    assert solver._SHARED and set(solver._SHARED) == {
+        name for name, cls in STRATEGIES.items() if cls.stateless}
+    assert 'periodic' not in solver._SHARED
+    for method in METHODS:
+        answers = [solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method=method,
+                         rng=np.random.default_rng(1)).p for _ in range(2)]
+        np.testing.assert_array_equal(*answers)
+
+
 def test_good_problem_is_accepted() -> None:
     """The reference inputs of the validation tests are themselves valid (tests can fail)."""
     for kind in (RANGE, BEARING):
@@ -137,10 +238,10 @@ def test_cost_equals_brute_force_ekf(kind: str) -> None:
         points = points_in_disc(rng, problem, 50)
         costs = problem.cost(points)
         assert costs.shape == (50,)
-        for point, cost in zip(points, costs):
+        for point, value in zip(points, costs):
             expected = brute_force_cost(problem, point, rng.uniform(-math.pi, math.pi))
             # 1e-12 relative (the heading phi does not enter h, so any phi is fine).
-            assert cost == pytest.approx(expected, rel=1e-12, abs=0)
+            assert value == pytest.approx(expected, rel=1e-12, abs=0)
         # The single-point form returns a float equal to the vectorised one (1e-14 relative:
         # BLAS may sum a (1, k) and an (n, k) product in a different order).
         single = problem.cost(points[0])
