@@ -15,6 +15,11 @@ METHODS = tuple(STRATEGIES)
 DEFAULT_CONTEXT = PlanContext()
 
 
+#: method -> the strategy object that serves option-less ``solve`` calls (stateless strategies
+#: only: one object may answer every problem).
+_SHARED: dict[str, Strategy] = {name: cls() for name, cls in STRATEGIES.items() if cls.stateless}
+
+
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
     """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``."""
     start = time.perf_counter()
@@ -58,7 +63,9 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), or an unknown measurement,
             method or option.
     """
-    strategy = make_strategy(method, **options)
+    strategy = _SHARED.get(method) if not options else None
+    if strategy is None:
+        strategy = make_strategy(method, **options)
     context = context or DEFAULT_CONTEXT
     if rng is not None:
         context = replace(context, rng=rng)

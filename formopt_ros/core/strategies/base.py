@@ -62,7 +62,9 @@ class Solution:
     def with_solve_time(self, seconds: float) -> 'Solution':
         """A copy with ``solve_time_s`` set (``dataclasses.replace`` costs microseconds)."""
         copy = object.__new__(Solution)
-        copy.__dict__.update(self.__dict__, solve_time_s=seconds)
+        values = self.__dict__.copy()
+        values['solve_time_s'] = seconds
+        object.__setattr__(copy, '__dict__', values)
         return copy
 
 
@@ -80,11 +82,12 @@ def make_solution(problem: Problem, p: np.ndarray | Sequence[float], method: str
     g = problem.gain_at(x, y) if gain is None else gain
     # every field given: fill the frozen record directly (its __init__ costs 1.5 us)
     solution = object.__new__(Solution)
-    solution.__dict__.update(
-        p=np.array([x, y]), cost=base - g, cost_at_slot=base - problem.gain_at(*problem.slot),
-        method=method, measurement=problem.measurement, on_boundary=on_boundary,
-        candidates=candidates, solve_time_s=0.0, fallback=fallback, certificate=certificate,
-        details=details or {})
+    object.__setattr__(solution, '__dict__', {
+        'p': np.array((x, y)), 'cost': base - g,
+        'cost_at_slot': base - problem.gain_at(*problem.slot), 'method': method,
+        'measurement': problem.measurement, 'on_boundary': on_boundary,
+        'candidates': candidates, 'solve_time_s': 0.0, 'fallback': fallback,
+        'certificate': certificate, 'details': {} if details is None else details})
     return solution
 
 
@@ -223,6 +226,9 @@ class Strategy:
     name: ClassVar[str] = ''
     #: Options accepted by the constructor.
     OPTIONS: ClassVar[dict[str, OptionSpec]] = {}
+    #: True when :meth:`plan` keeps no state between calls, so one object may serve every
+    #: caller (``solve`` reuses one per method).
+    stateless: ClassVar[bool] = True
 
     def __init__(self, **options: object) -> None:
         self.settings: dict[str, float | int | bool] = {}

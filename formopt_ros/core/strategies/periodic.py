@@ -65,6 +65,7 @@ class PeriodicPattern(Strategy):
     """
 
     name = 'periodic'
+    stateless = False
     OPTIONS = {
         'period': OptionSpec(4, 'points in the cycle of boundary points', 2, 6),
         'check_every': OptionSpec(10, 'steps between tests whether joining the cycle pays',
