@@ -9,6 +9,8 @@ RQ optimum (every one must carry a proof; the table header says how many do).
 Methods:
 
 * ram, rq, mtf, crm, mme: ``solve(...)`` (input validation included);
+* rq-loop: RQ as the simulator and the nodes call it each step, on a ``Problem`` built without
+  validation (they validate their setting once per run);
 * gbs: one-off grid search at cell 0.005 r on a new geometry (the grid cache is cleared before
   each call, so building the grid is included); gbs-cached: the same call again, grid reused;
 * peers (:mod:`formopt_ros.analysis.peers`): slsqp (SciPy SLSQP from p_o, default options),
@@ -40,7 +42,9 @@ import numpy as np
 from formopt_ros.analysis.peers import casadi_available, peer_methods
 from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
 from formopt_ros.core import METHODS, Problem, solve
+from formopt_ros.core.solver import DEFAULT_CONTEXT
 from formopt_ros.core.strategies import baselines
+from formopt_ros.core.strategies.rq import RayleighQuotient
 from formopt_ros.core.strategies.certificate import PROVED
 
 KINDS = ('range', 'bearing')
@@ -49,8 +53,8 @@ MISS_RTOL = 1e-9
 #: GBS cell of the one-off and cached rows, fraction of r (the library default).
 GBS_CELL = baselines.DEFAULT_GBS_CELL
 PEERS = ('slsqp', 'slsqp-8', 'ipopt', 'ipopt-tuned', 'ipopt-8')
-ALL_METHODS = (*METHODS, 'gbs-cached', *PEERS)
-DEFAULT_METHODS = ('ram', 'rq', 'gbs', 'gbs-cached', *PEERS)
+ALL_METHODS = (*METHODS, 'rq-loop', 'gbs-cached', *PEERS)
+DEFAULT_METHODS = ('ram', 'rq', 'rq-loop', 'gbs', 'gbs-cached', *PEERS)
 
 ProblemData = tuple[np.ndarray, np.ndarray, float, float]
 
@@ -84,6 +88,8 @@ def runners(kind: str, methods: Sequence[str]) -> dict[str, Runner]:
                 out[method] = _peer(kind, peers[method])
         elif method in ('gbs', 'gbs-cached'):
             out[method] = _gbs(kind, cached=method == 'gbs-cached')
+        elif method == 'rq-loop':
+            out[method] = _loop(kind)
         else:
             out[method] = _solver(kind, method)
     return out
@@ -95,6 +101,15 @@ def _solver(kind: str, method: str) -> Runner:
         rng = np.random.default_rng(0) if method == 'crm' else None
         solution = solve(P, p_o, r, sigma, measurement=kind, method=method, rng=rng)
         return solution.cost, solution.fallback is not None
+    return run
+
+
+def _loop(kind: str) -> Runner:
+    strategy = RayleighQuotient()
+
+    def run(data: ProblemData) -> tuple[float, bool]:
+        P, p_o, r, sigma = data
+        return strategy.plan(Problem(P, p_o, r, sigma, kind, False), DEFAULT_CONTEXT).cost, False
     return run
 
 
