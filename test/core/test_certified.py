@@ -226,14 +226,19 @@ def test_exact_bound_matrix_equals_rational_reference(kind: str) -> None:
             assert decision == rational_positive_definite(
                 rational_bound_matrix(problem, bound, mu))
             decisions[decision] += 1
-        system = certificate.range_system if kind == RANGE else certificate.bearing_system
-        A, B, G, _ = system(problem)
-        d = [1 / math.sqrt(B[i]) for i in (0, 3, 5)]
-        pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        if kind == RANGE:
+            A, B, G = certificate.range_system(problem)
+            d = [1 / math.sqrt(B[i]) for i in (0, 2)]
+            pairs: tuple[tuple[int, int], ...] = ((0, 0), (0, 1), (1, 1))
+            reference = [reference[i] for i in (0, 1, 3)]
+        else:
+            A, B, G, _ = certificate.bearing_system(problem)
+            d = [1 / math.sqrt(B[i]) for i in (0, 3, 5)]
+            pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
         scaled = [float(e) * d[i] * d[j] for e, (i, j) in zip(reference, pairs)]
         floating = [(g * b - a + mu * c) * d[i] * d[j]
                     for a, b, c, (i, j) in zip(A, B, G, pairs)]
-        size = max(g, max(A[0] * d[0] ** 2, A[3] * d[1] ** 2, A[5] * d[2] ** 2))
+        size = max(g, *(A[k] * d[i] ** 2 for k, (i, j) in enumerate(pairs) if i == j))
         np.testing.assert_allclose(scaled, floating, rtol=0, atol=1e-12 * size)
     assert decisions[True] > 50 and decisions[False] > 50, decisions
 

@@ -11,8 +11,7 @@ homogeneous vector h of the point (see :mod:`formopt_ros.core.cost`), and the fe
   gain's formula is not needed), A = (P W^2 P)[:2, :2], B = P[:2, :2] + R I, and the bearings
   under which the disc is seen, (h . p_o)^2 >= (|p_o|^2 - r^2) |h|^2, give
   G = (1 - r^2/|p_o|^2) I - u_o u_o' with u_o = p_o / |p_o| (the gain is even in h, so the
-  mirrored cone does no harm); the test embeds these 2x2 matrices as leading blocks of 3x3
-  ones (:func:`range_system`).
+  mirrored cone does no harm); the test runs on these 2x2 matrices (:func:`range_system`).
 
 If ``S = lambda B - A + mu G`` is positive definite for some mu >= 0, then every feasible h has
 h'(lambda B - A)h > -mu h'Gh >= 0, i.e. g(h) < lambda. With lambda = g(p) + gap this proves
@@ -51,6 +50,8 @@ PROVED = (INTERIOR, BOUNDARY)
 GAP_RTOLS = (1e-12, 1e-10)
 #: Relative rounding error allowed in each entry of the scaled S (generous: a few operations).
 ENTRY_ERROR = 16 * EPS
+#: The entries (00, 01, 11) of a symmetric 2x2 matrix.
+Entries2 = tuple[float, float, float]
 
 
 def bearing_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
@@ -62,20 +63,18 @@ def bearing_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
             c0 * c0 + c1 * c1 + rho * rho)
 
 
-def range_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
-    """(A, B, G, size of G's entries before cancellation) of the module docstring for a range
-    problem, the 2x2 system embedded as the leading block of 3x3 matrices (third row and column
-    of A and G zero, of B the identity's, which changes nothing); G's entries are
-    (y_o^2 - r^2, -x_o y_o, x_o^2 - r^2) / |p_o|^2, each term at most 1 before cancellation."""
+def range_system(problem: Problem) -> tuple[Entries2, Entries2, Entries2]:
+    """(A, B, G) of the module docstring for a range problem, each as the entries (00, 01, 11)
+    of a symmetric 2x2 matrix; G's entries are (y_o^2 - r^2, -x_o y_o, x_o^2 - r^2) / |p_o|^2,
+    each term at most 1 before cancellation."""
     (a00, a01, _, a11, _, _), _ = problem.forms
     p00, p01, _, p11, _, _ = problem.entries
     R = problem.R
     x_o, y_o = problem.slot
-    r = float(problem.r)
+    r = problem.r
     w22 = problem.d_o * problem.d_o
-    return ((a00, a01, 0.0, a11, 0.0, 0.0), (p00 + R, p01, 0.0, p11 + R, 0.0, 1.0),
-            ((y_o * y_o - r * r) / w22, -x_o * y_o / w22, 0.0, (x_o * x_o - r * r) / w22, 0.0,
-             0.0), 1.0)
+    return ((a00, a01, a11), (p00 + R, p01, p11 + R),
+            ((y_o * y_o - r * r) / w22, -x_o * y_o / w22, (x_o * x_o - r * r) / w22))
 
 
 def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
@@ -166,14 +165,12 @@ def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float) -
 
 
 def _range_test(problem: Problem, x: float, y: float, g: float, cost: float) -> Verdict:
-    """The floating-point test for a range problem: :func:`_bearing_test` for the 2x2 system
-    of :func:`range_system` (its leading blocks), h = p; S's third row and column are those of
-    bound I, which changes nothing."""
-    (a00, a01, _, a11, _, _), (b00, b01, _, b11, _, _), (k00, k01, _, k11, _, _), g_size = \
-        range_system(problem)
+    """The floating-point test of :func:`_bearing_test` for the 2x2 system of
+    :func:`range_system`, h = p; positive definiteness of the shifted S by its 2x2 pivots."""
+    (a00, a01, a11), (b00, b01, b11), (k00, k01, k11) = range_system(problem)
     d0, d1 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11)
-    s00, s01, s11 = g * b00 - a00, g * b01 - a01, g * b11 - a11
-    v0, v1 = d0 * (s00 * x + s01 * y), d1 * (s01 * x + s11 * y)
+    v0 = d0 * ((g * b00 - a00) * x + (g * b01 - a01) * y)
+    v1 = d1 * ((g * b01 - a01) * x + (g * b11 - a11) * y)
     w0, w1 = d0 * (k00 * x + k01 * y), d1 * (k01 * x + k11 * y)
     h0, h1 = x / d0, y / d1
     ww, hh = w0 * w0 + w1 * w1, h0 * h0 + h1 * h1
@@ -181,17 +178,28 @@ def _range_test(problem: Problem, x: float, y: float, g: float, cost: float) -> 
     mu = 0.0 if inside or ww == 0.0 else max(0.0, -(w0 * v0 + w1 * v1) / ww)
     e00, e01, e11 = d0 * d0, d0 * d1, d1 * d1
     scale = abs(g) + max(a00 * e00, a11 * e11)
-    if mu > 0.0:
-        scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k11) * e11)
-                       + g_size * max(e00, e11, 1.0))
+    if mu > 0.0:        # G's terms are at most 1 before cancellation
+        scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k11) * e11) + max(e00, e11))
     size = scale * math.sqrt(hh)
     if not (cost > 0.0 and 0.0 < size < math.inf):
         return mu, math.inf, None
-    residual = math.sqrt((v0 + mu * w0) ** 2 + (v1 + mu * w1) ** 2) / size
-    return mu, residual, _proved_gap(
-        (b00 * e00, b01 * e01, 0.0, b11 * e11, 0.0, 1.0),
-        ((mu * k00 - a00) * e00, (mu * k01 - a01) * e01, 0.0, (mu * k11 - a11) * e11, 0.0,
-         0.0), g, cost, scale)
+    residual = math.hypot(v0 + mu * w0, v1 + mu * w1) / size
+    u00, u01, u11 = b00 * e00, b01 * e01, b11 * e11
+    v00, v01, v11 = (mu * k00 - a00) * e00, (mu * k01 - a01) * e01, (mu * k11 - a11) * e11
+    for rtol in GAP_RTOLS:
+        bound = g + rtol * cost
+        S00, S11 = bound * u00 + v00, bound * u11 + v11
+        delta = _rounding_shift(scale, rtol * cost, S00, S11)
+        if S00 > delta and (S00 - delta) * (S11 - delta) > (bound * u01 + v01) ** 2:
+            return mu, residual, rtol
+    return mu, residual, math.inf
+
+
+def _rounding_shift(scale: float, gap: float, *diagonal: float) -> float:
+    """Shift of S's diagonal that covers the rounding of S's entries (each within ENTRY_ERROR
+    of ``scale`` + ``gap``, the bound on their terms) and of the pivots (16 EPS of the largest
+    diagonal entry)."""
+    return 3.0 * ENTRY_ERROR * (scale + gap) + 16.0 * EPS * max(map(abs, diagonal))
 
 
 def _proved_gap(U: Entries, V: Entries, g: float, cost: float, scale: float) -> float:
@@ -204,8 +212,7 @@ def _proved_gap(U: Entries, V: Entries, g: float, cost: float, scale: float) -> 
     for rtol in GAP_RTOLS:
         bound = g + rtol * cost
         S00, S11, S22 = bound * u00 + v00, bound * u11 + v11, bound * u22 + v22
-        delta = (3.0 * ENTRY_ERROR * (scale + rtol * cost)
-                 + 16.0 * EPS * max(abs(S00), abs(S11), abs(S22)))
+        delta = _rounding_shift(scale, rtol * cost, S00, S11, S22)
         if positive_definite_entries((S00 - delta, bound * u01 + v01, bound * u02 + v02,
                                       S11 - delta, bound * u12 + v12, S22 - delta)):
             return rtol
