@@ -285,14 +285,17 @@ def check_problem(P: object, p_o: object, r: object, sigma: object,
         x_o, y_o = p_o.tolist()
         low, high = VARIANCE_RANGE
         entries = (p00, p01, p02, p11, p12, p22)
-        # NaN fails every comparison; a sum with an infinite or NaN term is not finite
+        d_o = math.hypot(x_o, y_o)
+        # NaN fails every comparison; a sum with an infinite or NaN term is not finite; the
+        # disc's checks are check_disc's (inside these ranges its squares are normal floats)
         if (p01 == p10 and p02 == p20 and p12 == p21 and low <= p00 <= high
                 and low <= p11 <= high and low <= p22 <= high
-                and SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1] and 0.0 < r < math.inf
-                and math.isfinite(p01 + p02 + p12 + x_o + y_o)
+                and SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1]
+                and SLOT_DISTANCE_RANGE[0] <= d_o <= SLOT_DISTANCE_RANGE[1]
+                and MIN_DEVIATION * d_o <= r <= MAX_DEVIATION * d_o
+                and math.isfinite(p01 + p02 + p12)
                 and measurement in MEASUREMENT_KINDS and positive_definite_entries(entries)):
-            return (P.copy(), p_o.copy(), r, sigma, entries, (x_o, y_o),
-                    check_disc(x_o, y_o, r))
+            return P.copy(), p_o.copy(), r, sigma, entries, (x_o, y_o), d_o
     return check_problem_thoroughly(P, p_o, r, sigma, measurement)
 
 

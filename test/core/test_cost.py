@@ -142,6 +142,10 @@ def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
         for value in (cost.MIN_DEVIATION * d_o, cost.MAX_DEVIATION * d_o,
                       cost.MIN_DEVIATION * d_o * 0.99, cost.MAX_DEVIATION * d_o * 1.001, 0.0):
             cases.append({**base, 'r': value})
+        for distance in (*cost.SLOT_DISTANCE_RANGE, cost.SLOT_DISTANCE_RANGE[0] * 0.99,
+                         cost.SLOT_DISTANCE_RANGE[1] * 1.01, 1e-160, 1e160):
+            scale = distance / d_o                  # the disc scaled with its slot
+            cases.append({**base, 'p_o': base['p_o'] * scale, 'r': base['r'] * scale})
         eigenvalues, vectors = np.linalg.eigh(P)
         cases.append({**base, 'P': (vectors * eigenvalues * [-1, 1, 1]) @ vectors.T})
         cases.append({**base, 'P': P.astype(np.float32), 'p_o': base['p_o'].astype('>f8')})
