@@ -21,10 +21,18 @@ _SHARED: dict[str, Strategy] = {name: cls() for name, cls in STRATEGIES.items() 
 
 
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
-    """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``."""
+    """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``.
+
+    A record whose time is unset is new (:func:`~.strategies.base.make_solution` made it for
+    this call) and is stamped in place; a record already timed (one a strategy returned
+    before) is copied first."""
     start = time.perf_counter()
     solution = strategy.plan(problem, context)
-    return solution.with_solve_time(time.perf_counter() - start)
+    elapsed = time.perf_counter() - start
+    if solution.solve_time_s:
+        return solution.with_solve_time(elapsed)
+    object.__setattr__(solution, 'solve_time_s', elapsed)
+    return solution
 
 
 def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement: str,

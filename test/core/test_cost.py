@@ -9,7 +9,7 @@ import pytest
 
 from formopt_ros.core import METHODS, Problem, cost, solve, solver
 from formopt_ros.core.cost import point_from_q
-from formopt_ros.core.strategies import STRATEGIES
+from formopt_ros.core.strategies import STRATEGIES, PlanContext, Solution, make_solution
 from formopt_ros.core.model import BEARING, RANGE, ekf_update, predict_measurement
 
 SEED = 4711
@@ -204,6 +204,25 @@ def test_solve_shares_only_stateless_strategies() -> None:
         answers = [solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method=method,
                          rng=np.random.default_rng(1)).p for _ in range(2)]
         np.testing.assert_array_equal(*answers)
+
+
+def test_timed_plan_never_changes_a_record_it_returned_before() -> None:
+    """timed_plan stamps the wall time on a new record in place, but a strategy that returns
+    one record twice gets a timed copy the second time: the first answer keeps its time."""
+    problem = Problem(GOOD_P, GOOD_P_O, 0.3, 0.05, RANGE)
+    record = make_solution(problem, problem.p_o, 'mtf')
+
+    class Repeating(STRATEGIES['mtf']):
+        """Returns the same record on every call."""
+
+        def plan(self, problem: Problem, context: PlanContext) -> Solution:
+            return record
+    first = solver.timed_plan(Repeating(), problem, solver.DEFAULT_CONTEXT)
+    assert first is record and first.solve_time_s > 0.0
+    first_time = first.solve_time_s
+    second = solver.timed_plan(Repeating(), problem, solver.DEFAULT_CONTEXT)
+    assert second is not record and record.solve_time_s == first_time
+    assert second.solve_time_s > 0.0 and second.p is record.p
 
 
 def test_good_problem_is_accepted() -> None:

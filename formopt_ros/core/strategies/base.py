@@ -243,7 +243,8 @@ class Strategy:
             for key, spec in self.OPTIONS.items()}
 
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
-        """The next position for ``problem`` (a :class:`Solution`, solve_time_s unset)."""
+        """The next position for ``problem``: a :class:`Solution` with solve_time_s unset (the
+        solver stamps it; a record returned again is copied first)."""
         raise NotImplementedError
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
