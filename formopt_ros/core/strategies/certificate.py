@@ -16,7 +16,8 @@ homogeneous vector h of the point (see :mod:`formopt_ros.core.cost`), and the fe
 If ``S = lambda B - A + mu G`` is positive definite for some mu >= 0, then every feasible h has
 h'(lambda B - A)h > -mu h'Gh >= 0, i.e. g(h) < lambda. With lambda = g(p) + gap this proves
 cost(p) <= optimum + gap, where g(p) is the gain as computed (``problem.gain_at``): the proof
-is exact about that number, and the rounding of the gain formula itself comes on top. The S-lemma (one quadratic constraint, Slater point p_o) says such a
+is exact about that number, and the rounding of the gain formula itself comes on top. The
+S-lemma (one quadratic constraint, Slater point p_o) says such a
 mu exists whenever p is optimal (up to the gap), and KKT names it: (g(p) B - A + mu G) h = 0, so
 mu = -(Gh)'(g B - A)h / |Gh|^2 (clipped at 0; mu = 0 when the top generalised eigenvector is
 feasible, mu > 0 when the constraint is active).
