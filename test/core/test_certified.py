@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 from fractions import Fraction
+from typing import Any
 
 import numpy as np
 import pytest
@@ -320,18 +322,33 @@ def test_ram_falls_back_visibly_when_it_cannot_certify(monkeypatch: pytest.Monke
         ram.ram_optimum(problem, fallback=False)
 
 
-def test_ram_without_admissible_candidate_falls_back() -> None:
-    """A tiny disc (r = 2e-6 |p_o|) on which no root survives back-substitution: RAM falls
-    back to RQ with the reason (a batch of one with no candidate used to raise IndexError)."""
+def test_ram_without_admissible_candidate_falls_back(monkeypatch: pytest.MonkeyPatch) -> None:
+    """When no root survives back-substitution (every candidate refused, as on a tiny disc of
+    r = 2e-6 |p_o|), RAM falls back to RQ with the reason, alone and in a batch (a batch of
+    one with no candidate used to raise IndexError). The refusal is forced: whether this
+    problem's roots survive depends on the last bits of numpy's eigenvalues."""
     P = np.array([[0.0009270791479223851, 0.00026386589850665304, 0.0003848453165774923],
                   [0.00026386589850665304, 0.3525637262645308, 0.002561194735714226],
                   [0.0003848453165774923, 0.002561194735714226, 0.001330527300091233]])
     problem = Problem(P, np.array([0.23826981636501407, 8.511821813068753]),
                       1.6109330596150364e-05, 0.0516700924645838, BEARING)
+
+    def refusing(candidates: Callable[..., Any]) -> Callable[..., Any]:
+        def refused(*args: Any) -> Any:
+            owner, points, accepted, seeds = candidates(*args)
+            return owner, points, np.zeros_like(accepted), np.zeros_like(seeds)
+        return refused
+
+    for name in ('_active_candidates', '_interior_candidates'):
+        monkeypatch.setattr(ram, name, refusing(getattr(ram, name)))
     solution = ram.ram_optimum(problem)
     assert solution.fallback == 'rq'
     assert solution.details['reason'] == 'no admissible critical point'
     assert solution.certificate in PROVED
+    np.testing.assert_array_equal(solution.p, rq.rq_optimum(problem).p)
+    points, flags = ram.ram_batch(ProblemBatch.stack([problem]))
+    np.testing.assert_array_equal(points[0], solution.p)
+    assert flags[0]
 
 
 # --- RAM on a batch ----------------------------------------------------------------------------
