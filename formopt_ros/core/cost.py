@@ -146,6 +146,13 @@ def quotient_gain(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[A
             / (den[5] + den[0] * t0 + den[1] * t1 + den[2] * t2 + den[3] * t3 + den[4] * t4))
 
 
+#: Rounding of :func:`quotient_gain`'s numerator and denominator, relative to the same sums
+#: taken over the magnitudes of every term: a term of the bearing numerator passes through at
+#: most 20 roundings of u = 2^-53 (|p_o|^2 3, an entry of M 7 with its sum, a monomial 7, the
+#: product 1, the sum of six terms 5; range: 15), so gamma_20 = 20u / (1 - 20u) < 24u bounds it.
+GAIN_ROUNDING_UNITS = 24 * 2.0 ** -53
+
+
 #: Largest allowed deviation r as a fraction of |p_o|. Closer to the leader the image of the
 #: disc under the bearing's inversion (radius r / (|p_o|^2 - r^2)) grows without bound and the
 #: boundary series lose every digit: at r = 0.999999 |p_o| RQ and RAM returned points worse
@@ -345,6 +352,15 @@ class _QuotientForms:
         """Coefficients of the gain's numerator and denominator (:func:`gain_coefficients`)."""
         return gain_coefficients(self.measurement, *self.forms, self.R)
 
+    @lazy_property
+    def coefficient_magnitudes(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """:attr:`coefficients` with every term taken by its magnitude (the same formulas on
+        |P|'s entries, then made positive): what bounds their rounding."""
+        magnitudes = quotient_entries(tuple(map(abs, self.entries)), self.d_o * self.d_o,
+                                      self.R)
+        num, den = gain_coefficients(self.measurement, *magnitudes, self.R)
+        return tuple(map(abs, num)), tuple(map(abs, den))
+
 
 class _ProblemValues:
     """The values a :class:`Problem` derives in ``__init__`` (declared here, outside the
@@ -434,6 +450,30 @@ class Problem(_QuotientForms, _ProblemValues):
         """Information gain tr(W P W) - tr(W P_post W) (m^2) at points (x, y) in {L} (m), given as
         floats or as arrays of one shape."""
         return quotient_gain(self.measurement, self.coefficients, x, y)
+
+    def gain_error_at(self, x: float, y: float, gain: float) -> float:
+        """A rigorous bound (m^2) on |gain - g(x, y)|, g the exact gain at the floats (x, y) on
+        the exact data, for ``gain = self.gain_at(x, y)``.
+
+        The numerator n and denominator d of :func:`quotient_gain` each carry at most
+        GAIN_ROUNDING_UNITS times the same sum over the terms' magnitudes (n_abs, d_abs), so
+        g = n / d lies in [(n - e_n) / (d + e_d), (n + e_n) / (d - e_d)] (n >= 0, d > 0). The
+        bound is large exactly where the formula cancels: P ill-conditioned and the point's
+        direction near its minor axis, or (bearing) terms of opposite sign in M's entries.
+        Returns inf when d may vanish.
+        """
+        terms = monomials(self.measurement, x, y)
+        (num, den), (num_abs, den_abs) = self.coefficients, self.coefficient_magnitudes
+        n = weighted_sum(num, terms, num[-1])
+        d = weighted_sum(den, terms, den[-1])
+        terms = tuple(map(abs, terms))
+        e_n = GAIN_ROUNDING_UNITS * weighted_sum(num_abs, terms, num_abs[-1])
+        e_d = GAIN_ROUNDING_UNITS * weighted_sum(den_abs, terms, den_abs[-1])
+        if not d - e_d > 0.0:
+            return math.inf
+        low, high = max(n - e_n, 0.0) / (d + e_d), (n + e_n) / (d - e_d)
+        # the last factor covers this function's own rounding (a few units of 2^-53)
+        return max(gain - low, high - gain) * (1.0 + 1e-12) + 1e-15 * abs(gain)
 
     def gain(self, points: np.ndarray) -> np.ndarray:
         """Information gain (m^2) at points of shape (n, 2) or (2,) in {L}, m; shape (n,)."""
