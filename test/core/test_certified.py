@@ -23,7 +23,7 @@ from formopt_ros.core.strategies.certificate import (
     integer_positive_definite)
 from harness.problems import (
     beyond_double_problem, clustered_interior_problem, dense_reference, families, hard_problem,
-    interior_bearing_problem, quick_reference, top_vector_inside)
+    interior_bearing_problem, minor_axis_problem, quick_reference, top_vector_inside)
 
 KINDS = (RANGE, BEARING)
 #: Allowed relative cost excess over a reference (the issue's 1e-9) ...
@@ -77,15 +77,16 @@ def test_top_generalized_eigenvector_matches_scipy() -> None:
 # --- certificates ------------------------------------------------------------------------------
 @pytest.mark.parametrize('kind', KINDS)
 def test_certificate_proves_optima_and_refuses_other_points(kind: str) -> None:
-    """RQ's answers on 400 hard problems carry a proof; points whose cost is above it by more
-    than 1e-8 relative (another boundary point, the slot) never pass the test."""
+    """RQ's answers on 400 hard problems carry a proof (gap <= MAX_GAP); points whose cost is
+    above it by more than 1e-8 relative (another boundary point, the slot) never pass the
+    test."""
     rng = np.random.default_rng(13 + KINDS.index(kind))
     refused = 0
     for _ in range(400):
         problem = hard_problem(rng, kind)
         solution = rq.rq_optimum(problem)
         assert solution.certificate in PROVED, solution.details
-        assert solution.details['certificate_gap'] <= 1e-10
+        assert solution.details['certificate_gap'] <= certificate.MAX_GAP
         offset = solution.p - problem.p_o
         turn = math.atan2(offset[1], offset[0]) + 0.4
         others = [problem.p_o, problem.p_o + problem.r * np.array([math.cos(turn),
@@ -262,6 +263,114 @@ def exact_cost(problem: Problem, p: np.ndarray) -> Fraction:
     num, den = (sum(h[i] * X[i][j] * h[j] for i in range(3) for j in range(3)) for X in quad)
     den += R * (d2 if problem.measurement == RANGE else d2 * d2)
     return P[0][0] + P[1][1] + w22 * P[2][2] - num / den
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_exact_gain_equals_rational_reference(kind: str) -> None:
+    """certificate.exact_gain and exact_base_cost (scaled integers) equal exact_cost's plain
+    Fractions to the last bit, on 100 hard and 100 minor-axis problems at the slot and at a
+    boundary point."""
+    rng = np.random.default_rng(40 + KINDS.index(kind))
+    for index in range(200):
+        problem = (hard_problem if index % 2 else minor_axis_problem)(rng, kind)
+        for p in (problem.p_o, problem.p_o + problem.r * np.array([0.6, -0.8])):
+            exact = certificate.exact_base_cost(problem) - certificate.exact_gain(
+                problem, float(p[0]), float(p[1]))
+            assert exact == exact_cost(problem, p)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_gain_error_bound_holds_and_is_tight_where_nothing_cancels(kind: str) -> None:
+    """Problem.gain_error_at bounds |gain_at - exact gain| at 8 points of each of 150
+    minor-axis problems (where the range formula cancels: its error exceeds 1e-9 of the gain
+    there) and 150 hard ones; on the hard ones it stays below 1e-10 of the cost at 99 % (range)
+    or 95 % (bearing, whose terms differ in sign) of the points or more, so that the
+    floating-point certificate stands there."""
+    rng = np.random.default_rng(42 + KINDS.index(kind))
+    worst, loose = 0.0, []
+    for index in range(300):
+        problem = (hard_problem if index % 2 else minor_axis_problem)(rng, kind)
+        for angle in np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False):
+            x, y = problem.p_o + problem.r * np.array([math.cos(angle), math.sin(angle)])
+            g = problem.gain_at(x, y)
+            actual = abs(Fraction(g) - certificate.exact_gain(problem, x, y))
+            bound = problem.gain_error_at(x, y, g)
+            assert actual <= Fraction(bound), (problem, x, y, float(actual), bound)
+            if index % 2:
+                loose.append(bound > 1e-10 * (problem.base_cost - g))
+            else:
+                worst = max(worst, float(actual) / g)
+    if kind == RANGE:
+        assert worst > 1e-9, worst         # the family does reach the cancellation
+    assert np.mean(loose) <= (0.01 if kind == RANGE else 0.05), np.mean(loose)
+
+
+def test_certificates_account_for_the_gain_formulas_rounding() -> None:
+    """The reviewer's cases where the certificate claimed a gap it did not have (the computed
+    gain was off by more than the gap): a point 5e-9 worse than the optimum of an
+    ill-conditioned prior is refused; RQ and RAM on two problems whose slot bearing lies near
+    P's minor axis (one with nearly tied arc ends, where the wrong end was returned) return
+    answers whose exact cost is the best of the arc's samples and equals the reported cost."""
+    weak = Problem(np.diag([1.0, 1e-9, 1e-9]), np.array([1.0, 0.0]), 0.5, 1e-9, RANGE)
+    t = 1e-4
+    assert certify(weak, (math.cos(t) ** 2, math.cos(t) * math.sin(t)))[0] == NONE
+    block = [[1906.7794420908613, -2721.0197285864756, 0.0],
+             [-2721.0197285864756, 3882.9600319564465, 0.0], [0.0, 0.0, 2.3612719011702673e-09]]
+    tied = [[4.084290382898102, 11.882925081931637, 0.0],
+            [11.882925081931637, 34.57244594995625, 0.0], [0.0, 0.0, 0.0248562408468105]]
+    problems = [weak, Problem(np.array(block), np.array([-48592.77338670684, -34051.83003791095]),
+                              0.0593955372451168, 9.191638857753346e-05, RANGE),
+                Problem(np.array(tied), np.array([-0.0013282688800662014, 0.0004565404372450168]),
+                        1.405942678809049e-09, 1.6927860475311158e-05, RANGE)]
+    for problem in problems:
+        theta_o, delta = problem.bearing_arc()
+        directions = np.linspace(theta_o - delta, theta_o + delta, 201)
+        arc = [np.cos(d) * (np.cos(d) * problem.p_o[0] + np.sin(d) * problem.p_o[1]) for d in
+               directions], [np.sin(d) * (np.cos(d) * problem.p_o[0] + np.sin(d) * problem.p_o[1])
+                             for d in directions]
+        best = min(exact_cost(problem, p) for p in zip(*arc))
+        for solution in (rq.rq_optimum(problem), ram.ram_optimum(problem)):
+            exact = exact_cost(problem, solution.p)
+            assert solution.certificate in (*PROVED, CRITICAL_POINTS), solution
+            assert exact <= best, (solution, float(exact / best - 1))
+            assert solution.cost == float(exact) or solution.cost == pytest.approx(
+                float(exact), rel=solution.details['certificate_gap']), solution
+
+
+@pytest.mark.parametrize('kind', KINDS)
+@pytest.mark.parametrize('tie', [False, True])
+@pytest.mark.parametrize('count', [150, pytest.param(1000, marks=pytest.mark.slow)])
+def test_minor_axis_answers_are_exact(kind: str, tie: bool, count: int) -> None:
+    """minor_axis_problem (150 per case, 1000 more in the slow tier; the tie case aims at
+    nearly tied range arc ends):
+    RQ's and RAM's answers are certified, their exact cost exceeds the exact best of 64
+    feasible samples (the arc for range, the circle and the slot for bearing) by no more than
+    the claimed gap (1e-9 for 'all-critical-points'), and the reported cost is within the
+    claimed gap of the exact cost. Before the certificate counted the formula's rounding, a
+    quarter of these reported costs were off by more (up to 7e-5) and 1 in 30 of the tie case
+    was the wrong arc end."""
+    if tie and kind == BEARING:
+        pytest.skip('the tie case is a range family (two arc ends)')
+    rng = np.random.default_rng([44, KINDS.index(kind), tie, count])
+    for _ in range(count):
+        problem = minor_axis_problem(rng, kind, tie)
+        if kind == RANGE:
+            theta_o, delta = problem.bearing_arc()
+            directions = np.linspace(theta_o - delta, theta_o + delta, 64)
+            along = np.cos(directions) * problem.p_o[0] + np.sin(directions) * problem.p_o[1]
+            samples = np.stack([along * np.cos(directions), along * np.sin(directions)], 1)
+        else:
+            angles = np.linspace(0.0, 2.0 * math.pi, 63, endpoint=False)
+            samples = np.vstack([problem.p_o, problem.p_o + problem.r * np.stack(
+                [np.cos(angles), np.sin(angles)], 1)])
+        best = min(exact_cost(problem, p) for p in samples)
+        for solution in (rq.rq_optimum(problem), ram.ram_optimum(problem)):
+            exact = exact_cost(problem, solution.p)
+            gap = solution.details['certificate_gap']
+            assert solution.certificate in (*PROVED, CRITICAL_POINTS), solution
+            allowed = gap if solution.certificate in PROVED else REFERENCE_RTOL
+            assert exact <= best + Fraction(allowed) * exact, (problem, solution)
+            assert abs(Fraction(solution.cost) - exact) <= Fraction(min(allowed, 1e-9)) * exact
 
 
 @pytest.mark.parametrize('kind', KINDS)

@@ -185,6 +185,29 @@ def scaled_problem(rng: np.random.Generator, kind: str) -> Problem:
         -3.0, 2.0), kind)
 
 
+def minor_axis_problem(rng: np.random.Generator, kind: str, tie: bool = False) -> Problem:
+    """Where the gain formula cancels: P's 2x2 block of condition 1e3 to 1e12 (its scale
+    10**U(-4, 4)), the slot's bearing within 10**U(-9, -1) rad of that block's minor axis,
+    |p_o| from 1e-3 to 1e5 m, r from 1e-6 to 0.3 |p_o|, sigma down to 1e-7 (relative to the
+    block's scale for range). With ``tie``: within 10**U(-14, -8) rad and r up to 1e-4 |p_o|,
+    so that the two ends of the range arc nearly tie (the reviewer's wrong-end family)."""
+    scale, condition = 10.0 ** rng.uniform(-4.0, 4.0), 10.0 ** rng.uniform(3.0, 12.0)
+    axis = rng.uniform(0.0, 2.0 * math.pi)
+    Q = np.array([[math.cos(axis), -math.sin(axis)], [math.sin(axis), math.cos(axis)]])
+    P = np.zeros((3, 3))
+    P[:2, :2] = Q @ np.diag([scale, scale / condition]) @ Q.T
+    P[2, 2] = scale * 10.0 ** rng.uniform(-6.0, 0.0)
+    if rng.uniform() < 0.5:         # a weak cross-correlation with the heading
+        P[:2, 2] = np.sqrt(P[2, 2] * np.diag(P[:2, :2])) * rng.uniform(-0.5, 0.5, 2) / condition
+    P = 0.5 * (P + P.T)
+    low, high = (-14.0, -8.0) if tie else (-9.0, -1.0)
+    bearing = axis + 0.5 * math.pi + rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(low, high)
+    d_o = 10.0 ** rng.uniform(-3.0, 5.0)
+    r = d_o * 10.0 ** rng.uniform(-6.0, -4.0 if tie else -0.5)
+    sigma = 10.0 ** rng.uniform(-7.0, -1.0) * (math.sqrt(scale) if kind == RANGE else 1.0)
+    return Problem(P, d_o * np.array([math.cos(bearing), math.sin(bearing)]), r, sigma, kind)
+
+
 def ill_conditioned_problem(rng: np.random.Generator, kind: str) -> Problem:
     """Extreme condition numbers of P: 1e9 to 1e13."""
     p_o, r = random_geometry(rng)

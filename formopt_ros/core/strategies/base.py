@@ -75,7 +75,9 @@ def make_solution(problem: Problem, p: np.ndarray | Sequence[float], method: str
     """A :class:`Solution` for point p (2,) with its cost and the cost at the slot.
 
     ``gain`` is the gain at p when the caller has it already (it must come from
-    ``problem.gain_at``, so that ``cost`` equals ``problem.cost(p)``).
+    ``problem.gain_at``, so that ``cost`` equals ``problem.cost(p)``). A certificate that had
+    to compute the exact cost (``details['exact_cost']``, where the formula's rounding
+    is large) gives that value instead.
     """
     x, y = float(p[0]), float(p[1])
     base = problem.base_cost
@@ -83,7 +85,8 @@ def make_solution(problem: Problem, p: np.ndarray | Sequence[float], method: str
     # every field given: fill the frozen record directly (its __init__ costs 1.5 us)
     solution = object.__new__(Solution)
     object.__setattr__(solution, '__dict__', {
-        'p': np.array((x, y)), 'cost': base - g,
+        'p': np.array((x, y)),
+        'cost': base - g if details is None else details.get('exact_cost', base - g),
         'cost_at_slot': base - problem.gain_at(*problem.slot), 'method': method,
         'measurement': problem.measurement, 'on_boundary': on_boundary,
         'candidates': candidates, 'solve_time_s': 0.0, 'fallback': fallback,

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from fractions import Fraction
 from typing import Any
 
 from formopt_ros.core.cost import Entries, Problem, positive_definite_entries
@@ -50,6 +51,9 @@ NONE = 'none'
 PROVED = (INTERIOR, BOUNDARY)
 #: Relative cost gaps tried, smallest first: cost(p) <= optimum + gap * cost(p).
 GAP_RTOLS = (1e-12, 1e-10)
+#: The largest gap a certificate claims: an rtol of GAP_RTOLS plus at most as much again for the
+#: rounding of the computed gain (floating point), or plus 2^-40 of it (exact stage).
+MAX_GAP = 2 * GAP_RTOLS[-1]
 #: Relative rounding error allowed in each entry of the scaled S (generous: a few operations).
 ENTRY_ERROR = 16 * EPS
 #: The entries (00, 01, 11) of a symmetric 2x2 matrix.
@@ -94,35 +98,94 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
 
     Returns:
         (name, details): INTERIOR or BOUNDARY when the proof holds, NONE otherwise; details
-        hold 'certificate_gap' (relative cost gap proved, or inf), 'certificate_multiplier'
-        (mu) and 'certificate_residual' (|(g B - A + mu G) h| relative to the scale of S).
+        hold 'certificate_gap' (relative cost gap proved, or inf: the true cost at p exceeds
+        the true optimum by at most this times the cost), 'certificate_multiplier' (mu) and
+        'certificate_residual' (|(g B - A + mu G) h| relative to the scale of S). In floating
+        point the gap is rtol + e / cost, e the bound on the computed gain's rounding
+        (:meth:`~formopt_ros.core.cost.Problem.gain_error_at`), and rtol is only tried where
+        rtol cost >= e; when e is too large for every rtol, the exact stage (``exact``) decides
+        on the exact gain and adds 'certificate_arithmetic' = 'exact' and 'exact_cost'.
     """
     x, y = float(p[0]), float(p[1])
     g = problem.gain_at(x, y) if gain is None else gain
     cost = problem.base_cost - g
+    error = problem.gain_error_at(x, y, g)
     test = _range_test if problem.measurement == RANGE else _bearing_test
-    mu, residual, gap = test(problem, x, y, g, cost)
-    details: dict[str, Any] = {'certificate_gap': math.inf if gap is None else gap,
-                               'certificate_multiplier': mu, 'certificate_residual': residual}
+    mu, residual, rtol = test(problem, x, y, g, cost, error)
+    details: dict[str, Any] = {
+        'certificate_gap': math.inf if rtol is None else rtol + error / cost,
+        'certificate_multiplier': mu, 'certificate_residual': residual}
     name = INTERIOR if mu == 0.0 else BOUNDARY
-    if gap is None:
+    if rtol is None:
         return NONE, details
-    if gap < math.inf:
+    if rtol < math.inf:
         return name, details
-    for rtol in GAP_RTOLS if exact or (exact is None and mu > 0.0) else ():
-        if integer_positive_definite(exact_bound_matrix(problem, g + rtol * cost, mu)[0]):
-            details.update(certificate_gap=rtol, certificate_arithmetic='exact')
+    if exact or (exact is None and mu > 0.0):
+        return _exact_stage(problem, x, y, g, mu, details)
+    return NONE, details
+
+
+def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
+                 details: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """certify's test in exact arithmetic: the exact gain g at p, then S for
+    lambda >= g + rtol cost (a dyadic rational within 2^-40 rtol cost above it), for each rtol of
+    GAP_RTOLS. On success, details gain the proved gap and 'exact_cost', the exact cost at
+    p rounded to a float (the floating-point formula may be far off where the proof needed
+    this stage)."""
+    g = exact_gain(problem, x, y)
+    cost = exact_base_cost(problem) - g
+    if cost <= 0:
+        return NONE, details
+    if float(g) != gain:            # the multiplier belongs to the exact gain
+        test = _range_test if problem.measurement == RANGE else _bearing_test
+        mu = test(problem, x, y, float(g), float(cost), math.inf)[0]
+    name = INTERIOR if mu == 0.0 else BOUNDARY
+    for rtol in GAP_RTOLS:
+        target = g + Fraction(rtol) * cost
+        step = Fraction(rtol) * cost / (1 << 40)
+        k = max(0, step.denominator.bit_length() - step.numerator.bit_length() + 1)
+        bound = Fraction(-((-target.numerator << k) // target.denominator), 1 << k)
+        S = exact_bound_matrix(problem, bound, mu if problem.measurement != RANGE else 0.0)[0]
+        if problem.measurement == RANGE:
+            multiplier = _best_range_multiplier(S, exact_bound_matrix(problem, bound, 1.0)[0])
+            proved = multiplier is not None
+            if multiplier is not None:
+                mu, name = float(multiplier), INTERIOR if multiplier == 0 else BOUNDARY
+        else:
+            proved = integer_positive_definite(S)
+        if proved:
+            details.update(certificate_gap=math.nextafter(float((bound - g) / cost), math.inf),
+                           certificate_multiplier=mu, certificate_arithmetic='exact',
+                           exact_cost=float(cost))
             return name, details
     return NONE, details
 
 
-#: A floating-point test's verdict: (mu, residual, gap): gap the smallest of GAP_RTOLS proved,
-#: inf when none is (the exact stage may still prove one), None when the test does not apply
-#: (cost <= 0, or S's scale over- or underflows).
+def _best_range_multiplier(S: Sequence[int], S_plus_G: Sequence[int]) -> Fraction | None:
+    """For a range problem's exact S (mu = 0) and S + G (mu = 1) of :func:`exact_bound_matrix`
+    (the same scaling), the mu >= 0 that makes the 2x2 block of S + mu G positive definite, or
+    None when none does. det(S + mu G) is a quadratic in mu, concave because det G < 0 (G has
+    the eigenvalues 1 - r^2/|p_o|^2 and -r^2/|p_o|^2), so its maximiser
+    mu* = -(S00 G11 + S11 G00 - 2 S01 G01) / (2 det G), clipped at 0, decides."""
+    s00, s01, _, s11, _, _ = S
+    g00, g01, g11 = S_plus_G[0] - s00, S_plus_G[1] - s01, S_plus_G[3] - s11
+    det_g = g00 * g11 - g01 * g01
+    numerator = -(s00 * g11 + s11 * g00 - 2 * s01 * g01)
+    # mu = numerator / (2 det_g) as a / b with b > 0, or 0
+    a, b = (-numerator, -2 * det_g) if det_g < 0 and numerator < 0 else (0, 1)
+    t00, t01, t11 = b * s00 + a * g00, b * s01 + a * g01, b * s11 + a * g11
+    return Fraction(a, b) if t00 > 0 and t00 * t11 > t01 * t01 else None
+
+
+#: A floating-point test's verdict: (mu, residual, rtol): rtol the smallest of GAP_RTOLS proved
+#: among those with rtol cost >= ``error`` (the bound on the computed gain's rounding, which the
+#: claimed gap adds), inf when none is (the exact stage may still prove one), None when the
+#: test does not apply (cost <= 0, or S's scale over- or underflows).
 Verdict = tuple[float, float, float | None]
 
 
-def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float) -> Verdict:
+def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float,
+                  error: float) -> Verdict:
     """The floating-point test for a bearing problem (3x3), h = [q0, q1, -1].
 
     The matrices are used unscaled and only S is scaled, entry by entry, by the Jacobi scaling
@@ -163,10 +226,11 @@ def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float) -
         (b00 * e00, b01 * e01, b02 * e02, b11 * e11, b12 * e12, b22 * e22),
         ((mu * k00 - a00) * e00, (mu * k01 - a01) * e01, (mu * k02 - a02) * e02,
          (mu * k11 - a11) * e11, (mu * k12 - a12) * e12, (mu * k22 - a22) * e22),
-        g, cost, scale)
+        g, cost, error, scale)
 
 
-def _range_test(problem: Problem, x: float, y: float, g: float, cost: float) -> Verdict:
+def _range_test(problem: Problem, x: float, y: float, g: float, cost: float,
+                error: float) -> Verdict:
     """The floating-point test of :func:`_bearing_test` for the 2x2 system of
     :func:`range_system`, h = p; positive definiteness of the shifted S by its 2x2 pivots."""
     (a00, a01, a11), (b00, b01, b11), (k00, k01, k11) = range_system(problem)
@@ -189,6 +253,8 @@ def _range_test(problem: Problem, x: float, y: float, g: float, cost: float) -> 
     u00, u01, u11 = b00 * e00, b01 * e01, b11 * e11
     v00, v01, v11 = (mu * k00 - a00) * e00, (mu * k01 - a01) * e01, (mu * k11 - a11) * e11
     for rtol in GAP_RTOLS:
+        if rtol * cost < error:
+            continue
         bound = g + rtol * cost
         S00, S11 = bound * u00 + v00, bound * u11 + v11
         delta = _rounding_shift(scale, rtol * cost, S00, S11)
@@ -204,14 +270,17 @@ def _rounding_shift(scale: float, gap: float, *diagonal: float) -> float:
     return 3.0 * ENTRY_ERROR * (scale + gap) + 16.0 * EPS * max(map(abs, diagonal))
 
 
-def _proved_gap(U: Entries, V: Entries, g: float, cost: float, scale: float) -> float:
-    """The smallest rtol of GAP_RTOLS for which every symmetric matrix within the rounding bound
-    of the scaled S = bound U + V, bound = g + rtol cost, is positive definite (a shifted LDL'
-    factorisation), else inf. U = D B D and V = D (mu G - A) D, entry by entry; ``scale``
-    bounds the scaled entries' terms."""
+def _proved_gap(U: Entries, V: Entries, g: float, cost: float, error: float,
+                scale: float) -> float:
+    """The smallest rtol of GAP_RTOLS with rtol cost >= error for which every symmetric matrix
+    within the rounding bound of the scaled S = bound U + V, bound = g + rtol cost, is positive
+    definite (a shifted LDL' factorisation), else inf. U = D B D and V = D (mu G - A) D,
+    entry by entry; ``scale`` bounds the scaled entries' terms."""
     u00, u01, u02, u11, u12, u22 = U
     v00, v01, v02, v11, v12, v22 = V
     for rtol in GAP_RTOLS:
+        if rtol * cost < error:
+            continue
         bound = g + rtol * cost
         S00, S11, S22 = bound * u00 + v00, bound * u11 + v11, bound * u22 + v22
         delta = _rounding_shift(scale, rtol * cost, S00, S11, S22)
@@ -221,7 +290,7 @@ def _proved_gap(U: Entries, V: Entries, g: float, cost: float, scale: float) -> 
     return math.inf
 
 
-def exact_bound_matrix(problem: Problem, bound: float,
+def exact_bound_matrix(problem: Problem, bound: float | Fraction,
                        mu: float) -> tuple[tuple[int, int, int, int, int, int], int]:
     """S = bound B - A + mu G (module docstring) in exact integer arithmetic on the exact data,
     up to a positive congruence: (T, E), T the six entries of an integer matrix with
@@ -229,19 +298,17 @@ def exact_bound_matrix(problem: Problem, bound: float,
     exactly when S is.
 
     Every double is an integer times a power of two: with 2^-E the finest unit of the inputs
-    (P, p_o, r, sigma, bound, mu), each input x is X 2^-E for an integer X, and a product of k
-    inputs is an integer times 2^-kE (its degree k); a term of lower degree is shifted up to
-    the degree of its entry. G's divisions are cleared by the congruence. Bearing: c = 2^4E,
-    K = diag(1, 1, m 2^2E) with m = |p_o|^2 - r^2 (G's third column times m is (-y_o, x_o, 1),
-    and m^2 G22 = m). Range: the leading 2x2 block times c = |p_o|^2 2^6E, and T22 = bound
-    (the third row and column of S are bound e3, so only bound > 0 matters).
+    (P, p_o, r, sigma, bound, mu; bound may also be a dyadic Fraction), each input x is X 2^-E
+    for an integer X, and a product of k inputs is an integer times 2^-kE (its degree k); a
+    term of lower degree is shifted up to the degree of its entry. G's divisions are cleared
+    by the congruence. Bearing: c = 2^4E, K = diag(1, 1, m 2^2E) with m = |p_o|^2 - r^2 (G's
+    third column times m is (-y_o, x_o, 1), and m^2 G22 = m). Range: the leading 2x2 block
+    times c = |p_o|^2 2^6E, and T22 = bound (the third row and column of S are bound e3, so
+    only bound > 0 matters).
     """
-    values = (*problem.entries, *problem.slot, float(problem.r), float(problem.sigma),
-              float(bound), float(mu))
-    ratios = [v.as_integer_ratio() for v in values]
-    E = max(d.bit_length() for _, d in ratios) - 1
-    p00, p01, p02, p11, p12, p22, x_o, y_o, r, sigma, lam, nu = (
-        n << (E - d.bit_length() + 1) for n, d in ratios)
+    (p00, p01, p02, p11, p12, p22, x_o, y_o, r, sigma, lam, nu), E = _scaled_integers(
+        (*problem.entries, *problem.slot, float(problem.r), float(problem.sigma), bound,
+         float(mu)))
 
     def up(value: int, degrees: int) -> int:
         """value times 2^(degrees E): a term raised by ``degrees`` to the entry's degree."""
@@ -249,17 +316,12 @@ def exact_bound_matrix(problem: Problem, bound: float,
 
     w22 = x_o * x_o + y_o * y_o                                       # degree 2
     R = sigma * sigma                                                 # degree 2
-    m00 = up(p00 * p00 + p01 * p01, 2) + w22 * p02 * p02              # degree 4
-    m01 = up(p00 * p01 + p01 * p11, 2) + w22 * p02 * p12
-    m11 = up(p01 * p01 + p11 * p11, 2) + w22 * p12 * p12
+    m00, m01, m02, m11, m12, m22 = _exact_weighted_square(p00, p01, p02, p11, p12, p22, w22, E)
     if problem.measurement == RANGE:                                   # S |p_o|^2, degree 6
         return ((up(lam * (up(p00, 1) + R), 1) - m00) * w22 + up(nu * (y_o * y_o - r * r), 3),
                 up(lam * p01, 2) * w22 - m01 * w22 - up(nu * x_o * y_o, 3), 0,
                 (up(lam * (up(p11, 1) + R), 1) - m11) * w22 + up(nu * (x_o * x_o - r * r), 3),
                 0, lam), E
-    m02 = up(p00 * p02 + p01 * p12, 2) + w22 * p02 * p22
-    m12 = up(p01 * p02 + p11 * p12, 2) + w22 * p12 * p22
-    m22 = up(p02 * p02 + p12 * p12, 2) + w22 * p22 * p22
     m = w22 - r * r                                                   # degree 2
     return (up(lam * p00, 2) - m00 + up(nu, 3),
             up(lam * p01, 2) - m01,
@@ -267,6 +329,76 @@ def exact_bound_matrix(problem: Problem, bound: float,
             up(lam * p11, 2) - m11 + up(nu, 3),
             (up(lam * p12, 2) - m12) * m + up(nu * x_o, 4),
             (up(lam * (up(p22, 1) + R), 1) - m22) * m * m + up(nu * m, 5)), E
+
+
+def _scaled_integers(values: Sequence[float | Fraction]) -> tuple[list[int], int]:
+    """(X, E): each value (a float or a dyadic Fraction) equals X[k] 2^-E, with 2^-E the
+    finest unit among them."""
+    ratios = [v.as_integer_ratio() for v in values]
+    E = max(d.bit_length() for _, d in ratios) - 1
+    return [n << (E - d.bit_length() + 1) for n, d in ratios], E
+
+
+def _exact_weighted_square(p00: int, p01: int, p02: int, p11: int, p12: int, p22: int,
+                           w22: int, E: int) -> tuple[int, int, int, int, int, int]:
+    """The six entries of M = P W^2 P (degree 4) from P's (degree 1) and |p_o|^2 (degree 2),
+    in the integer units of :func:`_scaled_integers`."""
+    return ((p00 * p00 + p01 * p01 << 2 * E) + w22 * p02 * p02,
+            (p00 * p01 + p01 * p11 << 2 * E) + w22 * p02 * p12,
+            (p00 * p02 + p01 * p12 << 2 * E) + w22 * p02 * p22,
+            (p01 * p01 + p11 * p11 << 2 * E) + w22 * p12 * p12,
+            (p01 * p02 + p11 * p12 << 2 * E) + w22 * p12 * p22,
+            (p02 * p02 + p12 * p12 << 2 * E) + w22 * p22 * p22)
+
+
+def _quadratic_form(X: Sequence[int], h: Sequence[int]) -> int:
+    """h'Xh for the symmetric 3x3 X of entries (00, 01, 02, 11, 12, 22)."""
+    x00, x01, x02, x11, x12, x22 = X
+    h0, h1, h2 = h
+    return (x00 * h0 * h0 + x11 * h1 * h1 + x22 * h2 * h2
+            + 2 * (x01 * h0 * h1 + x02 * h0 * h2 + x12 * h1 * h2))
+
+
+def exact_gain(problem: Problem, x: float, y: float) -> Fraction:
+    """The gain at the floats (x, y) (m) in exact rational arithmetic on the exact data (m^2):
+    h'Mh / h'Nh for the homogeneous h of the module docstring, h = [x, y, 0] with
+    N = P + R diag(1, 1, 0) (range), h = [-y, x, -(x^2 + y^2)] with N = P + R e3 e3'
+    (bearing); integers of :func:`_scaled_integers` (degrees: M 4, N 2, h 1 or 2)."""
+    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, X, Y), E = _scaled_integers(
+        (*problem.entries, *problem.slot, float(problem.sigma), x, y))
+    R = sigma * sigma
+    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
+    N = [p << E for p in (p00, p01, p02, p11, p12, p22)]
+    if problem.measurement == RANGE:
+        N[0], N[3], h = N[0] + R, N[3] + R, (X, Y, 0)
+    else:
+        N[5], h = N[5] + R, (-Y << E, X << E, -(X * X + Y * Y))
+    return Fraction(_quadratic_form(M, h), _quadratic_form(N, h) << 2 * E)
+
+
+def exact_cost(problem: Problem, x: float, y: float) -> float:
+    """tr(W P_post W) at (x, y) (m) in exact arithmetic, rounded to the nearest float (m^2)."""
+    return float(exact_base_cost(problem) - exact_gain(problem, x, y))
+
+
+def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence[float]) -> int:
+    """Index of the point (x, y) of greatest exact gain among those whose computed gain (from
+    ``problem.gain_at``) is within the rounding bounds of the greatest: the rounding of the
+    gain formula may exceed the difference of near ties."""
+    best = max(range(len(gains)), key=gains.__getitem__)
+    errors = [problem.gain_error_at(float(x), float(y), g) for (x, y), g in zip(points, gains)]
+    close = [k for k, g in enumerate(gains) if g + errors[k] >= gains[best] - errors[best]]
+    if len(close) == 1:
+        return best
+    return max(close, key=lambda k: exact_gain(problem, float(points[k][0]),
+                                               float(points[k][1])))
+
+
+def exact_base_cost(problem: Problem) -> Fraction:
+    """tr(W P W) = p00 + p11 + |p_o|^2 p22 in exact rational arithmetic (m^2)."""
+    (p00, p11, p22, x_o, y_o), E = _scaled_integers(
+        (problem.entries[0], problem.entries[3], problem.entries[5], *problem.slot))
+    return Fraction((p00 + p11 << 2 * E) + (x_o * x_o + y_o * y_o) * p22, 1 << 3 * E)
 
 
 def integer_positive_definite(T: tuple[int, int, int, int, int, int]) -> bool:

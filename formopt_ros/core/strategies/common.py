@@ -8,7 +8,8 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem, ProblemBatch, point_from_q
 from formopt_ros.core.strategies.base import Solution, make_solution
-from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED, certify
+from formopt_ros.core.strategies.certificate import (
+    CRITICAL_POINTS, PROVED, best_of, certify, exact_cost)
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
@@ -47,17 +48,23 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     theta_o, delta = problem.bearing_arc()
     offset = (theta_star - theta_o + 0.5 * math.pi) % math.pi - 0.5 * math.pi
     thetas = [theta_o + offset] if abs(offset) <= delta else [theta_o - delta, theta_o + delta]
-    best: tuple[float, float, float, float] | None = None
+    ends = []
     for theta in thetas:
         c, s = math.cos(theta), math.sin(theta)
         along = c * x_o + s * y_o
         x, y = along * c, along * s
-        g = problem.gain_at(x, y)
-        if best is None or g > best[0]:
-            best = (g, x, y, theta)
-    assert best is not None
-    g, x, y, theta = best
+        ends.append((problem.gain_at(x, y), x, y, theta))
+    best = max(range(len(ends)), key=lambda k: ends[k][0])
+    g, x, y, theta = ends[best]
     name, details = certify(problem, (x, y), g)
+    if name not in PROVED:
+        # the formula's rounding may exceed the ends' difference: near ties are decided on the
+        # exact gains, and the cost is reported exactly
+        chosen = best_of(problem, [end[1:3] for end in ends], [end[0] for end in ends])
+        if chosen != best:
+            g, x, y, theta = ends[chosen]
+            name, details = certify(problem, (x, y), g)
+        details.setdefault('exact_cost', exact_cost(problem, x, y))
     return make_solution(problem, (x, y), method, len(thetas) > 1, candidates + len(thetas),
                          certificate=name if name in PROVED else CRITICAL_POINTS,
                          details={'flat': False, 'theta': theta, **details}, gain=g)

@@ -32,7 +32,8 @@ from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, NONE, PROVED, certify
+from formopt_ros.core.strategies.certificate import (
+    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_cost)
 from formopt_ros.core.strategies.common import (
     boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
     range_plan_from_direction)
@@ -303,6 +304,15 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
     p, g = (critical[best], gains[best]) if enumerated else (others[best_other],
                                                              other_gains[best_other])
     name, details = certify(problem, p, float(g))
+    if name not in PROVED:
+        # near ties beyond the formula's rounding are decided on the exact gains, and the cost
+        # is reported exactly
+        if enumerated and len(critical) > 1:
+            chosen = best_of(problem, critical.tolist(), gains.tolist())
+            if chosen != best:
+                best, p = chosen, critical[chosen]
+                name, details = certify(problem, p, float(gains[chosen]))
+        details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
     on_boundary = not (interior and best == 0) if enumerated else bool(
         best_other != CHECK_SAMPLES and abs(math.hypot(*(p - problem.p_o)) - problem.r)
         <= 1e-9 * problem.r)
