@@ -352,15 +352,6 @@ class _QuotientForms:
         """Coefficients of the gain's numerator and denominator (:func:`gain_coefficients`)."""
         return gain_coefficients(self.measurement, *self.forms, self.R)
 
-    @lazy_property
-    def coefficient_magnitudes(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
-        """:attr:`coefficients` with every term taken by its magnitude (the same formulas on
-        |P|'s entries, then made positive): what bounds their rounding."""
-        magnitudes = quotient_entries(tuple(map(abs, self.entries)), self.d_o * self.d_o,
-                                      self.R)
-        num, den = gain_coefficients(self.measurement, *magnitudes, self.R)
-        return tuple(map(abs, num)), tuple(map(abs, den))
-
 
 class _ProblemValues:
     """The values a :class:`Problem` derives in ``__init__`` (declared here, outside the
@@ -455,20 +446,32 @@ class Problem(_QuotientForms, _ProblemValues):
         """A rigorous bound (m^2) on |gain - g(x, y)|, g the exact gain at the floats (x, y) on
         the exact data, for ``gain = self.gain_at(x, y)``.
 
-        The numerator n and denominator d of :func:`quotient_gain` each carry at most
-        GAIN_ROUNDING_UNITS times the same sum over the terms' magnitudes (n_abs, d_abs), so
-        g = n / d lies in [(n - e_n) / (d + e_d), (n + e_n) / (d - e_d)] (n >= 0, d > 0). The
-        bound is large exactly where the formula cancels: P ill-conditioned and the point's
-        direction near its minor axis, or (bearing) terms of opposite sign in M's entries.
-        Returns inf when d may vanish.
+        The numerator n and denominator d of :func:`quotient_gain` are h'Mh and h'Nh (h as in
+        the certificate module: (x, y)/|p| for range, (q0, q1, -1) for bearing); each carries
+        at most GAIN_ROUNDING_UNITS times the sum of its terms' magnitudes. M = P W^2 P is a
+        Gram matrix, so every term of m_ij is at most sqrt(m_ii m_jj) in magnitude summed
+        (Cauchy-Schwarz), and |n_ij| <= sqrt(n_ii n_jj) (N is positive definite): the sums
+        are at most (sum_i sqrt(m_ii) |h_i|)^2 and the same for N (range: plus R), from the
+        diagonals alone. Then g = n / d lies in [(n - e_n) / (d + e_d), (n + e_n) / (d - e_d)].
+        The bound is large exactly where the formula cancels: P ill-conditioned and the
+        point's direction near its minor axis. Returns inf when d may vanish.
         """
-        terms = monomials(self.measurement, x, y)
-        (num, den), (num_abs, den_abs) = self.coefficients, self.coefficient_magnitudes
-        n = weighted_sum(num, terms, num[-1])
-        d = weighted_sum(den, terms, den[-1])
-        terms = tuple(map(abs, terms))
-        e_n = GAIN_ROUNDING_UNITS * weighted_sum(num_abs, terms, num_abs[-1])
-        e_d = GAIN_ROUNDING_UNITS * weighted_sum(den_abs, terms, den_abs[-1])
+        num, den = self.coefficients
+        sqrt = math.sqrt
+        if self.measurement == RANGE:
+            t0, t1, t2 = monomials(self.measurement, x, y)
+            n = num[3] + num[0] * t0 + num[1] * t1 + num[2] * t2
+            d = den[3] + den[0] * t0 + den[1] * t1 + den[2] * t2
+            n_abs = (sqrt(abs(num[0] * t0)) + sqrt(abs(num[2] * t2))) ** 2
+            d_abs = (sqrt(abs(den[0] * t0)) + sqrt(abs(den[2] * t2))) ** 2 + abs(den[3])
+        else:
+            t0, t1, t2, t3, t4 = monomials(self.measurement, x, y)
+            n = num[5] + num[0] * t0 + num[1] * t1 + num[2] * t2 + num[3] * t3 + num[4] * t4
+            d = den[5] + den[0] * t0 + den[1] * t1 + den[2] * t2 + den[3] * t3 + den[4] * t4
+            h0, h1 = abs(t3), abs(t4)
+            n_abs = (sqrt(abs(num[0])) * h0 + sqrt(abs(num[2])) * h1 + sqrt(abs(num[5]))) ** 2
+            d_abs = (sqrt(abs(den[0])) * h0 + sqrt(abs(den[2])) * h1 + sqrt(abs(den[5]))) ** 2
+        e_n, e_d = GAIN_ROUNDING_UNITS * n_abs, GAIN_ROUNDING_UNITS * d_abs
         if not d - e_d > 0.0:
             return math.inf
         low, high = max(n - e_n, 0.0) / (d + e_d), (n + e_n) / (d - e_d)
