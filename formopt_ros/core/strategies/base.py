@@ -38,8 +38,10 @@ class Solution:
         solve_time_s: wall time of the strategy, s (set by the solver).
         fallback: method used when the primary route could not certify its answer, else None.
         certificate: what was proved about p (RAM and RQ; 'none' for the other strategies):
-            'interior-eigenvector' or 'boundary-bound' for a floating-point-checked proof that
-            no feasible point is cheaper by more than ``details['certificate_gap']`` (relative),
+            'interior-eigenvector' or 'boundary-bound' for a proof (checked in floating point
+            with its rounding bounded, or in exact arithmetic when
+            ``details['certificate_arithmetic'] == 'exact'``) that no feasible point is cheaper
+            by more than ``details['certificate_gap']`` times ``cost`` (at most 2e-10),
             'all-critical-points' when every stationary point was enumerated by a polynomial
             root finder and p is the best of them (bearing: nor is a boundary sample or the slot),
             'none' when nothing was proved (RQ and RAM then say why in ``details['reason']``;
