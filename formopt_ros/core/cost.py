@@ -20,10 +20,12 @@ Derived quantities are computed on first use, so building a :class:`Problem` is 
 from __future__ import annotations
 
 import math
+import numbers
 import operator
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from decimal import Decimal
 from typing import Any, Generic, TypeVar, overload
 
 import numpy as np
@@ -189,11 +191,23 @@ def check_disc(x_o: float, y_o: float, r: float) -> float:
     return d_o
 
 
+def _is_real_number(value: object) -> bool:
+    """True for a real number of any numeric type (int, float, Fraction, Decimal, numpy
+    scalars), False for booleans, complex numbers, strings and other objects."""
+    return (isinstance(value, (numbers.Real, Decimal)) and not isinstance(value, (bool, np.bool_)))
+
+
 def _check_array(name: str, value: object,
                  shape: tuple[int, ...]) -> tuple[np.ndarray, list[float]]:
     """(value as a float array, its entries as a flat list) or ValueError naming ``name``;
-    only real numbers are accepted (not booleans, complex numbers or objects)."""
+    only real numbers are accepted (not booleans, complex numbers, strings or masked
+    entries; exact numbers such as Fraction and Decimal are rounded to floats)."""
+    if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
+        where = np.argwhere(np.ma.getmaskarray(value)).tolist()
+        raise ValueError(f'{name} has masked entries (at {where}); give every entry a value')
     raw = np.asarray(value)
+    if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
+        raw = raw.astype(float)
     if raw.dtype.kind not in 'iuf':
         raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
     arr = raw.astype(float)
@@ -206,11 +220,16 @@ def _check_array(name: str, value: object,
 
 
 def _check_positive(name: str, value: object, unit: str) -> float:
+    """value as a float, or ValueError unless it is a finite real number > 0 (any numeric
+    type, or a 0-d real array)."""
     if type(value) is float and 0.0 < value < math.inf:       # the common case, at once
         return value
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {value!r}')
-    number = float(value)
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in 'iufO':
+        value = value.item()
+    if not _is_real_number(value):
+        raise ValueError(f'{name} must be a real number > 0 ({unit}), got {value!r} of type '
+                         f'{type(value).__name__}')
+    number = float(value)   # type: ignore[arg-type]
     if not math.isfinite(number) or number <= 0.0:
         raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {value!r}')
     return number

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from decimal import Decimal
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -55,10 +57,15 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
               r'r must be at most 0.999'),
              ('r below 1e-6 |p_o|', {'r': 0.9e-6 * math.hypot(*GOOD_P_O)},
               r'r must be at least 1e-06 \|p_o\|'),
-             ('r None', {'r': None}, r'r must be a finite number'),
-             ('r text', {'r': '0.3'}, r'r must be a finite number'),
-             ('r bool', {'r': True}, r'r must be a finite number'),
-             ('sigma list', {'sigma': [1.0]}, r'sigma must be a finite number'),
+             ('r None', {'r': None}, r'r must be a real number'),
+             ('r text', {'r': '0.3'}, r'r must be a real number'),
+             ('r bool', {'r': True}, r'r must be a real number'),
+             ('sigma list', {'sigma': [1.0]}, r'sigma must be a real number'),
+             ('sigma complex', {'sigma': np.array(0.05 + 0j)}, r'sigma must be a real number'),
+             ('P masked', {'P': np.ma.masked_array(GOOD_P, mask=np.eye(3, dtype=bool))},
+              r'P has masked entries \(at \[\[0, 0\], \[1, 1\], \[2, 2\]\]\)'),
+             ('p_o masked', {'p_o': np.ma.masked_array(GOOD_P_O, mask=[False, True])},
+              r'p_o has masked entries'),
              ('P complex', {'P': GOOD_P.astype(complex)}, r'P must hold real numbers'),
              ('P bool', {'P': np.eye(3, dtype=bool)}, r'P must hold real numbers'),
              ('P objects', {'P': [[1, 0, 0], [0, None, 0], [0, 0, 1]]},
@@ -101,6 +108,23 @@ def test_problem_rejects_bad_input(label: str, overrides: dict, message: str, ki
     measurement = solve_arguments.pop('measurement')
     with pytest.raises(ValueError, match='^' + message):
         solve(**solve_arguments, measurement=measurement, method='rq')
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_problem_accepts_every_real_number_type(kind: str) -> None:
+    """r and sigma as 0-d arrays, Fraction, Decimal or numpy scalars, and P as an object array
+    of Fractions or an unmasked masked array, give the answer of plain floats bit for bit."""
+    reference = solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=kind, method='rq')
+    variants = [{'r': np.array(0.3), 'sigma': np.array(0.05)},
+                {'r': Fraction(3, 10), 'sigma': Decimal('0.05')},
+                {'r': np.float64(0.3), 'sigma': np.float64(0.05)},
+                {'P': np.array([[Fraction(v) for v in row] for row in GOOD_P], dtype=object)},
+                {'P': np.ma.masked_array(GOOD_P), 'p_o': np.ma.masked_array(GOOD_P_O)}]
+    for variant in variants:
+        arguments = {'P': GOOD_P, 'p_o': GOOD_P_O, 'r': 0.3, 'sigma': 0.05, **variant}
+        solution = solve(**arguments, measurement=kind, method='rq')
+        np.testing.assert_array_equal(solution.p, reference.p)
+        assert solution.cost == reference.cost
 
 
 def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
