@@ -1,5 +1,5 @@
-"""Global-optimality certificates for RAM and RQ: a floating-point-checked proof (S-lemma) that
-no feasible point beats the chosen one by more than a stated gap.
+"""Global-optimality certificates for RAM and RQ: a proof (S-lemma), checked with its rounding
+bounded, that no feasible point beats the chosen one by more than a stated gap.
 
 Both gains are generalised Rayleigh quotients g(h) = h'Ah / h'Bh (B positive definite) of a
 homogeneous vector h of the point (see :mod:`formopt_ros.core.cost`), and the feasible set is
@@ -14,9 +14,10 @@ homogeneous vector h of the point (see :mod:`formopt_ros.core.cost`), and the fe
   mirrored cone does no harm); the test runs on these 2x2 matrices (:func:`range_system`).
 
 If ``S = lambda B - A + mu G`` is positive definite for some mu >= 0, then every feasible h has
-h'(lambda B - A)h > -mu h'Gh >= 0, i.e. g(h) < lambda. With lambda = g(p) + gap this proves
-cost(p) <= optimum + gap, where g(p) is the gain as computed (``problem.gain_at``): the proof
-is exact about that number, and the rounding of the gain formula itself comes on top. The
+h'(lambda B - A)h > -mu h'Gh >= 0, i.e. g(h) < lambda. With lambda = g(p) + rtol cost this
+proves cost(p) <= optimum + rtol cost for the gain g(p) as computed (``problem.gain_at``);
+the exact gain differs from it by at most e = ``problem.gain_error_at`` (a rigorous bound on
+the formula's rounding), so the gap claimed is rtol + e / cost. The
 S-lemma (one quadratic constraint, Slater point p_o) says such a
 mu exists whenever p is optimal (up to the gap), and KKT names it: (g(p) B - A + mu G) h = 0, so
 mu = -(Gh)'(g B - A)h / |Gh|^2 (clipped at 0; mu = 0 when the top generalised eigenvector is
@@ -28,8 +29,10 @@ Jacobi scaling that makes B's diagonal 1). When cancellation in S defeats that b
 entries, a small eigenvalue: ill-conditioned priors, or a gain close to tr(W P W)), the same
 test runs again in exact arithmetic on the exact data (P, p_o, r, sigma and p are dyadic
 rationals, so integers after one common scaling: :func:`exact_bound_matrix`), which takes
-about 10 us. A point that is not optimal fails the test, however accurate the arithmetic: a
-better feasible point h makes h'Sh <= mu h'Gh <= 0.
+about 10 us; so it does where e exceeds every rtol cost (the gain formula cancels), with
+lambda just above the exact gain (:func:`exact_gain`) and the exact cost reported. A point that
+is not optimal fails the test, however accurate the arithmetic: a better feasible point h
+makes h'Sh <= mu h'Gh <= 0.
 """
 from __future__ import annotations
 
@@ -47,7 +50,7 @@ INTERIOR = 'interior-eigenvector'      # proof with mu = 0: the quotient's globa
 BOUNDARY = 'boundary-bound'            # proof with mu > 0: no feasible point is better
 CRITICAL_POINTS = 'all-critical-points'  # every stationary point enumerated and checked
 NONE = 'none'
-#: Names that stand for a proof checked in floating point.
+#: Names that stand for a proof.
 PROVED = (INTERIOR, BOUNDARY)
 #: Relative cost gaps tried, smallest first: cost(p) <= optimum + gap * cost(p).
 GAP_RTOLS = (1e-12, 1e-10)
