@@ -17,7 +17,7 @@ from formopt_ros.core import Problem
 from formopt_ros.core.cost import ProblemBatch
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.model import BEARING, RANGE
-from formopt_ros.core.strategies import PlanContext, baselines, certificate, ram, rq
+from formopt_ros.core.strategies import PlanContext, baselines, certificate, common, ram, rq
 from formopt_ros.core.strategies.certificate import (
     BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix,
     integer_positive_definite)
@@ -376,32 +376,48 @@ def test_minor_axis_answers_are_exact(kind: str, tie: bool, count: int) -> None:
 @pytest.mark.parametrize('kind', KINDS)
 def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
     """Condition numbers of P from 1e16 to 1e34 (beyond_double_problem; 150 per sensor), where
-    rounding defeats proofs and root finders: RQ's and RAM's answers are feasible and, in exact
-    arithmetic, no worse than the best of the slot and 720 boundary samples (plus 16 eps
-    tr(W P W)); an answer neither proved nor from a complete enumeration says 'none' and why.
-    Also the problem where RQ returned the worst point of the disc (cost tr(W P W), the slot
-    1e-9) with the label 'all-critical-points'."""
+    rounding defeats proofs and root finders and the cost may lie far below the resolution of
+    tr(W P W) - gain: RQ's and RAM's answers are feasible and, in exact arithmetic, no worse
+    than the best of the slot and the 360 boundary samples RQ holds its critical points
+    against, beyond the claimed gap (proofs), 1e-9 ('all-critical-points') or not at all
+    ('none', which also says why); their reported costs are within the same of the exact ones.
+    Before the exact tie-break, answers 5 to 8e4 times the best sample's cost passed as
+    'all-critical-points' (a reviewer's cases, included). Also the problem where RQ returned
+    the worst point of the disc (cost tr(W P W), the slot 1e-9) with that label."""
     rng = np.random.default_rng(17 + KINDS.index(kind))
     problems = [beyond_double_problem(rng, kind) for _ in range(150)]
     if kind == BEARING:
         p_o = np.array([-0.188, 0.0065])
         problems.append(Problem(np.diag([21.5, 1.5e-17, 1e-21]), p_o,
                                 0.999 * math.hypot(*p_o), 6e-6, BEARING))
-    angles = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
+        problems.append(Problem(np.array(
+            [[70.05144179898151, -5.7559610054386585, -13.032009142322785],
+             [-5.7559610054386585, 0.47295367868662647, 1.0708093155453178],
+             [-13.032009142322785, 1.0708093155453178, 2.4244078055229115]]),
+            np.array([0.7698913460656136, 1.3763563997337407]), 1.5612804169400303,
+            2.797735220352566e-07, BEARING))
+        problems.append(Problem(np.array(
+            [[1.536406084807935e-18, 0.0, 9.853266501952553e-27], [0.0, 350952.00392614707, 0.0],
+             [9.853266501952553e-27, 0.0, 6.320489823860494e-35]]),
+            np.array([0.007333250459313318, 1.2858743651480721e-10]), 0.007325917208854006,
+            3.3122756862538496e-05, BEARING))
+    angles = np.linspace(0.0, 2 * math.pi, common.CHECK_SAMPLES, endpoint=False)
     labels = Counter()
     for problem in problems:
         samples = np.vstack([problem.p_o, problem.p_o + problem.r * np.stack(
             [np.cos(angles), np.sin(angles)], axis=1)])
-        top = samples[np.argsort(problem.gain(samples))[-4:]]     # the best by float gain
-        best = min([exact_cost(problem, problem.p_o)] + [exact_cost(problem, p) for p in top])
-        allowed = best + Fraction(16 * EPS) * Fraction(problem.base_cost)
+        best = min(exact_cost(problem, p) for p in samples)
         for solution in (rq.rq_optimum(problem), ram.RelaxedAlgebraicMethod().plan(
                 problem, PlanContext())):
             labels[solution.certificate] += 1
             assert problem.feasible(solution.p), solution
-            assert exact_cost(problem, solution.p) <= allowed, (problem, solution)
+            exact = exact_cost(problem, solution.p)
+            allowed = {NONE: 0.0, CRITICAL_POINTS: common.EXACT_TIE}.get(
+                solution.certificate, solution.details['certificate_gap'])
+            assert exact <= best + Fraction(allowed) * exact, (problem, solution)
             if solution.certificate == NONE:
                 assert solution.details['reason'], solution
+            assert abs(Fraction(solution.cost) - exact) <= Fraction(max(allowed, 1e-15)) * exact
     assert labels[NONE] >= (kind == BEARING) and sum(labels[k] for k in PROVED) >= 150, labels
 
 

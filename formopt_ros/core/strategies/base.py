@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.strategies.certificate import exact_cost
 
 if TYPE_CHECKING:
     from formopt_ros.core.scenario import Scenario
@@ -79,17 +80,19 @@ def make_solution(problem: Problem, p: np.ndarray | Sequence[float], method: str
     ``gain`` is the gain at p when the caller has it already (it must come from
     ``problem.gain_at``, so that ``cost`` equals ``problem.cost(p)``). A certificate that had
     to compute the exact cost (``details['exact_cost']``, where the formula's rounding
-    is large) gives that value instead.
+    is large) gives that value instead, and the cost at the slot is then exact too.
     """
     x, y = float(p[0]), float(p[1])
     base = problem.base_cost
-    g = problem.gain_at(x, y) if gain is None else gain
+    if details is not None and 'exact_cost' in details:
+        cost, cost_at_slot = details['exact_cost'], exact_cost(problem, *problem.slot)
+    else:
+        cost = base - (problem.gain_at(x, y) if gain is None else gain)
+        cost_at_slot = base - problem.gain_at(*problem.slot)
     # every field given: fill the frozen record directly (its __init__ costs 1.5 us)
     solution = object.__new__(Solution)
     object.__setattr__(solution, '__dict__', {
-        'p': np.array((x, y)),
-        'cost': base - g if details is None else details.get('exact_cost', base - g),
-        'cost_at_slot': base - problem.gain_at(*problem.slot), 'method': method,
+        'p': np.array((x, y)), 'cost': cost, 'cost_at_slot': cost_at_slot, 'method': method,
         'measurement': problem.measurement, 'on_boundary': on_boundary,
         'candidates': candidates, 'solve_time_s': 0.0, 'fallback': fallback,
         'certificate': certificate, 'details': {} if details is None else details})

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -9,15 +11,48 @@ import numpy as np
 from formopt_ros.core.cost import Problem, ProblemBatch, point_from_q
 from formopt_ros.core.strategies.base import Solution, make_solution
 from formopt_ros.core.strategies.certificate import (
-    CRITICAL_POINTS, PROVED, best_of, certify, exact_cost)
+    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain)
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
+#: Boundary samples, equally spaced in the angle around p_o, that an answer without a proof is
+#: held against (with the slot): when rounding loses a critical point (condition numbers of P
+#: beyond ~1e16), a sample or the slot beats every critical point found, and shows it.
+CHECK_SAMPLES = 360
+#: Relative cost (exact arithmetic) by which a sample, the slot or a Newton point may beat the
+#: best critical point before the enumeration counts as having lost one.
+EXACT_TIE = 1e-9
 
 
 def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
     """True when the best and worst gain differ by less than FLAT_TOLERANCE of the cost."""
     return gain_max - gain_min <= FLAT_TOLERANCE * max(problem.base_cost - gain_max, 1e-300)
+
+
+def check_points(problem: Problem, extra: Sequence[tuple[float, float]] = ()) -> np.ndarray:
+    """The CHECK_SAMPLES boundary samples, the slot and ``extra`` points, shape (n, 2), m."""
+    angles = np.linspace(0.0, 2.0 * math.pi, CHECK_SAMPLES, endpoint=False)
+    return np.vstack([problem.p_o + problem.r * np.stack([np.cos(angles), np.sin(angles)], 1),
+                      problem.p_o[None, :], np.reshape(extra, (-1, 2))])
+
+
+def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others: np.ndarray,
+               other_gains: np.ndarray) -> tuple[int, bool]:
+    """(index into critical + others of the best point by exact gain among those whose computed
+    gains tie within their rounding bounds, whether the best critical point is as good as it
+    to EXACT_TIE of its cost): an 'all-critical-points' answer is the best critical point, and
+    no sample, the slot or a Newton point beats it beyond that."""
+    candidates = np.vstack([critical, others]).tolist()
+    candidate_gains = [*(gains.tolist() if len(critical) else []), *other_gains.tolist()]
+    chosen = best_of(problem, candidates, candidate_gains)
+    if chosen < len(critical) or not len(critical):
+        return chosen, bool(len(critical))
+    top = best_of(problem, critical.tolist(), gains.tolist())
+    g_critical = exact_gain(problem, *candidates[top])
+    g_best = exact_gain(problem, *candidates[chosen])
+    if g_best - g_critical <= Fraction(EXACT_TIE) * (exact_base_cost(problem) - g_critical):
+        return top, True
+    return chosen, False
 
 
 def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
@@ -57,17 +92,32 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     best = max(range(len(ends)), key=lambda k: ends[k][0])
     g, x, y, theta = ends[best]
     name, details = certify(problem, (x, y), g)
+    if name in PROVED:
+        return make_solution(problem, (x, y), method, len(thetas) > 1, candidates + len(thetas),
+                             certificate=name, details={'flat': False, 'theta': theta, **details},
+                             gain=g)
+    # the formula's rounding may exceed the candidates' differences: near ties among the arc's
+    # ends, the samples and the slot are decided on exact gains, and the cost is reported exactly
+    critical = np.array([end[1:3] for end in ends])
+    others = check_points(problem)
+    chosen, enumerated = exact_best(problem, critical, np.array([end[0] for end in ends]),
+                                    others, problem.gain(others))
+    p = critical[chosen] if enumerated else others[chosen - len(critical)]
+    theta = ends[chosen][3] if enumerated else math.atan2(p[1], p[0])
+    if (p[0], p[1]) != (x, y):
+        x, y = float(p[0]), float(p[1])
+        name, details = certify(problem, (x, y))
+    details.setdefault('exact_cost', exact_cost(problem, x, y))
     if name not in PROVED:
-        # the formula's rounding may exceed the ends' difference: near ties are decided on the
-        # exact gains, and the cost is reported exactly
-        chosen = best_of(problem, [end[1:3] for end in ends], [end[0] for end in ends])
-        if chosen != best:
-            g, x, y, theta = ends[chosen]
-            name, details = certify(problem, (x, y), g)
-        details.setdefault('exact_cost', exact_cost(problem, x, y))
-    return make_solution(problem, (x, y), method, len(thetas) > 1, candidates + len(thetas),
-                         certificate=name if name in PROVED else CRITICAL_POINTS,
-                         details={'flat': False, 'theta': theta, **details}, gain=g)
+        name = CRITICAL_POINTS if enumerated else NONE
+    if not enumerated:
+        details['reason'] = (f'rounding lost the critical direction: the best of {len(ends)} '
+                             f'arc points is not as good as the best of {CHECK_SAMPLES} boundary '
+                             'samples and the slot')
+    on_boundary = abs(math.hypot(x - x_o, y - y_o) - problem.r) <= 1e-9 * problem.r
+    return make_solution(problem, (x, y), method, on_boundary if not enumerated
+                         else len(thetas) > 1, candidates + len(thetas) + len(others),
+                         certificate=name, details={'flat': False, 'theta': theta, **details})
 
 
 #: A polynomial as the tuple of its coefficients, each a float or an array (T,) (a batch).

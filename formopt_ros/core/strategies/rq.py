@@ -33,10 +33,10 @@ from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.certificate import (
-    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_cost)
+    CRITICAL_POINTS, NONE, PROVED, certify, exact_cost)
 from formopt_ros.core.strategies.common import (
-    boundary_points, boundary_stationarity, gains_tie, polish_boundary_angles,
-    range_plan_from_direction)
+    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, exact_best, gains_tie,
+    polish_boundary_angles, range_plan_from_direction)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
 GAIN_ROUNDING = 16 * EPS
@@ -50,10 +50,6 @@ NEWTON_ITERATIONS = 30
 NEWTON_STEP_TOLERANCE = 1e-9
 #: Largest Newton step on the boundary circle, rad.
 NEWTON_MAX_STEP = 0.5
-#: Boundary samples, equally spaced in the angle around p_o, that the exhaustive route holds
-#: against the critical points it enumerated: when rounding loses a root (condition numbers of
-#: P beyond ~1e20), a sample or the slot beats every critical point found, and shows it.
-CHECK_SAMPLES = 360
 #: Angle between neighbouring samples, rad.
 SAMPLE_STEP = 2.0 * math.pi / BOUNDARY_SAMPLES
 #: (cos t, sin t, cos 2t, sin 2t) of the first half of the samples (t + pi flips cos t, sin t).
@@ -294,9 +290,7 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
             interior = True
     critical = np.vstack(points)
     critical = critical[np.all(np.isfinite(critical), axis=1)]
-    angles = np.linspace(0.0, 2.0 * math.pi, CHECK_SAMPLES, endpoint=False)
-    others = np.vstack([problem.p_o + problem.r * np.stack([np.cos(angles), np.sin(angles)], 1),
-                        problem.p_o[None, :], np.reshape(tried_points, (-1, 2))])
+    others = check_points(problem, tried_points)
     gains = problem.gain(critical) if len(critical) else np.array([-math.inf])
     other_gains = problem.gain(others)
     best, best_other = int(np.argmax(gains)), int(np.argmax(other_gains))
@@ -305,17 +299,17 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
                                                              other_gains[best_other])
     name, details = certify(problem, p, float(g))
     if name not in PROVED:
-        # near ties beyond the formula's rounding are decided on the exact gains, and the cost
-        # is reported exactly
-        if enumerated and len(critical) > 1:
-            chosen = best_of(problem, critical.tolist(), gains.tolist())
-            if chosen != best:
-                best, p = chosen, critical[chosen]
-                name, details = certify(problem, p, float(gains[chosen]))
+        # the formula's rounding may exceed the candidates' differences (ill-conditioned P, a
+        # cost far below tr(W P W)): near ties among all of them are decided on exact gains,
+        # and the cost is reported exactly
+        best, enumerated = exact_best(problem, critical, gains, others, other_gains)
+        p_exact = critical[best] if enumerated else others[best - len(critical)]
+        if not np.array_equal(p_exact, p):
+            p = p_exact
+            name, details = certify(problem, p, problem.gain_at(float(p[0]), float(p[1])))
         details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
     on_boundary = not (interior and best == 0) if enumerated else bool(
-        best_other != CHECK_SAMPLES and abs(math.hypot(*(p - problem.p_o)) - problem.r)
-        <= 1e-9 * problem.r)
+        abs(math.hypot(*(p - problem.p_o)) - problem.r) <= 1e-9 * problem.r)
     if name not in PROVED:
         name = CRITICAL_POINTS if enumerated else NONE
     if not enumerated:
