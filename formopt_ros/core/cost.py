@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import numbers
 import operator
+import reprlib
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -205,9 +206,14 @@ def _check_array(name: str, value: object,
     if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
         where = np.argwhere(np.ma.getmaskarray(value)).tolist()
         raise ValueError(f'{name} has masked entries (at {where}); give every entry a value')
-    raw = np.asarray(value)
-    if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
-        raw = raw.astype(float)
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
+            raw = raw.astype(float)
+    except ValueError as error:         # ragged nesting
+        raise ValueError(f'{name} must be an array of shape {shape}: {error}') from None
+    except OverflowError:
+        raise ValueError(f'{name} holds a number beyond the range of doubles') from None
     if raw.dtype.kind not in 'iuf':
         raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
     arr = raw.astype(float)
@@ -227,11 +233,17 @@ def _check_positive(name: str, value: object, unit: str) -> float:
     if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in 'iufO':
         value = value.item()
     if not _is_real_number(value):
-        raise ValueError(f'{name} must be a real number > 0 ({unit}), got {value!r} of type '
-                         f'{type(value).__name__}')
-    number = float(value)   # type: ignore[arg-type]
+        raise ValueError(f'{name} must be a real number > 0 ({unit}), got '
+                         f'{reprlib.repr(value)} of type {type(value).__name__}')
+    shown = reprlib.repr(value)
+    try:
+        number = float(value)   # type: ignore[arg-type]
+    except OverflowError:
+        raise ValueError(f'{name} = {shown} ({unit}) is beyond the range of doubles') from None
+    if number == 0.0 and value > 0:    # type: ignore[operator]
+        raise ValueError(f'{name} = {shown} ({unit}) rounds to 0 as a double')
     if not math.isfinite(number) or number <= 0.0:
-        raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {value!r}')
+        raise ValueError(f'{name} must be a finite number > 0 ({unit}), got {shown}')
     return number
 
 
@@ -458,8 +470,15 @@ class Problem(_QuotientForms, _ProblemValues):
     # --- the cost -----------------------------------------------------------------------------
     def gain_at(self, x: Value, y: Value) -> Value:
         """Information gain tr(W P W) - tr(W P_post W) (m^2) at points (x, y) in {L} (m), given as
-        floats or as arrays of one shape."""
-        return quotient_gain(self.measurement, self.coefficients, x, y)
+        floats or as arrays of one shape.
+
+        At a point where the denominator h'Nh rounds to zero (P near-singular along h) the
+        formula says nothing: the gain is -inf there, so that no choice rests on it (the
+        certificates' exact stage and exact tie-break evaluate such points exactly)."""
+        try:
+            return quotient_gain(self.measurement, self.coefficients, x, y)
+        except ZeroDivisionError:       # floats only (arrays divide to inf or nan)
+            return -math.inf    # type: ignore[return-value]
 
     def gain_error_at(self, x: float, y: float, gain: float) -> float:
         """A rigorous bound (m^2) on |gain - g(x, y)|, g the exact gain at the floats (x, y) on
@@ -498,9 +517,13 @@ class Problem(_QuotientForms, _ProblemValues):
         return max(gain - low, high - gain) * (1.0 + 1e-12) + 1e-15 * abs(gain)
 
     def gain(self, points: np.ndarray) -> np.ndarray:
-        """Information gain (m^2) at points of shape (n, 2) or (2,) in {L}, m; shape (n,)."""
+        """Information gain (m^2) at points of shape (n, 2) or (2,) in {L}, m; shape (n,);
+        -inf where the formula's denominator rounds to zero (:meth:`gain_at`)."""
         pts = np.atleast_2d(np.asarray(points, dtype=float))
-        return np.asarray(self.gain_at(pts[:, 0], pts[:, 1]))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            gains = np.asarray(self.gain_at(pts[:, 0], pts[:, 1]))
+        finite = np.isfinite(gains)
+        return gains if finite.all() else np.where(finite, gains, -np.inf)
 
     def cost(self, points: np.ndarray) -> np.ndarray | float:
         """tr(W P_post W) (m^2) at points (n, 2) -> (n,), or at one point (2,) -> float."""

@@ -71,7 +71,7 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), or an unknown measurement,
             method or option.
     """
-    strategy = _SHARED.get(method) if not options else None
+    strategy = _SHARED.get(method) if not options and isinstance(method, str) else None
     if strategy is None:
         strategy = make_strategy(method, **options)
     context = context or DEFAULT_CONTEXT

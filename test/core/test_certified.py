@@ -373,6 +373,26 @@ def test_minor_axis_answers_are_exact(kind: str, tie: bool, count: int) -> None:
             assert abs(Fraction(solution.cost) - exact) <= Fraction(min(allowed, 1e-9)) * exact
 
 
+#: Valid problems (P passes the LDL' check) on which RQ and RAM raised ZeroDivisionError or
+#: 'math domain error' (a reviewer's): the 2x2 Cholesky of P[:2, :2] + R I, or h'Nh at a Newton
+#: point, rounds to zero.
+SINGULAR_TO_ROUNDING = {
+    RANGE: [([[3.0, 1.0, 0.0], [1.0, 0.3333333333333334, 0.0], [0.0, 0.0, 1.0]], [3.0, 4.0], 1.0,
+             1e-9),
+            ([[3.0, 1.0, 0.0], [1.0, 0.33333333333333337, 0.0], [0.0, 0.0, 1.0]], [3.0, 4.0],
+             1.0, 1e-9),
+            ([[922.8972650511813, 18824.50961786882, 25341.45697417065],
+              [18824.50961786882, 383967.07387965213, 516894.4785144954],
+              [25341.45697417065, 516894.4785144954, 695840.6595105994]],
+             [-0.9336362678271822, 0.454130005754585], 0.00010327091015579526,
+             6.578334170651541e-09)],
+    BEARING: [([[374646731.4344251, -7313309932.9756975, -3495249494515.963],
+                [-7313309932.9756975, 142759825959.2001, 68229189531702.41],
+                [-3495249494515.963, 68229189531702.41, 3.260876981934262e+16]],
+               [0.0005741421758751186, 0.0010489339638041332], 0.00014075455792755958,
+               2.0155478724515666e-05)]}
+
+
 @pytest.mark.parametrize('kind', KINDS)
 def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
     """Condition numbers of P from 1e16 to 1e34 (beyond_double_problem; 150 per sensor), where
@@ -383,9 +403,12 @@ def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
     ('none', which also says why); their reported costs are within the same of the exact ones.
     Before the exact tie-break, answers 5 to 8e4 times the best sample's cost passed as
     'all-critical-points' (a reviewer's cases, included). Also the problem where RQ returned
-    the worst point of the disc (cost tr(W P W), the slot 1e-9) with that label."""
+    the worst point of the disc (cost tr(W P W), the slot 1e-9) with that label, and
+    SINGULAR_TO_ROUNDING, valid problems on which RQ and RAM raised ZeroDivisionError."""
     rng = np.random.default_rng(17 + KINDS.index(kind))
     problems = [beyond_double_problem(rng, kind) for _ in range(150)]
+    problems += [Problem(np.array(P), np.array(p_o), r, sigma, kind) for P, p_o, r, sigma in
+                 SINGULAR_TO_ROUNDING[kind]]
     if kind == BEARING:
         p_o = np.array([-0.188, 0.0065])
         problems.append(Problem(np.diag([21.5, 1.5e-17, 1e-21]), p_o,

@@ -66,6 +66,12 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
               r'P has masked entries \(at \[\[0, 0\], \[1, 1\], \[2, 2\]\]\)'),
              ('p_o masked', {'p_o': np.ma.masked_array(GOOD_P_O, mask=[False, True])},
               r'p_o has masked entries'),
+             ('r huge int', {'r': 10 ** 400}, r'r = 1000.* \(m\) is beyond the range of doubles'),
+             ('sigma tiny Fraction', {'sigma': Fraction(1, 10 ** 400)},
+              r'sigma = Fraction\(1, 1.*\) \(.*\) rounds to 0 as a double'),
+             ('p_o huge int', {'p_o': [10 ** 400, 1]}, r'p_o holds a number beyond the range'),
+             ('P ragged', {'P': [[1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+              r'P must be an array of shape \(3, 3\)'),
              ('P complex', {'P': GOOD_P.astype(complex)}, r'P must hold real numbers'),
              ('P bool', {'P': np.eye(3, dtype=bool)}, r'P must hold real numbers'),
              ('P objects', {'P': [[1, 0, 0], [0, None, 0], [0, 0, 1]]},
@@ -260,6 +266,8 @@ def test_solve_rejects_unknown_method_and_option() -> None:
     """solve() names the unknown method or option in its ValueError."""
     with pytest.raises(ValueError, match=r"^method must be one of .*'simplex'"):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='simplex')
+    with pytest.raises(ValueError, match=r"^method must be one of .*got \['rq'\]"):
+        solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=['rq'])  # type: ignore
     with pytest.raises(ValueError, match=r"^method 'gbs' accepts options .*unknown \['spacing'\]"):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='gbs', spacing=0.1)
     with pytest.raises(ValueError, match=r"^method 'rq' accepts options .*unknown \['cell'\]"):

@@ -19,7 +19,7 @@ STRATEGIES: dict[str, type[Strategy]] = {
 
 def make_strategy(name: str, **options: object) -> Strategy:
     """A new strategy object; ValueError for an unknown name or option, or a bad value."""
-    if name not in STRATEGIES:
+    if not isinstance(name, str) or name not in STRATEGIES:
         raise ValueError(f'method must be one of {tuple(STRATEGIES)}, got {name!r}')
     return STRATEGIES[name](**options)
 

@@ -390,7 +390,8 @@ def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence
     gain formula may exceed the difference of near ties."""
     best = max(range(len(gains)), key=gains.__getitem__)
     errors = [problem.gain_error_at(float(x), float(y), g) for (x, y), g in zip(points, gains)]
-    close = [k for k, g in enumerate(gains) if g + errors[k] >= gains[best] - errors[best]]
+    # (not <: a gain of -inf with an infinite error bound, nan, is close)
+    close = [k for k, g in enumerate(gains) if not g + errors[k] < gains[best] - errors[best]]
     if len(close) == 1:
         return best
     return max(close, key=lambda k: exact_gain(problem, float(points[k][0]),

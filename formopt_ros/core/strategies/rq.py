@@ -330,7 +330,10 @@ def _plan_range(problem: Problem, method: str) -> Solution:
     R = problem.R
     l00 = math.sqrt(p00 + R)
     l10 = p01 / l00
-    l11 = math.sqrt(p11 + R - l10 * l10)
+    pivot = p11 + R - l10 * l10
+    if not pivot > 0.0:         # B is singular to working precision (P passed its LDL' check)
+        return _plan_range_by_stationarity(problem, method)
+    l11 = math.sqrt(pivot)
     x00, x01 = a00 / l00, a01 / l00                       # first row of L^-1 A
     x10, x11 = (a01 - l10 * x00) / l11, (a11 - l10 * x01) / l11
     c00, c01 = x00 / l00, x10 / l00                       # C = L^-1 (L^-1 A)'
@@ -343,6 +346,25 @@ def _plan_range(problem: Problem, method: str) -> Solution:
     u0 = (v0 - l10 * u1) / l00
     flat = spread == 0.0 or gains_tie(problem, mean + spread, mean - spread)
     return range_plan_from_direction(problem, math.atan2(u1, u0), flat, 1, method)
+
+
+def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
+    """Range when the Cholesky reduction of :func:`_plan_range` breaks down: the directions
+    u = (cos t, sin t) where A u and B u are parallel (the stationary points of u'Au / u'Bu),
+    K + C cos 2t + S sin 2t = 0 with K = alpha + gamma, C = alpha - gamma, S = beta, where
+    alpha = a00 b01 - a01 b00, beta = a00 b11 - a11 b00, gamma = a01 b11 - a11 b01."""
+    (a00, a01, _, a11, _, _), _ = problem.forms
+    p00, p01, _, p11, _, _ = problem.entries
+    b00, b01, b11 = p00 + problem.R, p01, p11 + problem.R
+    alpha, beta, gamma = a00 * b01 - a01 * b00, a00 * b11 - a11 * b00, a01 * b11 - a11 * b01
+    K, C, S = alpha + gamma, alpha - gamma, beta
+    amplitude = math.hypot(C, S)
+    turn = math.acos(max(-1.0, min(1.0, -K / amplitude))) if amplitude > 0.0 else 0.5 * math.pi
+    thetas = [0.5 * (math.atan2(S, C) + turn), 0.5 * (math.atan2(S, C) - turn)]
+    gains = [problem.gain_at(math.cos(t), math.sin(t)) for t in thetas]
+    best = int(gains[1] > gains[0])
+    flat = amplitude == 0.0 and K == 0.0 or gains_tie(problem, max(gains), min(gains))
+    return range_plan_from_direction(problem, thetas[best], flat, 2, method)
 
 
 def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
