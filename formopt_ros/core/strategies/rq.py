@@ -268,9 +268,11 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
     stationary point from the companion matrix; the best one, certified if possible.
 
     The critical points are held against CHECK_SAMPLES boundary samples, the slot and the fast
-    path's points (``tried_points``). If one of those is better (beyond the gain's rounding),
-    rounding lost a critical point: that point is returned, and unless it is proved, its
-    certificate is 'none' with the reason in ``details``, never 'all-critical-points'."""
+    path's points (``tried_points``). Unless the best is proved, every candidate whose gain ties
+    with the best within the rounding bounds is compared exactly (:func:`.common.exact_best`):
+    if a sample, the slot or a Newton point beats the best critical point by more than
+    EXACT_TIE, rounding lost a critical point; the exact best is then returned with the
+    certificate 'none' and the reason in ``details``, never 'all-critical-points'."""
     centre, rho = problem.q_disc()
     points = [np.empty((0, 2))]
     interior = False
