@@ -219,8 +219,13 @@ def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float,
     # bound on the scaled entries' terms: D B D has unit diagonal, so its entries are <= 1
     scale = abs(g) + max(a00 * e00, a11 * e11, a22 * e22)
     if mu > 0.0:
-        scale += mu * (max(abs(k00) * e00, abs(k01) * e01, abs(k02) * e02, abs(k11) * e11,
-                           abs(k12) * e12, abs(k22) * e22) + g_size * max(e00, e11, e22))
+        # G's entries c0, c1, |c|^2 - rho^2 share k = 1 / (|p_o|^2 - r^2), whose rounding is
+        # (|p_o|^2 + r^2) / (|p_o|^2 - r^2) times that of its terms (the disc G describes is
+        # the true one scaled by 1 + delta_k): their terms count that much more
+        d2, r2 = problem.d_o * problem.d_o, problem.r * problem.r
+        scale += mu * max(1.0, (d2 + r2) / (d2 - r2)) * (
+            max(abs(k00) * e00, abs(k01) * e01, abs(k02) * e02, abs(k11) * e11, abs(k12) * e12,
+                abs(k22) * e22) + g_size * max(e00, e11, e22))
     size = scale * math.sqrt(hh)         # 0 when the data underflow (P ~ 1e-100, sigma ~ 1e100)
     if not (cost > 0.0 and 0.0 < size < math.inf):
         return mu, math.inf, None
