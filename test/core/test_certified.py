@@ -375,9 +375,18 @@ def test_minor_axis_answers_are_exact(kind: str, tie: bool, count: int) -> None:
 
 #: Valid problems (P passes the LDL' check) on which RQ and RAM raised ZeroDivisionError or
 #: 'math domain error' (a reviewer's): the 2x2 Cholesky of P[:2, :2] + R I, or h'Nh at a Newton
-#: point, rounds to zero.
+#: point, rounds to zero; and two where that Cholesky's rounding made every direction seem to
+#: tie, and RQ returned the slot as 'all-critical-points' at 545 times the optimum's cost.
 SINGULAR_TO_ROUNDING = {
-    RANGE: [([[3.0, 1.0, 0.0], [1.0, 0.3333333333333334, 0.0], [0.0, 0.0, 1.0]], [3.0, 4.0], 1.0,
+    RANGE: [([[536.5148902450986, -348.3275832100511, 0.0],
+              [-348.3275832100511, 226.14862593939634, 0.0], [0.0, 0.0, 0.000724402206994833]],
+             [-4.253487578921876, -6.551474560728268], 7.811144314625888e-06,
+             2.323192264235129e-09),
+            ([[8255.652600178828, -8783.78048578677, 0.0],
+              [-8783.78048578677, 9345.69359432799, 0.0], [0.0, 0.0, 1.757381105432671]],
+             [0.018473686301689926, 0.008286515829154456], 0.02022558804129738,
+             3.37712920337948e-07),
+            ([[3.0, 1.0, 0.0], [1.0, 0.3333333333333334, 0.0], [0.0, 0.0, 1.0]], [3.0, 4.0], 1.0,
              1e-9),
             ([[3.0, 1.0, 0.0], [1.0, 0.33333333333333337, 0.0], [0.0, 0.0, 1.0]], [3.0, 4.0],
              1.0, 1e-9),

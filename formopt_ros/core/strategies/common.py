@@ -77,9 +77,10 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     x_o, y_o = problem.slot
     if flat:
         name, details = certify(problem, (x_o, y_o))
-        return make_solution(problem, problem.p_o, method, False, candidates,
-                             certificate=name if name in PROVED else CRITICAL_POINTS,
-                             details={'flat': True, **details})
+        if name in PROVED:
+            return make_solution(problem, problem.p_o, method, False, candidates,
+                                 certificate=name, details={'flat': True, **details})
+        # not proved: the tie may be the rounding of a near-singular P; look at the arc
     theta_o, delta = problem.bearing_arc()
     offset = (theta_star - theta_o + 0.5 * math.pi) % math.pi - 0.5 * math.pi
     thetas = [theta_o + offset] if abs(offset) <= delta else [theta_o - delta, theta_o + delta]

@@ -347,7 +347,14 @@ def _plan_range(problem: Problem, method: str) -> Solution:
     u1 = v1 / l11
     u0 = (v0 - l10 * u1) / l00
     flat = spread == 0.0 or gains_tie(problem, mean + spread, mean - spread)
-    return range_plan_from_direction(problem, math.atan2(u1, u0), flat, 1, method)
+    solution = range_plan_from_direction(problem, math.atan2(u1, u0), flat, 1, method)
+    if solution.certificate in PROVED:
+        return solution
+    # rounding (B near-singular) may have spoilt the direction: the stationarity route too
+    other = _plan_range_by_stationarity(problem, method)
+    if other.certificate in PROVED or other.cost < solution.cost:
+        return other
+    return solution
 
 
 def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
