@@ -286,7 +286,8 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
         except (np.linalg.LinAlgError, ValueError):     # non-finite series: no roots
             pass
     if abs(top[2]) > 1e-300:
-        q = -top[:2] / top[2]
+        with np.errstate(over='ignore'):        # an infinite q is outside the disc
+            q = -top[:2] / top[2]
         if math.hypot(q[0] - centre[0], q[1] - centre[1]) < rho:
             points.insert(0, point_from_q(q)[None, :])
             interior = True
