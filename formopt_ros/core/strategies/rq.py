@@ -171,8 +171,10 @@ def _boundary_starts(num: tuple[float, ...], den: tuple[float, ...]) -> tuple[fl
     for k, (c, s, c2, s2) in enumerate(_HALF_SAMPLES):
         n_even, n_odd = n0 + n2c * c2 + n2s * s2, n1c * c + n1s * s
         d_even, d_odd = d0 + d2c * c2 + d2s * s2, d1c * c + d1s * s
-        values[k] = (n_even + n_odd) / (d_even + d_odd)
-        values[k + half] = (n_even - n_odd) / (d_even - d_odd)
+        # a denominator rounding to <= 0 (P huge along the sample's bearing) says nothing
+        plus, minus = d_even + d_odd, d_even - d_odd
+        values[k] = (n_even + n_odd) / plus if plus > 0.0 else -math.inf
+        values[k + half] = (n_even - n_odd) / minus if minus > 0.0 else -math.inf
     best, second = 0, 1
     if values[1] > values[0]:
         best, second = 1, 0
