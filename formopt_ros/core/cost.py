@@ -27,6 +27,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from decimal import Decimal
+from fractions import Fraction
 from typing import Any, Generic, TypeVar, overload
 
 import numpy as np
@@ -284,8 +285,12 @@ def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] 
         raise ValueError(f'the variances on the diagonal of {name} must lie in '
                          f'[{low:g}, {high:g}] (m^2, rad^2), got '
                          f'{[p00, p11, p22]}')
-    if not positive_definite_entries(entries):
+    if not positive_definite_exactly(entries):
         eig = np.linalg.eigvalsh(arr)
+        if eig[0] > 0.0:
+            raise ValueError(f'{name} must be positive definite, but it is indefinite or '
+                             'singular in exact arithmetic (numpy computes the eigenvalues '
+                             f'{eig.tolist()}): its smallest eigenvalue is below rounding')
         raise ValueError(f'{name} must be positive definite, got eigenvalues {eig.tolist()}')
     return arr, entries
 
@@ -301,6 +306,29 @@ def positive_definite_entries(entries: Entries) -> bool:
         return False
     b12 = a12 - l20 * a01
     return a22 - l20 * a02 - b12 * b12 / d1 > 0.0
+
+
+def positive_definite_exactly(entries: Entries) -> bool:
+    """True when the symmetric 3x3 matrix with these six entries (floats, taken as exact) is
+    positive definite: the LDL' pivots in floating point where they clear their rounding with
+    room, else its leading minors in exact rational arithmetic (Sylvester).
+
+    d1 = a11 - a01^2/a00 carries a few units of a11's rounding, and d2 that of a22 plus
+    4 u a22 sqrt(a11 / d1) from b12^2 / d1 (|b12| <= sqrt(d1 a22)); the margins below are 10x
+    those bounds. A float check alone accepted P with exact determinant below zero."""
+    a00, a01, a02, a11, a12, a22 = entries
+    if not a00 > 0.0:
+        return False
+    l10, l20 = a01 / a00, a02 / a00
+    d1 = a11 - l10 * a01
+    if d1 > 1e-12 * a11:
+        b12 = a12 - l20 * a01
+        d2 = a22 - l20 * a02 - b12 * b12 / d1
+        if d2 > 1e-14 * a22 * (2.0 + math.sqrt(a11 / d1)):
+            return True
+    e00, e01, e02, e11, e12, e22 = map(Fraction, entries)
+    return (e00 * e11 - e01 * e01 > 0 and e00 * (e11 * e22 - e12 * e12)
+            - e01 * (e01 * e22 - e12 * e02) + e02 * (e01 * e12 - e11 * e02) > 0)
 
 
 #: A checked problem: (P (3, 3) array, p_o (2,) array, r, sigma, P's six distinct entries,
@@ -332,7 +360,7 @@ def check_problem(P: object, p_o: object, r: object, sigma: object,
                 and SLOT_DISTANCE_RANGE[0] <= d_o <= SLOT_DISTANCE_RANGE[1]
                 and MIN_DEVIATION * d_o <= r <= MAX_DEVIATION * d_o
                 and math.isfinite(p01 + p02 + p12)
-                and measurement in MEASUREMENT_KINDS and positive_definite_entries(entries)):
+                and measurement in MEASUREMENT_KINDS and positive_definite_exactly(entries)):
             return P.copy(), p_o.copy(), r, sigma, entries, (x_o, y_o), d_o
     return check_problem_thoroughly(P, p_o, r, sigma, measurement)
 

@@ -72,6 +72,10 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
              ('p_o huge int', {'p_o': [10 ** 400, 1]}, r'p_o holds a number beyond the range'),
              ('P ragged', {'P': [[1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
               r'P must be an array of shape \(3, 3\)'),
+             ('P indefinite below rounding',
+              {'P': [[3.0, 1.7157497662356598, 0.0], [1.7157497662356598, 0.981265753445907, 0.0],
+                     [0.0, 0.0, 1.0]]},
+              r'P must be positive definite, but it is indefinite or singular in exact'),
              ('P complex', {'P': GOOD_P.astype(complex)}, r'P must hold real numbers'),
              ('P bool', {'P': np.eye(3, dtype=bool)}, r'P must hold real numbers'),
              ('P objects', {'P': [[1, 0, 0], [0, None, 0], [0, 0, 1]]},
@@ -131,6 +135,27 @@ def test_problem_accepts_every_real_number_type(kind: str) -> None:
         solution = solve(**arguments, measurement=kind, method='rq')
         np.testing.assert_array_equal(solution.p, reference.p)
         assert solution.cost == reference.cost
+
+
+def test_positive_definite_exactly_agrees_with_exact_minors() -> None:
+    """On 3000 symmetric matrices at the edge of definiteness (rank-2 Gram matrices plus a
+    third eigenvalue of +-1e-20..1e-8 of the scale, scales 1e-80..1e20, so that half are
+    indefinite in exact arithmetic and floats cannot tell), positive_definite_exactly equals
+    Sylvester's criterion in Fractions; the float LDL' alone disagreed on some (it is why)."""
+    rng = np.random.default_rng(5)
+    disagreements_of_floats = 0
+    for _ in range(3000):
+        q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+        scale = 10.0 ** rng.uniform(-80.0, 20.0)
+        smallest = rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-20.0, -8.0)
+        A = (q * np.array([1.0, 10.0 ** rng.uniform(-6.0, 0.0), smallest])) @ q.T * scale
+        entries = (A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2])
+        e00, e01, e02, e11, e12, e22 = map(Fraction, entries)
+        exact = bool(e00 > 0 and e00 * e11 - e01 * e01 > 0 and e00 * (e11 * e22 - e12 * e12)
+                     - e01 * (e01 * e22 - e12 * e02) + e02 * (e01 * e12 - e11 * e02) > 0)
+        assert cost.positive_definite_exactly(entries) == exact, entries
+        disagreements_of_floats += cost.positive_definite_entries(entries) != exact
+    assert disagreements_of_floats > 0
 
 
 def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
