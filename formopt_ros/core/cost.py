@@ -196,7 +196,8 @@ def check_disc(x_o: float, y_o: float, r: float) -> float:
 def _is_real_number(value: object) -> bool:
     """True for a real number of any numeric type (int, float, Fraction, Decimal, numpy
     scalars), False for booleans, complex numbers, strings and other objects."""
-    return (isinstance(value, (numbers.Real, Decimal)) and not isinstance(value, (bool, np.bool_)))
+    return (isinstance(value, (numbers.Real, Decimal))
+            and not isinstance(value, (bool, np.bool_, np.timedelta64, np.datetime64)))
 
 
 def _check_array(name: str, value: object,
@@ -208,10 +209,21 @@ def _check_array(name: str, value: object,
         where = np.argwhere(np.ma.getmaskarray(value)).tolist()
         raise ValueError(f'{name} has masked entries (at {where}); give every entry a value')
     try:
+        if not isinstance(value, np.ndarray):     # nested sequences: look at every element
+            elements = np.asarray(value, dtype=object).ravel().tolist()
+            rows = list(value) if isinstance(value, (list, tuple)) else []
+            if any(np.ma.is_masked(v) for v in rows if np.ma.isMaskedArray(v)) or any(
+                    np.ma.isMaskedArray(v) or v is np.ma.masked for v in elements):
+                raise ValueError(f'{name} has masked entries; give every entry a value')
+            if any(isinstance(v, (bool, np.bool_)) for v in elements):
+                raise ValueError(f'{name} must hold real numbers, got a boolean among '
+                                 f'{reprlib.repr(value)}')
         raw = np.asarray(value)
         if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
             raw = raw.astype(float)
     except ValueError as error:         # ragged nesting
+        if str(error).startswith(name):
+            raise
         raise ValueError(f'{name} must be an array of shape {shape}: {error}') from None
     except OverflowError:
         raise ValueError(f'{name} holds a number beyond the range of doubles') from None
@@ -231,6 +243,8 @@ def _check_positive(name: str, value: object, unit: str) -> float:
     type, or a 0-d real array)."""
     if type(value) is float and 0.0 < value < math.inf:       # the common case, at once
         return value
+    if np.ma.isMaskedArray(value) and np.ma.is_masked(value) or value is np.ma.masked:
+        raise ValueError(f'{name} is masked; give it a value')
     if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in 'iufO':
         value = value.item()
     if not _is_real_number(value):
