@@ -200,6 +200,22 @@ def _is_real_number(value: object) -> bool:
             and not isinstance(value, (bool, np.bool_, np.timedelta64, np.datetime64)))
 
 
+def _refuse_hidden_values(name: str, value: object) -> None:
+    """ValueError naming ``name`` when a nested sequence holds masked values or booleans, which
+    numpy's conversion to floats would hide (a masked row's data, True as 1.0)."""
+    try:
+        elements = np.asarray(value, dtype=object).ravel().tolist()
+    except ValueError:                  # the conversion to floats names this
+        return
+    rows = list(value) if isinstance(value, (list, tuple)) else []
+    if any(np.ma.is_masked(v) for v in rows if np.ma.isMaskedArray(v)) or any(
+            np.ma.isMaskedArray(v) or v is np.ma.masked for v in elements):
+        raise ValueError(f'{name} has masked entries; give every entry a value')
+    if any(isinstance(v, (bool, np.bool_)) for v in elements):
+        raise ValueError(f'{name} must hold real numbers, got a boolean among '
+                         f'{reprlib.repr(value)}')
+
+
 def _check_array(name: str, value: object,
                  shape: tuple[int, ...]) -> tuple[np.ndarray, list[float]]:
     """(value as a float array, its entries as a flat list) or ValueError naming ``name``;
@@ -208,22 +224,13 @@ def _check_array(name: str, value: object,
     if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
         where = np.argwhere(np.ma.getmaskarray(value)).tolist()
         raise ValueError(f'{name} has masked entries (at {where}); give every entry a value')
+    if not isinstance(value, np.ndarray):
+        _refuse_hidden_values(name, value)
     try:
-        if not isinstance(value, np.ndarray):     # nested sequences: look at every element
-            elements = np.asarray(value, dtype=object).ravel().tolist()
-            rows = list(value) if isinstance(value, (list, tuple)) else []
-            if any(np.ma.is_masked(v) for v in rows if np.ma.isMaskedArray(v)) or any(
-                    np.ma.isMaskedArray(v) or v is np.ma.masked for v in elements):
-                raise ValueError(f'{name} has masked entries; give every entry a value')
-            if any(isinstance(v, (bool, np.bool_)) for v in elements):
-                raise ValueError(f'{name} must hold real numbers, got a boolean among '
-                                 f'{reprlib.repr(value)}')
         raw = np.asarray(value)
         if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
             raw = raw.astype(float)
     except ValueError as error:         # ragged nesting
-        if str(error).startswith(name):
-            raise
         raise ValueError(f'{name} must be an array of shape {shape}: {error}') from None
     except OverflowError:
         raise ValueError(f'{name} holds a number beyond the range of doubles') from None
@@ -537,18 +544,15 @@ class Problem(_QuotientForms, _ProblemValues):
         point's direction near its minor axis. Returns inf when d may vanish.
         """
         num, den = self.coefficients
+        terms = monomials(self.measurement, x, y)
+        n, d = weighted_sum(num, terms, num[-1]), weighted_sum(den, terms, den[-1])
         sqrt = math.sqrt
         if self.measurement == RANGE:
-            t0, t1, t2 = monomials(self.measurement, x, y)
-            n = num[3] + num[0] * t0 + num[1] * t1 + num[2] * t2
-            d = den[3] + den[0] * t0 + den[1] * t1 + den[2] * t2
+            t0, _, t2 = terms
             n_abs = (sqrt(abs(num[0] * t0)) + sqrt(abs(num[2] * t2))) ** 2
             d_abs = (sqrt(abs(den[0] * t0)) + sqrt(abs(den[2] * t2))) ** 2 + abs(den[3])
         else:
-            t0, t1, t2, t3, t4 = monomials(self.measurement, x, y)
-            n = num[5] + num[0] * t0 + num[1] * t1 + num[2] * t2 + num[3] * t3 + num[4] * t4
-            d = den[5] + den[0] * t0 + den[1] * t1 + den[2] * t2 + den[3] * t3 + den[4] * t4
-            h0, h1 = abs(t3), abs(t4)
+            h0, h1 = abs(terms[3]), abs(terms[4])
             n_abs = (sqrt(abs(num[0])) * h0 + sqrt(abs(num[2])) * h1 + sqrt(abs(num[5]))) ** 2
             d_abs = (sqrt(abs(den[0])) * h0 + sqrt(abs(den[2])) * h1 + sqrt(abs(den[5]))) ** 2
         e_n, e_d = GAIN_ROUNDING_UNITS * n_abs, GAIN_ROUNDING_UNITS * d_abs
