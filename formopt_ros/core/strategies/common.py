@@ -55,6 +55,29 @@ def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others
     return chosen, False
 
 
+def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
+                    others: np.ndarray, other_gains: np.ndarray, p: np.ndarray,
+                    details: dict[str, Any]) -> tuple[int, bool, np.ndarray, str, dict[str, Any]]:
+    """For an answer p (2,) that :func:`certify` did not prove: the exact best of the candidates
+    (:func:`exact_best`), certified afresh if it is another point, with its exact cost in
+    details.
+
+    Returns:
+        (index into critical + others, whether it is the best critical point, the point, its
+        certificate: a proof, else 'all-critical-points' or 'none', details).
+    """
+    index, enumerated = exact_best(problem, critical, gains, others, other_gains)
+    chosen = critical[index] if enumerated else others[index - len(critical)]
+    name = NONE
+    if not np.array_equal(chosen, p):
+        p = chosen
+        name, details = certify(problem, (float(p[0]), float(p[1])))
+    details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
+    if name not in PROVED:
+        name = CRITICAL_POINTS if enumerated else NONE
+    return index, enumerated, p, name, details
+
+
 def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
                               candidates: int, method: str) -> Solution:
     """Range case (paper Fig. 3): the best bearing on the feasible arc and its nearest point.
@@ -99,18 +122,12 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
                              gain=g)
     # the formula's rounding may exceed the candidates' differences: near ties among the arc's
     # ends, the samples and the slot are decided on exact gains, and the cost is reported exactly
-    critical = np.array([end[1:3] for end in ends])
     others = check_points(problem)
-    chosen, enumerated = exact_best(problem, critical, np.array([end[0] for end in ends]),
-                                    others, problem.gain(others))
-    p = critical[chosen] if enumerated else others[chosen - len(critical)]
-    theta = ends[chosen][3] if enumerated else math.atan2(p[1], p[0])
-    if (p[0], p[1]) != (x, y):
-        x, y = float(p[0]), float(p[1])
-        name, details = certify(problem, (x, y))
-    details.setdefault('exact_cost', exact_cost(problem, x, y))
-    if name not in PROVED:
-        name = CRITICAL_POINTS if enumerated else NONE
+    chosen, enumerated, p, name, details = settle_unproved(
+        problem, np.array([end[1:3] for end in ends]), np.array([end[0] for end in ends]),
+        others, problem.gain(others), np.array((x, y)), details)
+    x, y = float(p[0]), float(p[1])
+    theta = ends[chosen][3] if enumerated else math.atan2(y, x)
     if not enumerated:
         details['reason'] = (f'rounding lost the critical direction: the best of {len(ends)} '
                              f'arc points is not as good as the best of {CHECK_SAMPLES} boundary '

@@ -32,11 +32,10 @@ from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import (
-    CRITICAL_POINTS, NONE, PROVED, certify, exact_cost)
+from formopt_ros.core.strategies.certificate import PROVED, certify
 from formopt_ros.core.strategies.common import (
-    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, exact_best, gains_tie,
-    polish_boundary_angles, range_plan_from_direction)
+    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
+    polish_boundary_angles, range_plan_from_direction, settle_unproved)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
 GAIN_ROUNDING = 16 * EPS
@@ -307,16 +306,10 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
         # the formula's rounding may exceed the candidates' differences (ill-conditioned P, a
         # cost far below tr(W P W)): near ties among all of them are decided on exact gains,
         # and the cost is reported exactly
-        best, enumerated = exact_best(problem, critical, gains, others, other_gains)
-        p_exact = critical[best] if enumerated else others[best - len(critical)]
-        if not np.array_equal(p_exact, p):
-            p = p_exact
-            name, details = certify(problem, p, problem.gain_at(float(p[0]), float(p[1])))
-        details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
+        best, enumerated, p, name, details = settle_unproved(
+            problem, critical, gains, others, other_gains, p, details)
     on_boundary = not (interior and best == 0) if enumerated else bool(
         abs(math.hypot(*(p - problem.p_o)) - problem.r) <= 1e-9 * problem.r)
-    if name not in PROVED:
-        name = CRITICAL_POINTS if enumerated else NONE
     if not enumerated:
         details['reason'] = (f'rounding lost critical points: of {len(critical)} found, none is '
                              f'as good as the best of {CHECK_SAMPLES} boundary samples, the slot '
