@@ -28,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from decimal import Decimal
 from fractions import Fraction
-from typing import Any, Generic, TypeVar, overload
+from typing import Any, Generic, TypeVar, cast, overload
 
 import numpy as np
 
@@ -281,8 +281,11 @@ VARIANCE_RANGE = (1e-100, 1e25)
 #: these ranges a fuzz over the whole VARIANCE_RANGE found none.
 SIGMA_RANGE = (1e-9, 1e6)
 SLOT_DISTANCE_RANGE = (1e-3, 1e6)
-#: numpy's float64 dtype (the quick input checks compare dtypes by identity).
+#: numpy's float64 dtype (the quick input checks compare by identity first; an unpickled
+#: array's dtype is an equal but distinct object).
 _FLOAT = np.dtype(float)
+#: Scalar types the quick input checks take as they are: exact doubles.
+_FLOAT_SCALARS = (float, np.float64)
 
 
 def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] | None = None
@@ -365,9 +368,12 @@ def check_problem(P: object, p_o: object, r: object, sigma: object,
     below (about a microsecond); anything else, or a failed quick check, goes through
     :func:`check_problem_thoroughly`, which converts what it may and names what is wrong.
     """
-    if (type(P) is np.ndarray and type(p_o) is np.ndarray and P.dtype is _FLOAT
-            and p_o.dtype is _FLOAT and P.shape == (3, 3) and p_o.shape == (2,)
-            and type(r) is float and type(sigma) is float):
+    if (type(P) is np.ndarray and type(p_o) is np.ndarray
+            and (P.dtype is _FLOAT or P.dtype == _FLOAT)
+            and (p_o.dtype is _FLOAT or p_o.dtype == _FLOAT) and P.shape == (3, 3)
+            and p_o.shape == (2,) and type(r) in _FLOAT_SCALARS
+            and type(sigma) in _FLOAT_SCALARS):
+        r, sigma = float(cast(float, r)), float(cast(float, sigma))
         (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
         x_o, y_o = p_o.tolist()
         low, high = VARIANCE_RANGE
@@ -538,23 +544,25 @@ class Problem(_QuotientForms, _ProblemValues):
         at most GAIN_ROUNDING_UNITS times the sum of its terms' magnitudes. M = P W^2 P is a
         Gram matrix, so every term of m_ij is at most sqrt(m_ii m_jj) in magnitude summed
         (Cauchy-Schwarz), and |n_ij| <= sqrt(n_ii n_jj) (N is positive definite): the sums
-        are at most (sum_i sqrt(m_ii) |h_i|)^2 and the same for N (range: plus R), from the
-        diagonals alone. Then g = n / d lies in [(n - e_n) / (d + e_d), (n + e_n) / (d - e_d)].
-        The bound is large exactly where the formula cancels: P ill-conditioned and the
-        point's direction near its minor axis. Returns inf when d may vanish.
+        are at most (sum_i sqrt(m_ii) |h_i|)^2 <= k sum_i m_ii h_i^2 over the k = 2 (range) or
+        3 (bearing) components of h, and the same for N (range: plus R), from the diagonals
+        alone and without a square root. Then g = n / d lies in
+        [(n - e_n) / (d + e_d), (n + e_n) / (d - e_d)]. The bound is large exactly where the
+        formula cancels: P ill-conditioned and the point's direction near its minor axis.
+        Returns inf when d may vanish.
         """
         num, den = self.coefficients
         terms = monomials(self.measurement, x, y)
         n, d = weighted_sum(num, terms, num[-1]), weighted_sum(den, terms, den[-1])
-        sqrt = math.sqrt
+        # x_ii h_i^2: a diagonal coefficient (>= 0) times a squared monomial
         if self.measurement == RANGE:
             t0, _, t2 = terms
-            n_abs = (sqrt(abs(num[0] * t0)) + sqrt(abs(num[2] * t2))) ** 2
-            d_abs = (sqrt(abs(den[0] * t0)) + sqrt(abs(den[2] * t2))) ** 2 + abs(den[3])
+            n_abs = 2.0 * (num[0] * t0 + num[2] * t2)
+            d_abs = 2.0 * (den[0] * t0 + den[2] * t2) + den[3]
         else:
-            h0, h1 = abs(terms[3]), abs(terms[4])
-            n_abs = (sqrt(abs(num[0])) * h0 + sqrt(abs(num[2])) * h1 + sqrt(abs(num[5]))) ** 2
-            d_abs = (sqrt(abs(den[0])) * h0 + sqrt(abs(den[2])) * h1 + sqrt(abs(den[5]))) ** 2
+            t0, _, t2, _, _ = terms
+            n_abs = 3.0 * (num[0] * t0 + num[2] * t2 + num[5])
+            d_abs = 3.0 * (den[0] * t0 + den[2] * t2 + den[5])
         e_n, e_d = GAIN_ROUNDING_UNITS * n_abs, GAIN_ROUNDING_UNITS * d_abs
         if not d - e_d > 0.0:
             return math.inf

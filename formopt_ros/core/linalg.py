@@ -44,9 +44,10 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
         norm = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
         if norm > best_norm:
             best, best_norm = v, norm
-    row = max((r0, r1, r2), key=lambda x: x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
-    row_norm = row[0] * row[0] + row[1] * row[1] + row[2] * row[2]
+    norms = [a[0] * a[0] + a[1] * a[1] + a[2] * a[2] for a in (r0, r1, r2)]
+    row_norm = max(norms)
     if best_norm <= 1e-24 * row_norm * row_norm:
+        row = (r0, r1, r2)[norms.index(row_norm)]
         # C - lambda I has rank <= 1 (a double top eigenvalue): any vector orthogonal to its
         # row is an eigenvector; take the cross product with the axis least along the row
         axis = min(range(3), key=lambda i: abs(row[i]))

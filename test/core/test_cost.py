@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 from collections import Counter
 from decimal import Decimal
 from fractions import Fraction
@@ -294,6 +295,28 @@ def test_good_problem_is_accepted() -> None:
     for kind in (RANGE, BEARING):
         problem = Problem(GOOD_P, GOOD_P_O, 0.3, 0.05, kind)
         assert problem.d_o == pytest.approx(math.sqrt(5.0), rel=1e-15)  # rounding only
+
+
+def test_common_float_inputs_take_the_quick_checks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """numpy float scalars for r and sigma and unpickled float arrays (an equal but distinct
+    dtype object) are accepted by check_problem's quick checks, with the values the thorough
+    checks give; a big-endian array still goes the thorough way."""
+    thorough = cost.check_problem_thoroughly
+    reference = thorough(GOOD_P, GOOD_P_O, 0.3, 0.05, RANGE)
+
+    def refuse(*args: object) -> None:
+        raise AssertionError('the quick checks passed these inputs on')
+
+    monkeypatch.setattr(cost, 'check_problem_thoroughly', refuse)
+    P, p_o = pickle.loads(pickle.dumps((GOOD_P, GOOD_P_O)))
+    assert P.dtype is not np.dtype(float)           # the case: an equal, distinct dtype
+    for args in ((P, p_o, 0.3, 0.05), (GOOD_P, GOOD_P_O, np.float64(0.3), np.float64(0.05))):
+        checked = cost.check_problem(*args, RANGE)
+        assert type(checked[2]) is float and type(checked[3]) is float
+        assert checked[2:] == reference[2:]
+        assert np.array_equal(checked[0], reference[0]) and checked[0] is not args[0]
+    with pytest.raises(AssertionError, match='quick checks passed'):
+        cost.check_problem(GOOD_P.astype('>f8'), GOOD_P_O, 0.3, 0.05, RANGE)
 
 
 def test_solve_rejects_unknown_method_and_option() -> None:

@@ -113,7 +113,7 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
         along = c * x_o + s * y_o
         x, y = along * c, along * s
         ends.append((problem.gain_at(x, y), x, y, theta))
-    best = max(range(len(ends)), key=lambda k: ends[k][0])
+    best = 1 if len(ends) == 2 and ends[1][0] > ends[0][0] else 0
     g, x, y, theta = ends[best]
     name, details = certify(problem, (x, y), g)
     if name in PROVED:
