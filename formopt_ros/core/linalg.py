@@ -24,14 +24,20 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
     precision near a double root (acos near +-1), the quotient only quadratically in the
     vector's error.
     """
-    c00, c01, c02 = C[0][0], C[0][1], C[0][2]
-    c11, c12, c22 = C[1][1], C[1][2], C[2][2]
+    # on C / |C|max (eigenpairs scale with C): at scales near 1e+-100 the cube of the cubic's
+    # spread and the squares of the cross products below under- or overflowed
+    size = max(abs(C[0][0]), abs(C[0][1]), abs(C[0][2]), abs(C[1][1]), abs(C[1][2]),
+               abs(C[2][2]))
+    if size == 0.0:
+        return 0.0, [1.0, 0.0, 0.0]
+    c00, c01, c02 = C[0][0] / size, C[0][1] / size, C[0][2] / size
+    c11, c12, c22 = C[1][1] / size, C[1][2] / size, C[2][2] / size
     q = (c00 + c11 + c22) / 3.0
     a00, a11, a22 = c00 - q, c11 - q, c22 - q
     p = math.sqrt((a00 * a00 + a11 * a11 + a22 * a22
                    + 2.0 * (c01 * c01 + c02 * c02 + c12 * c12)) / 6.0)
     if p == 0.0:
-        return q, [1.0, 0.0, 0.0]
+        return q * size, [1.0, 0.0, 0.0]
     det = (a00 * (a11 * a22 - c12 * c12) - c01 * (c01 * a22 - c12 * c02)
            + c02 * (c01 * c12 - a11 * c02)) / (p * p * p)
     value = q + 2.0 * p * math.cos(math.acos(max(-1.0, min(1.0, 0.5 * det))) / 3.0)
@@ -56,9 +62,9 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
                 row[0] * e[1] - row[1] * e[0]]
         best_norm = best[0] * best[0] + best[1] * best[1] + best[2] * best[2]
     if best_norm == 0.0:
-        return value, [1.0, 0.0, 0.0]
+        return value * size, [1.0, 0.0, 0.0]
     scale = 1.0 / math.sqrt(best_norm)
     v0, v1, v2 = best[0] * scale, best[1] * scale, best[2] * scale
     rayleigh = (c00 * v0 * v0 + c11 * v1 * v1 + c22 * v2 * v2
                 + 2.0 * (c01 * v0 * v1 + c02 * v0 * v2 + c12 * v1 * v2))
-    return rayleigh, [v0, v1, v2]
+    return rayleigh * size, [v0, v1, v2]

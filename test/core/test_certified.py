@@ -61,6 +61,23 @@ def test_top_eigenpair3_matches_numpy() -> None:
             assert exact[-2] - 1e-9 * size <= value <= exact[-1] + 1e-13 * size
 
 
+@pytest.mark.parametrize('scale', [1e-150, 1e-95, 1e-30, 1e30, 1e95, 1e150])
+def test_top_eigenpair3_near_a_multiple_of_identity_at_extreme_scales(scale: float) -> None:
+    """C = scale (I + 1e-17 (e1 e2' + e2 e1')): the cubic's spread p is ~1e-17 scale, whose
+    cube under- or overflowed (ZeroDivisionError at 1e-95), as did the squared cross
+    products at 1e95; the eigenvalue comes back to 1e-15 relative of numpy's and the vector
+    with a residual below 1e-15 |C|, directly and through the generalised problem with N = I."""
+    C = scale * (np.eye(3) + 1e-17 * np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0],
+                                               [0.0, 0.0, 0.0]]))
+    value, vector = top_eigenpair3(C.tolist())
+    exact = np.linalg.eigvalsh(C)[-1]
+    assert value == pytest.approx(exact, rel=1e-15)
+    assert np.linalg.norm(C @ vector - value * np.array(vector)) <= 1e-15 * scale
+    h_value, h = rq.top_generalized_eigenvector(
+        (C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2]), (1.0, 0.0, 0.0, 1.0, 0.0, 1.0))
+    assert h_value == pytest.approx(exact, rel=1e-15)
+
+
 def test_top_generalized_eigenvector_matches_scipy() -> None:
     """RQ's closed-form top eigenpair of (M, N) equals scipy.linalg.eigh's on 1000 hard bearing
     problems: eigenvalue to 1e-10 relative, residual |(M - lambda N) h| to 1e-9 of |M| |h|."""
