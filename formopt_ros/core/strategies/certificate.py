@@ -135,19 +135,24 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
     GAP_RTOLS. On success, details gain the proved gap and 'exact_cost', the exact cost at
     p rounded to a float (the floating-point formula may be far off where the proof needed
     this stage)."""
-    g = exact_gain(problem, x, y)
-    cost = exact_base_cost(problem) - g
-    if cost <= 0:
+    # in integer ratios, not Fractions: reducing these big integers costs more than the rest
+    gn, gd = exact_gain_ratio(problem, x, y)
+    bn, bd = _exact_base_ratio(problem)
+    cn, cd = bn * gd - gn * bd, bd * gd                 # the exact cost at p, cd > 0
+    if cn <= 0:
         return NONE, details
-    if float(g) != gain:            # the multiplier belongs to the exact gain
+    if gn / gd != gain:             # the multiplier belongs to the exact gain
         test = _range_test if problem.measurement == RANGE else _bearing_test
-        mu = test(problem, x, y, float(g), float(cost), math.inf)[0]
+        mu = test(problem, x, y, gn / gd, cn / cd, math.inf)[0]
     name = INTERIOR if mu == 0.0 else BOUNDARY
     for rtol in GAP_RTOLS:
-        target = g + Fraction(rtol) * cost
-        step = Fraction(rtol) * cost / (1 << 40)
-        k = max(0, step.denominator.bit_length() - step.numerator.bit_length() + 1)
-        bound = Fraction(-((-target.numerator << k) // target.denominator), 1 << k)
+        rn, rd = rtol.as_integer_ratio()
+        # target g + rtol cost, and k with 2^-k <= rtol cost 2^-40 (a positive n / d is at
+        # least 2^(bits(n) - bits(d) - 1))
+        tn, td = gn * rd * cd + rn * cn * gd, gd * rd * cd
+        k = max(0, (rd * cd).bit_length() + 40 - (rn * cn).bit_length() + 1)
+        ceiling = -((-tn << k) // td)
+        bound = Fraction(ceiling, 1 << k)
         S = exact_bound_matrix(problem, bound, mu if problem.measurement != RANGE else 0.0)[0]
         if problem.measurement == RANGE:
             multiplier = _best_range_multiplier(S, exact_bound_matrix(problem, bound, 1.0)[0])
@@ -157,9 +162,11 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
         else:
             proved = integer_positive_definite(S)
         if proved:
-            details.update(certificate_gap=math.nextafter(float((bound - g) / cost), math.inf),
+            # (bound - g) / cost; an int / int quotient is correctly rounded
+            gap = (ceiling * gd - (gn << k)) * cd / ((gd << k) * cn)
+            details.update(certificate_gap=math.nextafter(gap, math.inf),
                            certificate_multiplier=mu, certificate_arithmetic='exact',
-                           exact_cost=float(cost))
+                           exact_cost=cn / cd)
             return name, details
     return NONE, details
 
@@ -367,7 +374,12 @@ def _quadratic_form(X: Sequence[int], h: Sequence[int]) -> int:
             + 2 * (x01 * h0 * h1 + x02 * h0 * h2 + x12 * h1 * h2))
 
 
-def exact_gain(problem: Problem, x: float, y: float) -> Fraction:
+#: A rational number as (numerator, denominator > 0), not reduced: reducing the exact stage's
+#: big integers would cost more than the arithmetic done with them.
+Ratio = tuple[int, int]
+
+
+def exact_gain_ratio(problem: Problem, x: float, y: float) -> Ratio:
     """The gain at the floats (x, y) (m) in exact rational arithmetic on the exact data (m^2):
     h'Mh / h'Nh for the homogeneous h of the module docstring, h = [x, y, 0] with
     N = P + R diag(1, 1, 0) (range), h = [-y, x, -(x^2 + y^2)] with N = P + R e3 e3'
@@ -381,12 +393,19 @@ def exact_gain(problem: Problem, x: float, y: float) -> Fraction:
         N[0], N[3], h = N[0] + R, N[3] + R, (X, Y, 0)
     else:
         N[5], h = N[5] + R, (-Y << E, X << E, -(X * X + Y * Y))
-    return Fraction(_quadratic_form(M, h), _quadratic_form(N, h) << 2 * E)
+    return _quadratic_form(M, h), _quadratic_form(N, h) << 2 * E
+
+
+def exact_gain(problem: Problem, x: float, y: float) -> Fraction:
+    """:func:`exact_gain_ratio` as a Fraction (m^2)."""
+    return Fraction(*exact_gain_ratio(problem, x, y))
 
 
 def exact_cost(problem: Problem, x: float, y: float) -> float:
     """tr(W P_post W) at (x, y) (m) in exact arithmetic, rounded to the nearest float (m^2)."""
-    return float(exact_base_cost(problem) - exact_gain(problem, x, y))
+    gn, gd = exact_gain_ratio(problem, x, y)
+    bn, bd = _exact_base_ratio(problem)
+    return (bn * gd - gn * bd) / (bd * gd)          # int / int is correctly rounded
 
 
 def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence[float]) -> int:
@@ -403,11 +422,16 @@ def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence
                                                float(points[k][1])))
 
 
-def exact_base_cost(problem: Problem) -> Fraction:
+def _exact_base_ratio(problem: Problem) -> Ratio:
     """tr(W P W) = p00 + p11 + |p_o|^2 p22 in exact rational arithmetic (m^2)."""
     (p00, p11, p22, x_o, y_o), E = _scaled_integers(
         (problem.entries[0], problem.entries[3], problem.entries[5], *problem.slot))
-    return Fraction((p00 + p11 << 2 * E) + (x_o * x_o + y_o * y_o) * p22, 1 << 3 * E)
+    return (p00 + p11 << 2 * E) + (x_o * x_o + y_o * y_o) * p22, 1 << 3 * E
+
+
+def exact_base_cost(problem: Problem) -> Fraction:
+    """:func:`_exact_base_ratio` as a Fraction (m^2)."""
+    return Fraction(*_exact_base_ratio(problem))
 
 
 def integer_positive_definite(T: tuple[int, int, int, int, int, int]) -> bool:
