@@ -261,6 +261,31 @@ def nearly_flat_range_problem(rng: np.random.Generator) -> Problem:
     return Problem(P, flat.p_o, flat.r, flat.sigma, RANGE)
 
 
+def near_rank_one_problem(rng: np.random.Generator, kind: str) -> Problem:
+    """P = v v' + eps |v|^2 (I + 0.3 diag(U(0, 1))) scaled by 10**U(-20, 10), eps = 10**U(-15, -8)
+    (condition 1e8 to 1e15), sigma 10**U(-9, -3) of the largest standard deviation: the
+    posterior cost is 1e-8 to 1e-15 of tr(W P W), far below the rounding of the gain formula,
+    and the floating-point critical points miss the optimum by up to 3e-5 of the cost (a
+    reviewer's family). |p_o| from 1e-3 to 1e6 m, r from 0.3 to 0.999 |p_o|. Drawn again
+    until the problem is valid (a few percent are not positive definite in exact arithmetic)."""
+    while True:
+        d_o = 10.0 ** rng.uniform(-3.0, 6.0)
+        angle = rng.uniform(-math.pi, math.pi)
+        p_o = d_o * np.array([math.cos(angle), math.sin(angle)])
+        v = rng.standard_normal(3)
+        v[2] /= d_o * rng.choice([1.0, 10.0, 0.1])
+        eps = 10.0 ** rng.uniform(-15.0, -8.0)
+        P = np.outer(v, v) + eps * (v @ v) * (np.eye(3) + 0.3 * np.diag(rng.random(3)))
+        P = 0.5 * (P + P.T) * 10.0 ** rng.uniform(-20.0, 10.0)
+        r = float(rng.choice([0.3, 0.7, 0.9, 0.99, 0.999]) * d_o)
+        sigma = min(max(10.0 ** rng.uniform(-9.0, -3.0) * math.sqrt(P.diagonal().max()), 1e-9),
+                    1e6)
+        try:
+            return Problem(P, p_o, r, sigma, kind)
+        except ValueError:
+            continue
+
+
 def families(kind: str) -> dict[str, tuple[Generator, int]]:
     """name -> (generator, count) of the slow tier: 10,000 or more problems per kind."""
     def of(maker: Callable[[np.random.Generator, str], Problem]) -> Generator:

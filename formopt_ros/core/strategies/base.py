@@ -44,7 +44,8 @@ class Solution:
             ``details['certificate_arithmetic'] == 'exact'``) that no feasible point is cheaper
             by more than ``details['certificate_gap']`` times ``cost`` (at most 2e-10),
             'all-critical-points' when every stationary point was enumerated by a polynomial
-            root finder and p is the best of them (bearing: nor is a boundary sample or the slot),
+            root finder and p is the best of them (bearing: nor is a boundary sample or the
+            slot), and an exact local search from p found no better point,
             'none' when nothing was proved (RQ and RAM then say why in ``details['reason']``;
             see :mod:`formopt_ros.core.strategies.certificate`).
         details: method-specific diagnostics (the certificate's gap, multiplier and residual).

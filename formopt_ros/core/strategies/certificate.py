@@ -30,13 +30,17 @@ entries, a small eigenvalue: ill-conditioned priors, or a gain close to tr(W P W
 test runs again in exact arithmetic on the exact data (P, p_o, r, sigma and p are dyadic
 rationals, so integers after one common scaling: :func:`exact_bound_matrix`), which takes
 about 10 us; so it does where e exceeds every rtol cost (the gain formula cancels), with
-lambda just above the exact gain (:func:`exact_gain`) and the exact cost reported. A point that
+lambda just above the exact gain (:func:`exact_gain`) and the exact cost reported; for bearing,
+when the floating-point multiplier fails there, with the exact least-squares KKT multiplier
+(:func:`_exact_bearing_multiplier`: where S cancels, the float one can be off by more than the
+proof's margin). A point that
 is not optimal fails the test, however accurate the arithmetic: a better feasible point h
 makes h'Sh <= mu h'Gh <= 0.
 """
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 from fractions import Fraction
 from typing import Any
@@ -161,6 +165,11 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
                 mu, name = float(multiplier), INTERIOR if multiplier == 0 else BOUNDARY
         else:
             proved = integer_positive_definite(S)
+            if not proved:      # the float multiplier may be off: the exact KKT multiplier
+                multiplier = _exact_bearing_multiplier(problem, bound, x, y)
+                proved = multiplier is not None
+                if multiplier is not None:
+                    mu, name = float(multiplier), INTERIOR if multiplier == 0 else BOUNDARY
         if proved:
             # (bound - g) / cost; an int / int quotient is correctly rounded
             gap = (ceiling * gd - (gn << k)) * cd / ((gd << k) * cn)
@@ -185,6 +194,37 @@ def _best_range_multiplier(S: Sequence[int], S_plus_G: Sequence[int]) -> Fractio
     a, b = (-numerator, -2 * det_g) if det_g < 0 and numerator < 0 else (0, 1)
     t00, t01, t11 = b * s00 + a * g00, b * s01 + a * g01, b * s11 + a * g11
     return Fraction(a, b) if t00 > 0 and t00 * t11 > t01 * t01 else None
+
+
+def _exact_bearing_multiplier(problem: Problem, bound: Fraction, x: float,
+                              y: float) -> Fraction | None:
+    """For a bearing problem, the least-squares KKT multiplier mu = -(Dk)'(T0 k) / |Dk|^2 of
+    the exact T0 = T(mu = 0) and D = T(1) - T0 of :func:`exact_bound_matrix` at p = (x, y)
+    (k = K^-1 h in its congruence, h = [-y, x, -(x^2 + y^2)]), if T0 + mu D is positive
+    definite, else None. Where S cancels (P ill-conditioned, the cost far below tr(W P W))
+    the multiplier from floating point can be off by more than the proof's margin."""
+    T0, E = exact_bound_matrix(problem, bound, 0.0)
+    T1 = exact_bound_matrix(problem, bound, 1.0)[0]
+    D = tuple(t1 - t0 for t0, t1 in zip(T0, T1))
+    (x_o, y_o, r, _), _ = _scaled_integers(            # in T's unit 2^-E
+        (*problem.slot, float(problem.r), Fraction(1, 1 << E)))
+    k2 = x_o * x_o + y_o * y_o - r * r              # K = diag(1, 1, k2)
+    (X, Y), e = _scaled_integers((x, y))
+    k = ((-Y << e) * k2, (X << e) * k2, -(X * X + Y * Y))
+    v, w = _times(T0, k), _times(D, k)
+    a, b = -sum(map(operator.mul, w, v)), sum(map(operator.mul, w, w))
+    if b == 0:
+        return None
+    a = max(a, 0)
+    T = tuple(b * t0 + a * d for t0, d in zip(T0, D))
+    return Fraction(a, b) if integer_positive_definite(T) else None
+
+
+def _times(X: Sequence[int], h: Sequence[int]) -> tuple[int, int, int]:
+    """X h for the symmetric 3x3 X of entries (00, 01, 02, 11, 12, 22)."""
+    x00, x01, x02, x11, x12, x22 = X
+    return (x00 * h[0] + x01 * h[1] + x02 * h[2], x01 * h[0] + x11 * h[1] + x12 * h[2],
+            x02 * h[0] + x12 * h[1] + x22 * h[2])
 
 
 #: A floating-point test's verdict: (mu, residual, rtol): rtol the smallest of GAP_RTOLS proved
@@ -394,6 +434,32 @@ def exact_gain_ratio(problem: Problem, x: float, y: float) -> Ratio:
     else:
         N[5], h = N[5] + R, (-Y << E, X << E, -(X * X + Y * Y))
     return _quadratic_form(M, h), _quadratic_form(N, h) << 2 * E
+
+
+def exact_quotient_newton_step(problem: Problem, q0: float, q1: float) -> tuple[float, float]:
+    """For a bearing problem, Newton's step (1/m) towards the stationary point of the gain
+    h'Mh / h'Nh over h = [q0, q1, -1], from exact residuals: with Z = M - g N at the exact
+    gain g, solve Z[:2, :2] delta = -(Z h)[:2] (the Hessian's leading term; the residual
+    Z h vanishes at the top generalised eigenvector). Z and Z h are exact integers, rounded
+    to floats only after the cancellation; the 2x2 system is solved in floating point.
+    Returns (0, 0) where the system is singular."""
+    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, Q0, Q1), E = _scaled_integers(
+        (*problem.entries, *problem.slot, float(problem.sigma), q0, q1))
+    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
+    N = [p << E for p in (p00, p01, p02, p11, p12, p22)]
+    N[5] += sigma * sigma
+    h = (Q0, Q1, -(1 << E))
+    n, d = _quadratic_form(M, h), _quadratic_form(N, h)
+    Z = [d * m - n * k for m, k in zip(M, N)]          # 2^8E d (M - g N), d > 0
+    z0, z1, _ = _times(Z, h)
+    shift = max(abs(v).bit_length() for v in (*Z, z0, z1)) - 512
+    a, b, c, u, v = (value / (1 << shift) if shift > 0 else float(value)
+                     for value in (Z[0], Z[1], Z[3], z0, z1))
+    det = a * c - b * b
+    if not (det != 0.0 and math.isfinite(det)):
+        return 0.0, 0.0
+    # delta in h's integer units 2^-E
+    return (math.ldexp((-u * c + v * b) / det, -E), math.ldexp((-v * a + u * b) / det, -E))
 
 
 def exact_gain(problem: Problem, x: float, y: float) -> Fraction:

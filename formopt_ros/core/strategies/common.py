@@ -9,9 +9,11 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.core.cost import Problem, ProblemBatch, point_from_q
+from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import Solution, make_solution
 from formopt_ros.core.strategies.certificate import (
-    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain)
+    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain,
+    exact_gain_ratio, exact_quotient_newton_step)
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
@@ -22,6 +24,16 @@ CHECK_SAMPLES = 360
 #: Relative cost (exact arithmetic) by which a sample, the slot or a Newton point may beat the
 #: best critical point before the enumeration counts as having lost one.
 EXACT_TIE = 1e-9
+#: The exact local search (:func:`refine_exactly`): first step (as a fraction of r, and rad),
+#: the step at which it stops, and the most exact gains it evaluates (about 10 us each).
+REFINE_FIRST_STEP = 1e-3
+REFINE_LAST_STEP = 1e-15
+REFINE_EVALUATIONS = 600
+#: ``details['reason']`` of an answer the exact search improved on but could not prove.
+REFINED_REASON = ('rounding spoilt the critical points: the point is the best an exact local '
+                  'search found from them, not proved optimal')
+#: Newton steps at most that the exact search tries first on a bearing problem.
+REFINE_NEWTON_STEPS = 8
 
 
 def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
@@ -55,12 +67,79 @@ def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others
     return chosen, False
 
 
+def refine_exactly(problem: Problem, p: Sequence[float]) -> tuple[tuple[float, float], bool]:
+    """A compass search for a better point than p (2,) on exact gains: ((x, y), whether it found
+    one).
+
+    Where rounding swamps the cost (P ill-conditioned, the posterior cost 1e-8 to 1e-15 of
+    tr(W P W)), the floating-point critical points can miss the optimum by 1e-9 to 1e-5 of
+    the cost while their gains no longer tell them apart. The search works in the plane where
+    the gain is a quotient of quadratic forms: p for range, q = (-y, x) / |p|^2 for bearing
+    (where the disc is the q-disc), with the point as centre + rho (cos phi, sin phi), rho up
+    to the disc's radius. It moves along the eight compass directions of (rho, phi) with
+    steps from REFINE_FIRST_STEP (of the radius, and rad) halved down to REFINE_LAST_STEP,
+    comparing exact gains (:func:`~.certificate.exact_gain_ratio`, by cross-multiplying), at
+    most REFINE_EVALUATIONS of them; on the boundary the phi moves follow the circle.
+    """
+    x, y = float(p[0]), float(p[1])
+    if problem.measurement == RANGE:
+        (c0, c1), radius, u, v = problem.slot, float(problem.r), x, y
+    else:
+        c0, c1, radius = problem.q_circle
+        n2 = x * x + y * y
+        u, v = -y / n2, x / n2
+
+    def point(rho: float, phi: float) -> tuple[float, float]:
+        u, v = c0 + rho * math.cos(phi), c1 + rho * math.sin(phi)
+        if problem.measurement == RANGE:
+            return u, v
+        n2 = u * u + v * v
+        return v / n2, -u / n2
+
+    best = exact_gain_ratio(problem, x, y)
+    evaluations, improved = 0, False
+    if problem.measurement != RANGE:
+        # an interior optimum first: Newton steps on exact residuals, kept while they gain
+        for _ in range(REFINE_NEWTON_STEPS):
+            du, dv = exact_quotient_newton_step(problem, u, v)
+            u_new, v_new = u + du, v + dv
+            if not math.hypot(u_new - c0, v_new - c1) <= radius:
+                break
+            n2 = u_new * u_new + v_new * v_new
+            x_new, y_new = v_new / n2, -u_new / n2
+            gain = exact_gain_ratio(problem, x_new, y_new)
+            evaluations += 1
+            if not gain[0] * best[1] > best[0] * gain[1]:
+                break
+            u, v, x, y, best, improved = u_new, v_new, x_new, y_new, gain, True
+    rho, phi = min(math.hypot(u - c0, v - c1), radius), math.atan2(v - c1, u - c0)
+    step = REFINE_FIRST_STEP
+    while step >= REFINE_LAST_STEP and evaluations < REFINE_EVALUATIONS:
+        moved = False
+        for d_rho, d_phi in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            rho_new = min(max(rho + d_rho * step * radius, 0.0), radius)
+            phi_new = phi + d_phi * step
+            if rho_new == rho and phi_new == phi:
+                continue
+            x_new, y_new = point(rho_new, phi_new)
+            gain = exact_gain_ratio(problem, x_new, y_new)
+            evaluations += 1
+            if gain[0] * best[1] > best[0] * gain[1]:
+                rho, phi, x, y, best, moved, improved = (
+                    rho_new, phi_new, x_new, y_new, gain, True, True)
+                break
+        if not moved:
+            step *= 0.5
+    return (x, y), improved
+
+
 def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
                     others: np.ndarray, other_gains: np.ndarray, p: np.ndarray,
                     details: dict[str, Any]) -> tuple[int, bool, np.ndarray, str, dict[str, Any]]:
     """For an answer p (2,) that :func:`certify` did not prove: the exact best of the candidates
-    (:func:`exact_best`), certified afresh if it is another point, with its exact cost in
-    details.
+    (:func:`exact_best`), certified afresh if it is another point; if that is no proof either,
+    the point :func:`refine_exactly` reaches from it (``details['refined']``), certified in
+    exact arithmetic when it is better. The exact cost is in details.
 
     Returns:
         (index into critical + others, whether it is the best critical point, the point, its
@@ -72,6 +151,13 @@ def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
     if not np.array_equal(chosen, p):
         p = chosen
         name, details = certify(problem, (float(p[0]), float(p[1])))
+    if name not in PROVED:
+        # rounding may have spoilt the critical points themselves: search on exact gains
+        refined, improved = refine_exactly(problem, (float(p[0]), float(p[1])))
+        if improved:
+            p, enumerated = np.array(refined), False
+            name, details = certify(problem, refined)
+            details['refined'] = True
     details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
     if name not in PROVED:
         name = CRITICAL_POINTS if enumerated else NONE
@@ -128,8 +214,9 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
         others, problem.gain(others), np.array((x, y)), details)
     x, y = float(p[0]), float(p[1])
     theta = ends[chosen][3] if enumerated else math.atan2(y, x)
-    if not enumerated:
-        details['reason'] = (f'rounding lost the critical direction: the best of {len(ends)} '
+    if not enumerated and name not in PROVED:
+        details['reason'] = (REFINED_REASON if details.get('refined') else
+                             f'rounding lost the critical direction: the best of {len(ends)} '
                              f'arc points is not as good as the best of {CHECK_SAMPLES} boundary '
                              'samples and the slot')
     on_boundary = abs(math.hypot(x - x_o, y - y_o) - problem.r) <= 1e-9 * problem.r

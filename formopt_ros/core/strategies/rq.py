@@ -20,6 +20,9 @@ numpy's generalised eigenvector and every root of the degree-6 stationarity poly
 z = e^{it} (companion matrix), each polished by Newton steps; its best point is certified
 again, or named 'all-critical-points' unless a boundary sample, the slot or a point of the fast
 path is better (rounding lost a root): that point is then returned as 'none', with the reason.
+An answer still without a proof is the start of an exact local search
+(:func:`~.common.refine_exactly`); a better point it finds is certified in exact arithmetic, or
+returned as 'none'.
 """
 from __future__ import annotations
 
@@ -35,7 +38,7 @@ from formopt_ros.core.strategies.base import (
 from formopt_ros.core.strategies.certificate import PROVED, certify
 from formopt_ros.core.strategies.common import (
     CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
-    polish_boundary_angles, range_plan_from_direction, settle_unproved)
+    REFINED_REASON, polish_boundary_angles, range_plan_from_direction, settle_unproved)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
 GAIN_ROUNDING = 16 * EPS
@@ -310,8 +313,9 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
             problem, critical, gains, others, other_gains, p, details)
     on_boundary = not (interior and best == 0) if enumerated else bool(
         abs(math.hypot(*(p - problem.p_o)) - problem.r) <= 1e-9 * problem.r)
-    if not enumerated:
-        details['reason'] = (f'rounding lost critical points: of {len(critical)} found, none is '
+    if not enumerated and name not in PROVED:
+        details['reason'] = (REFINED_REASON if details.get('refined') else
+                             f'rounding lost critical points: of {len(critical)} found, none is '
                              f'as good as the best of {CHECK_SAMPLES} boundary samples, the slot '
                              f'and {len(tried_points)} Newton points')
     return make_solution(problem, p, method, on_boundary, len(critical) + len(others),
