@@ -329,6 +329,14 @@ def test_solve_rejects_unknown_method_and_option() -> None:
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='gbs', spacing=0.1)
     with pytest.raises(ValueError, match=r"^method 'rq' accepts options .*unknown \['cell'\]"):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='rq', cell=0.1)
+    # a reviewer's: AttributeError from deep inside, or silently accepted
+    with pytest.raises(ValueError, match=r'^rng must be a numpy.random.Generator .*got 3'):
+        solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='crm',
+              rng=3)  # type: ignore[arg-type]
+    for method in ('mme', 'periodic', 'rq'):
+        with pytest.raises(ValueError, match=r"^context must be a PlanContext, got 'x'"):
+            solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=method,
+                  context='x')  # type: ignore[arg-type]
 
 
 def brute_force_cost(problem: Problem, point: np.ndarray, phi: float) -> float:
