@@ -474,16 +474,23 @@ def exact_cost(problem: Problem, x: float, y: float) -> float:
     return (bn * gd - gn * bd) / (bd * gd)          # int / int is correctly rounded
 
 
-def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence[float]) -> int:
-    """Index of the point (x, y) of greatest exact gain among those whose computed gain (from
-    ``problem.gain_at``) is within the rounding bounds of the greatest: the rounding of the
-    gain formula may exceed the difference of near ties."""
+def tied_with_best(problem: Problem, points: Sequence[Sequence[float]],
+                   gains: Sequence[float]) -> list[int]:
+    """Indices of the points (x, y) whose computed gain (from ``problem.gain_at``) is within the
+    rounding bounds of the greatest (:meth:`~formopt_ros.core.cost.Problem.gain_error_at`):
+    floating point cannot tell them apart."""
     best = max(range(len(gains)), key=gains.__getitem__)
     errors = [problem.gain_error_at(float(x), float(y), g) for (x, y), g in zip(points, gains)]
     # (not <: a gain of -inf with an infinite error bound, nan, is close)
-    close = [k for k, g in enumerate(gains) if not g + errors[k] < gains[best] - errors[best]]
+    return [k for k, g in enumerate(gains) if not g + errors[k] < gains[best] - errors[best]]
+
+
+def best_of(problem: Problem, points: Sequence[Sequence[float]], gains: Sequence[float]) -> int:
+    """Index of the point (x, y) of greatest exact gain among those :func:`tied_with_best`:
+    the rounding of the gain formula may exceed the difference of near ties."""
+    close = tied_with_best(problem, points, gains)
     if len(close) == 1:
-        return best
+        return close[0]
     return max(close, key=lambda k: exact_gain(problem, float(points[k][0]),
                                                float(points[k][1])))
 

@@ -13,7 +13,7 @@ from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import Solution, make_solution
 from formopt_ros.core.strategies.certificate import (
     CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain,
-    exact_gain_ratio, exact_quotient_newton_step)
+    exact_gain_ratio, exact_quotient_newton_step, tied_with_best)
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
@@ -25,7 +25,8 @@ CHECK_SAMPLES = 360
 #: best critical point before the enumeration counts as having lost one.
 EXACT_TIE = 1e-9
 #: The exact local search (:func:`refine_exactly`): first step (as a fraction of r, and rad),
-#: the step at which it stops, and the most exact gains it evaluates (about 10 us each).
+#: the step at which it stops, and the most exact gains it evaluates (about 10 us each) from
+#: the answer (a quarter of that from each other start).
 REFINE_FIRST_STEP = 1e-3
 REFINE_LAST_STEP = 1e-15
 REFINE_EVALUATIONS = 600
@@ -67,7 +68,8 @@ def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others
     return chosen, False
 
 
-def refine_exactly(problem: Problem, p: Sequence[float]) -> tuple[tuple[float, float], bool]:
+def refine_exactly(problem: Problem, p: Sequence[float],
+                   budget: int = REFINE_EVALUATIONS) -> tuple[tuple[float, float], bool]:
     """A compass search for a better point than p (2,) on exact gains: ((x, y), whether it found
     one).
 
@@ -79,7 +81,7 @@ def refine_exactly(problem: Problem, p: Sequence[float]) -> tuple[tuple[float, f
     to the disc's radius. It moves along the eight compass directions of (rho, phi) with
     steps from REFINE_FIRST_STEP (of the radius, and rad) halved down to REFINE_LAST_STEP,
     comparing exact gains (:func:`~.certificate.exact_gain_ratio`, by cross-multiplying), at
-    most REFINE_EVALUATIONS of them; on the boundary the phi moves follow the circle.
+    most ``budget`` of them; on the boundary the phi moves follow the circle.
     """
     x, y = float(p[0]), float(p[1])
     if problem.measurement == RANGE:
@@ -114,7 +116,7 @@ def refine_exactly(problem: Problem, p: Sequence[float]) -> tuple[tuple[float, f
             u, v, x, y, best, improved = u_new, v_new, x_new, y_new, gain, True
     rho, phi = min(math.hypot(u - c0, v - c1), radius), math.atan2(v - c1, u - c0)
     step = REFINE_FIRST_STEP
-    while step >= REFINE_LAST_STEP and evaluations < REFINE_EVALUATIONS:
+    while step >= REFINE_LAST_STEP and evaluations < budget:
         moved = False
         for d_rho, d_phi in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
             rho_new = min(max(rho + d_rho * step * radius, 0.0), radius)
@@ -138,8 +140,9 @@ def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
                     details: dict[str, Any]) -> tuple[int, bool, np.ndarray, str, dict[str, Any]]:
     """For an answer p (2,) that :func:`certify` did not prove: the exact best of the candidates
     (:func:`exact_best`), certified afresh if it is another point; if that is no proof either,
-    the point :func:`refine_exactly` reaches from it (``details['refined']``), certified in
-    exact arithmetic when it is better. The exact cost is in details.
+    the best point :func:`refine_exactly` reaches from it and from the critical points whose
+    gains tie with the best (``details['refined']``), certified in exact arithmetic when it is
+    better. The exact cost is in details.
 
     Returns:
         (index into critical + others, whether it is the best critical point, the point, its
@@ -152,11 +155,24 @@ def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
         p = chosen
         name, details = certify(problem, (float(p[0]), float(p[1])))
     if name not in PROVED:
-        # rounding may have spoilt the critical points themselves: search on exact gains
-        refined, improved = refine_exactly(problem, (float(p[0]), float(p[1])))
-        if improved:
-            p, enumerated = np.array(refined), False
-            name, details = certify(problem, refined)
+        # rounding may have spoilt the critical points themselves: search on exact gains from
+        # p and from every critical point that ties with the best (another basin may hold the
+        # optimum while its critical point, misplaced by rounding, looks worse)
+        starts = [(float(p[0]), float(p[1]))]
+        if len(critical):
+            tied = tied_with_best(problem, np.vstack([critical, others]).tolist(),
+                                  [*gains.tolist(), *other_gains.tolist()])
+            starts += [(float(critical[k][0]), float(critical[k][1])) for k in tied
+                       if k < len(critical) and not np.array_equal(critical[k], p)]
+        best, moved = exact_gain_ratio(problem, *starts[0]), False
+        for count, start in enumerate(starts):
+            refined, _ = refine_exactly(problem, start, REFINE_EVALUATIONS if count == 0
+                                        else REFINE_EVALUATIONS // 4)
+            gain = exact_gain_ratio(problem, *refined)
+            if gain[0] * best[1] > best[0] * gain[1]:
+                p, best, enumerated, moved = np.array(refined), gain, False, True
+        if moved:
+            name, details = certify(problem, (float(p[0]), float(p[1])))
             details['refined'] = True
     details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
     if name not in PROVED:
