@@ -24,7 +24,7 @@ import numbers
 import operator
 import reprlib
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from decimal import Decimal
 from fractions import Fraction
@@ -584,8 +584,8 @@ class Problem(_QuotientForms, _ProblemValues):
         values = self.base_cost - self.gain(points)
         return float(values[0]) if np.ndim(points) == 1 else values
 
-    def feasible(self, point: np.ndarray, tol: float = 1e-9) -> bool:
-        """True when |point - p_o| <= r (1 + tol)."""
+    def feasible(self, point: np.ndarray | Sequence[float], tol: float = 1e-9) -> bool:
+        """True when |point - p_o| <= r (1 + tol), for a point (2,) in m."""
         x_o, y_o = self.slot
         return bool(math.hypot(point[0] - x_o, point[1] - y_o) <= self.r * (1.0 + tol))
 

@@ -81,7 +81,8 @@ def refine_exactly(problem: Problem, p: Sequence[float],
     to the disc's radius. It moves along the eight compass directions of (rho, phi) with
     steps from REFINE_FIRST_STEP (of the radius, and rad) halved down to REFINE_LAST_STEP,
     comparing exact gains (:func:`~.certificate.exact_gain_ratio`, by cross-multiplying), at
-    most ``budget`` of them; on the boundary the phi moves follow the circle.
+    most ``budget`` of them; on the boundary the phi moves follow the circle. Points that
+    rounding puts outside the disc's tolerance (``Problem.feasible``) are passed over.
     """
     x, y = float(p[0]), float(p[1])
     if problem.measurement == RANGE:
@@ -109,6 +110,8 @@ def refine_exactly(problem: Problem, p: Sequence[float],
                 break
             n2 = u_new * u_new + v_new * v_new
             x_new, y_new = v_new / n2, -u_new / n2
+            if not problem.feasible((x_new, y_new)):
+                break
             gain = exact_gain_ratio(problem, x_new, y_new)
             evaluations += 1
             if not gain[0] * best[1] > best[0] * gain[1]:
@@ -124,6 +127,8 @@ def refine_exactly(problem: Problem, p: Sequence[float],
             if rho_new == rho and phi_new == phi:
                 continue
             x_new, y_new = point(rho_new, phi_new)
+            if not problem.feasible((x_new, y_new)):      # rounding, on a tiny disc
+                continue
             gain = exact_gain_ratio(problem, x_new, y_new)
             evaluations += 1
             if gain[0] * best[1] > best[0] * gain[1]:
