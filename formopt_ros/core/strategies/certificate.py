@@ -148,7 +148,6 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
     if gn / gd != gain:             # the multiplier belongs to the exact gain
         test = _range_test if problem.measurement == RANGE else _bearing_test
         mu = test(problem, x, y, gn / gd, cn / cd, math.inf)[0]
-    name = INTERIOR if mu == 0.0 else BOUNDARY
     for rtol in GAP_RTOLS:
         rn, rd = rtol.as_integer_ratio()
         # target g + rtol cost, and k with 2^-k <= rtol cost 2^-40 (a positive n / d is at
@@ -158,25 +157,21 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
         ceiling = -((-tn << k) // td)
         bound = Fraction(ceiling, 1 << k)
         S = exact_bound_matrix(problem, bound, mu if problem.measurement != RANGE else 0.0)[0]
+        multiplier: Fraction | None
         if problem.measurement == RANGE:
             multiplier = _best_range_multiplier(S, exact_bound_matrix(problem, bound, 1.0)[0])
-            proved = multiplier is not None
-            if multiplier is not None:
-                mu, name = float(multiplier), INTERIOR if multiplier == 0 else BOUNDARY
-        else:
-            proved = integer_positive_definite(S)
-            if not proved:      # the float multiplier may be off: the exact KKT multiplier
-                multiplier = _exact_bearing_multiplier(problem, bound, x, y)
-                proved = multiplier is not None
-                if multiplier is not None:
-                    mu, name = float(multiplier), INTERIOR if multiplier == 0 else BOUNDARY
-        if proved:
+        elif integer_positive_definite(S):
+            multiplier = Fraction(mu)
+        else:                   # the float multiplier may be off: the exact KKT multiplier
+            multiplier = _exact_bearing_multiplier(problem, bound, x, y)
+        if multiplier is not None:
+            mu = float(multiplier)
             # (bound - g) / cost; an int / int quotient is correctly rounded
             gap = (ceiling * gd - (gn << k)) * cd / ((gd << k) * cn)
             details.update(certificate_gap=math.nextafter(gap, math.inf),
                            certificate_multiplier=mu, certificate_arithmetic='exact',
                            exact_cost=cn / cd)
-            return name, details
+            return (INTERIOR if multiplier == 0 else BOUNDARY), details
     return NONE, details
 
 
@@ -419,16 +414,23 @@ def _quadratic_form(X: Sequence[int], h: Sequence[int]) -> int:
 Ratio = tuple[int, int]
 
 
+def _exact_forms(problem: Problem, *points: float) -> tuple[
+        tuple[int, int, int, int, int, int], list[int], int, list[int], int]:
+    """(M = P W^2 P (degree 4), P's entries (degree 2), R = sigma^2 (degree 2), ``points`` as
+    integers (degree 1), E) in the integer units of :func:`_scaled_integers`: N is P plus R
+    where the sensor puts it."""
+    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, *scaled), E = _scaled_integers(
+        (*problem.entries, *problem.slot, float(problem.sigma), *points))
+    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
+    return M, [p << E for p in (p00, p01, p02, p11, p12, p22)], sigma * sigma, scaled, E
+
+
 def exact_gain_ratio(problem: Problem, x: float, y: float) -> Ratio:
     """The gain at the floats (x, y) (m) in exact rational arithmetic on the exact data (m^2):
     h'Mh / h'Nh for the homogeneous h of the module docstring, h = [x, y, 0] with
     N = P + R diag(1, 1, 0) (range), h = [-y, x, -(x^2 + y^2)] with N = P + R e3 e3'
-    (bearing); integers of :func:`_scaled_integers` (degrees: M 4, N 2, h 1 or 2)."""
-    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, X, Y), E = _scaled_integers(
-        (*problem.entries, *problem.slot, float(problem.sigma), x, y))
-    R = sigma * sigma
-    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
-    N = [p << E for p in (p00, p01, p02, p11, p12, p22)]
+    (bearing); integers of :func:`_exact_forms` (degrees: M 4, N 2, h 1 or 2)."""
+    M, N, R, (X, Y), E = _exact_forms(problem, x, y)
     if problem.measurement == RANGE:
         N[0], N[3], h = N[0] + R, N[3] + R, (X, Y, 0)
     else:
@@ -443,11 +445,8 @@ def exact_quotient_newton_step(problem: Problem, q0: float, q1: float) -> tuple[
     Z h vanishes at the top generalised eigenvector). Z and Z h are exact integers, rounded
     to floats only after the cancellation; the 2x2 system is solved in floating point.
     Returns (0, 0) where the system is singular."""
-    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, Q0, Q1), E = _scaled_integers(
-        (*problem.entries, *problem.slot, float(problem.sigma), q0, q1))
-    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
-    N = [p << E for p in (p00, p01, p02, p11, p12, p22)]
-    N[5] += sigma * sigma
+    M, N, R, (Q0, Q1), E = _exact_forms(problem, q0, q1)
+    N[5] += R
     h = (Q0, Q1, -(1 << E))
     n, d = _quadratic_form(M, h), _quadratic_form(N, h)
     Z = [d * m - n * k for m, k in zip(M, N)]          # 2^8E d (M - g N), d > 0
