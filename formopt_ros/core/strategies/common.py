@@ -13,7 +13,7 @@ from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import Solution, make_solution
 from formopt_ros.core.strategies.certificate import (
     CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain,
-    exact_gain_ratio, exact_quotient_newton_step, tied_with_best)
+    Ratio, exact_gain_ratio, exact_quotient_newton_step, tied_with_best)
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
@@ -69,9 +69,9 @@ def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others
 
 
 def refine_exactly(problem: Problem, p: Sequence[float],
-                   budget: int = REFINE_EVALUATIONS) -> tuple[tuple[float, float], bool]:
-    """A compass search for a better point than p (2,) on exact gains: ((x, y), whether it found
-    one).
+                   budget: int = REFINE_EVALUATIONS) -> tuple[tuple[float, float], Ratio]:
+    """A compass search for a better point than p (2,) on exact gains: ((x, y) m, its exact
+    gain as a :data:`~.certificate.Ratio`), p itself when it finds none.
 
     Where rounding swamps the cost (P ill-conditioned, the posterior cost 1e-8 to 1e-15 of
     tr(W P W)), the floating-point critical points can miss the optimum by 1e-9 to 1e-5 of
@@ -100,7 +100,7 @@ def refine_exactly(problem: Problem, p: Sequence[float],
         return v / n2, -u / n2
 
     best = exact_gain_ratio(problem, x, y)
-    evaluations, improved = 0, False
+    evaluations = 0
     if problem.measurement != RANGE:
         # an interior optimum first: Newton steps on exact residuals, kept while they gain
         for _ in range(REFINE_NEWTON_STEPS):
@@ -116,7 +116,7 @@ def refine_exactly(problem: Problem, p: Sequence[float],
             evaluations += 1
             if not gain[0] * best[1] > best[0] * gain[1]:
                 break
-            u, v, x, y, best, improved = u_new, v_new, x_new, y_new, gain, True
+            u, v, x, y, best = u_new, v_new, x_new, y_new, gain
     rho, phi = min(math.hypot(u - c0, v - c1), radius), math.atan2(v - c1, u - c0)
     step = REFINE_FIRST_STEP
     while step >= REFINE_LAST_STEP and evaluations < budget:
@@ -132,12 +132,11 @@ def refine_exactly(problem: Problem, p: Sequence[float],
             gain = exact_gain_ratio(problem, x_new, y_new)
             evaluations += 1
             if gain[0] * best[1] > best[0] * gain[1]:
-                rho, phi, x, y, best, moved, improved = (
-                    rho_new, phi_new, x_new, y_new, gain, True, True)
+                rho, phi, x, y, best, moved = rho_new, phi_new, x_new, y_new, gain, True
                 break
         if not moved:
             step *= 0.5
-    return (x, y), improved
+    return (x, y), best
 
 
 def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
@@ -169,16 +168,18 @@ def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
                                   [*gains.tolist(), *other_gains.tolist()])
             starts += [(float(critical[k][0]), float(critical[k][1])) for k in tied
                        if k < len(critical) and not np.array_equal(critical[k], p)]
-        best, moved = exact_gain_ratio(problem, *starts[0]), False
+        best: tuple[tuple[float, float], Ratio] | None = None
         for count, start in enumerate(starts):
-            refined, _ = refine_exactly(problem, start, REFINE_EVALUATIONS if count == 0
-                                        else REFINE_EVALUATIONS // 4)
-            gain = exact_gain_ratio(problem, *refined)
-            if gain[0] * best[1] > best[0] * gain[1]:
-                p, best, enumerated, moved = np.array(refined), gain, False, True
-        if moved:
-            name, details = certify(problem, (float(p[0]), float(p[1])))
+            refined, gain = refine_exactly(problem, start, REFINE_EVALUATIONS if count == 0
+                                           else REFINE_EVALUATIONS // 4)
+            if best is None or gain[0] * best[1][1] > best[1][0] * gain[1]:
+                best = refined, gain
+        if best is not None and best[0] != starts[0]:    # a strictly better point
+            p, enumerated = np.array(best[0]), False
+            name, details = certify(problem, best[0])
             details['refined'] = True
+            if name not in PROVED:
+                details['reason'] = REFINED_REASON
     details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
     if name not in PROVED:
         name = CRITICAL_POINTS if enumerated else NONE
@@ -236,10 +237,9 @@ def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,
     x, y = float(p[0]), float(p[1])
     theta = ends[chosen][3] if enumerated else math.atan2(y, x)
     if not enumerated and name not in PROVED:
-        details['reason'] = (REFINED_REASON if details.get('refined') else
-                             f'rounding lost the critical direction: the best of {len(ends)} '
-                             f'arc points is not as good as the best of {CHECK_SAMPLES} boundary '
-                             'samples and the slot')
+        details.setdefault('reason', f'rounding lost the critical direction: the best of '
+                           f'{len(ends)} arc points is not as good as the best of '
+                           f'{CHECK_SAMPLES} boundary samples and the slot')
     on_boundary = abs(math.hypot(x - x_o, y - y_o) - problem.r) <= 1e-9 * problem.r
     return make_solution(problem, (x, y), method, on_boundary if not enumerated
                          else len(thetas) > 1, candidates + len(thetas) + len(others),

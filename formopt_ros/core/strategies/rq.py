@@ -38,7 +38,7 @@ from formopt_ros.core.strategies.base import (
 from formopt_ros.core.strategies.certificate import PROVED, certify
 from formopt_ros.core.strategies.common import (
     CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
-    REFINED_REASON, polish_boundary_angles, range_plan_from_direction, settle_unproved)
+    polish_boundary_angles, range_plan_from_direction, settle_unproved)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
 GAIN_ROUNDING = 16 * EPS
@@ -314,10 +314,9 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
     on_boundary = not (interior and best == 0) if enumerated else bool(
         abs(math.hypot(*(p - problem.p_o)) - problem.r) <= 1e-9 * problem.r)
     if not enumerated and name not in PROVED:
-        details['reason'] = (REFINED_REASON if details.get('refined') else
-                             f'rounding lost critical points: of {len(critical)} found, none is '
-                             f'as good as the best of {CHECK_SAMPLES} boundary samples, the slot '
-                             f'and {len(tried_points)} Newton points')
+        details.setdefault('reason', f'rounding lost critical points: of {len(critical)} found, '
+                           f'none is as good as the best of {CHECK_SAMPLES} boundary samples, '
+                           f'the slot and {len(tried_points)} Newton points')
     return make_solution(problem, p, method, on_boundary, len(critical) + len(others),
                          certificate=name,
                          details={'interior': not on_boundary, 'route': 'exhaustive',
