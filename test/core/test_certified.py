@@ -556,6 +556,68 @@ def test_exact_search_starts_in_every_tied_basin() -> None:
         assert exact_cost(problem, solution.p) <= target * (1 + Fraction(common.EXACT_TIE))
 
 
+#: A reviewer's 'lopsided' bearing problems (variances 1e-100 to 1e22 in one P, sigma down to
+#: 1e-9: the posterior cost 1e-24 to 1e-43 of tr(W P W)) where RQ's and RAM's answers were
+#: 'none' and 7e-6 to 0.45 (relative) worse than a feasible witness (an mpmath optimum rounded
+#: to floats): the optimum's basin lies where the disc comes close to the leader, between two
+#: of the boundary samples equally spaced around p_o. (P, p_o, r, sigma, witness), as float.hex.
+LOPSIDED = [
+    (['0x1.4732a8e76041fp+74', '-0x1.84461069b608ap-67', '0x1.abbde73d12bbdp-104',
+      '-0x1.84461069b608ap-67', '0x1.ccc007669653dp-208', '-0x1.fb95e1496b75ep-245',
+      '0x1.abbde73d12bbdp-104', '-0x1.fb95e1496b75ep-245', '0x1.17974141521ebp-281'],
+     ['0x1.f0315ca7c0ae1p-11', '0x1.52a5d9c3c20cfp-12'],
+     '0x1.05e1c15097c7cp-10', '0x1.12e0be826d695p-30',
+     ('0x1.804199cae0aa8p-21', '0x1.0c5de0093242dp-20')),
+    (['0x1.776487ccaf7aep+36', '0x1.65ea9590410c2p-4', '0x1.7b085ab790fc4p-150',
+      '0x1.65ea9590410c2p-4', '0x1.fe5b77093def2p-43', '-0x1.0dd92d5b473cfp-192',
+      '0x1.7b085ab790fc4p-150', '-0x1.0dd92d5b473cfp-192', '0x1.78715adce2e9dp-331'],
+     ['-0x1.10eda63337c90p+0', '0x1.9b60b510491c4p-1'],
+     '0x1.1fd4422566b36p+0', '0x1.12e0be826d695p-30',
+     ('-0x1.d88b90e9babfcp-20', '0x1.c91c7151b7b5cp-2')),
+    (['0x1.4b00c955b70b7p+67', '0x1.7b75b89116a5dp+2', '0x1.4b9d69d3231bfp-14',
+      '0x1.7b75b89116a5dp+2', '0x1.88e596b3569a1p-62', '0x1.3f76624072520p-78',
+      '0x1.4b9d69d3231bfp-14', '0x1.3f76624072520p-78', '0x1.3c210cb6ecda8p-90'],
+     ['-0x1.f7cc00af77a18p-8', '-0x1.9ca8f45953fc6p-9'],
+     '0x1.0feeed45314cdp-7', '0x1.12e0be826d695p-30',
+     ('-0x1.7fc13aa5cb536p-43', '-0x1.70d5fd3471ab3p-16')),
+    (['0x1.0315e28835cfdp+71', '0x1.ba5907e7cdc74p-22', '-0x1.028698ea80db0p-28',
+      '0x1.ba5907e7cdc74p-22', '0x1.0bada288200d4p-107', '0x1.34df98f50a6d2p-116',
+      '-0x1.028698ea80db0p-28', '0x1.34df98f50a6d2p-116', '0x1.0334e6438139fp-119'],
+     ['0x1.5310b6515838bp+3', '-0x1.27ddad667aca1p+1'],
+     '0x1.5ab13ad64488bp+3', '0x1.12e0be826d695p-30',
+     ('0x1.1e588f0dc2fb6p-7', '-0x1.6340bf8c396afp-7')),
+    (['0x1.0f36fc04a5e66p-312', '0x1.3ae1cf1e9fb8cp-145', '0x1.a51bc8293acbbp-200',
+      '0x1.3ae1cf1e9fb8cp-145', '0x1.dd5b4f34c136dp+25', '-0x1.60a733cebdc11p-31',
+      '0x1.a51bc8293acbbp-200', '-0x1.60a733cebdc11p-31', '0x1.36774d465436fp-82'],
+     ['0x1.0d3a754ac520cp-3', '-0x1.d406c5a51cbefp-4'],
+     '0x1.61260764c2e01p-3', '0x1.10d387d78a451p-23',
+     ('0x1.c84617ebe539cp-10', '-0x1.571dffb396ce0p-11')),
+    (['0x1.041b0292be2eep+46', '0x1.3c4f0e44434a8p-118', '0x1.0dcf68de2ec0ap-27',
+      '0x1.3c4f0e44434a8p-118', '0x1.11fa5d5891eadp-266', '0x1.29c769e4d6859p-183',
+      '0x1.0dcf68de2ec0ap-27', '0x1.29c769e4d6859p-183', '0x1.6523ed4947d2ep-96'],
+     ['0x1.3d180c103092cp-5', '-0x1.86c59d42badbap-4'],
+     '0x1.a17e5696927a5p-4', '0x1.7ccd8a8ff25c9p-21',
+     ('0x1.a773e35accea5p-13', '-0x1.0dd7c791c323fp-10'))]
+
+
+@pytest.mark.parametrize('case', range(len(LOPSIDED)))
+def test_bearing_checks_sample_the_q_circle_too(case: int) -> None:
+    """Each of LOPSIDED: RQ's and RAM's answers are feasible and, in exact arithmetic, within
+    1e-9 of the witness or its proved gap: the check points now include CHECK_SAMPLES points
+    equally spaced in angle on the q-circle, which crowd where the disc nears the leader, and
+    the exact search starts from the best of them."""
+    P, p_o, r, sigma, witness = LOPSIDED[case]
+    problem = Problem(np.array([float.fromhex(v) for v in P]).reshape(3, 3),
+                      np.array([float.fromhex(v) for v in p_o]), float.fromhex(r),
+                      float.fromhex(sigma), BEARING)
+    target = exact_cost(problem, np.array([float.fromhex(w) for w in witness]))
+    for solution in (rq.rq_optimum(problem), ram.ram_optimum(problem)):
+        assert problem.feasible(solution.p)
+        gap = solution.details['certificate_gap'] if solution.certificate in PROVED else 0.0
+        exact = exact_cost(problem, solution.p)
+        assert exact <= target * (1 + Fraction(1e-9)) + Fraction(gap) * exact, solution
+
+
 @pytest.mark.parametrize('count', [pytest.param(60, id='60'),
                                    pytest.param(400, id='400', marks=pytest.mark.slow)])
 @pytest.mark.parametrize('kind', KINDS)

@@ -271,9 +271,10 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
     """Every critical point: numpy's top generalised eigenvector (if feasible) and every boundary
     stationary point from the companion matrix; the best one, certified if possible.
 
-    The critical points are held against CHECK_SAMPLES boundary samples, the slot and the fast
-    path's points (``tried_points``). Unless the best is proved, every candidate whose gain ties
-    with the best within the rounding bounds is compared exactly (:func:`.common.exact_best`):
+    The critical points are held against the boundary samples of :func:`.common.check_points`
+    (around p_o and on the q-circle), the slot and the fast path's points (``tried_points``).
+    Unless the best is proved, every candidate whose gain ties with the best within the
+    rounding bounds is compared exactly (:func:`.common.exact_best`):
     if a sample, the slot or a Newton point beats the best critical point by more than
     EXACT_TIE, rounding lost a critical point; the exact best is then returned with the
     certificate 'none' and the reason in ``details``, never 'all-critical-points'."""
@@ -315,7 +316,7 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
         abs(math.hypot(*(p - problem.p_o)) - problem.r) <= 1e-9 * problem.r)
     if not enumerated and name not in PROVED:
         details.setdefault('reason', f'rounding lost critical points: of {len(critical)} found, '
-                           f'none is as good as the best of {CHECK_SAMPLES} boundary samples, '
+                           f'none is as good as the best of {2 * CHECK_SAMPLES} boundary samples, '
                            f'the slot and {len(tried_points)} Newton points')
     return make_solution(problem, p, method, on_boundary, len(critical) + len(others),
                          certificate=name,
