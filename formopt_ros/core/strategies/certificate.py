@@ -30,17 +30,17 @@ entries, a small eigenvalue: ill-conditioned priors, or a gain close to tr(W P W
 test runs again in exact arithmetic on the exact data (P, p_o, r, sigma and p are dyadic
 rationals, so integers after one common scaling: :func:`exact_bound_matrix`), which takes
 about 10 us; so it does where e exceeds every rtol cost (the gain formula cancels), with
-lambda just above the exact gain (:func:`exact_gain`) and the exact cost reported; for bearing,
-when the floating-point multiplier fails there, with the exact least-squares KKT multiplier
-(:func:`_exact_bearing_multiplier`: where S cancels, the float one can be off by more than the
-proof's margin). A point that
-is not optimal fails the test, however accurate the arithmetic: a better feasible point h
-makes h'Sh <= mu h'Gh <= 0.
+lambda just above the exact gain (:func:`exact_gain`) and the exact cost reported. There the
+multiplier is decided exactly: for range the maximiser of the concave det(S + mu G)
+(:func:`_best_range_multiplier`); for bearing, when the floating-point multiplier fails, 0 or a
+critical point of the cubic det(S + mu G) (:func:`_best_bearing_multiplier`), which finds a mu
+whenever one exists: where S cancels, the float one can be off by more than the proof's margin.
+A point that is not optimal fails the test, however accurate the arithmetic: a better feasible
+point h makes h'Sh <= mu h'Gh <= 0.
 """
 from __future__ import annotations
 
 import math
-import operator
 from collections.abc import Sequence
 from fractions import Fraction
 from typing import Any
@@ -63,6 +63,9 @@ GAP_RTOLS = (1e-12, 1e-10)
 MAX_GAP = 2 * GAP_RTOLS[-1]
 #: Relative rounding error allowed in each entry of the scaled S (generous: a few operations).
 ENTRY_ERROR = 16 * EPS
+#: Bits of the rational approximations of the exact bearing multiplier's candidates, coarse
+#: to fine (:func:`_best_bearing_multiplier`).
+MULTIPLIER_BITS = (64, 256, 1024)
 #: The entries (00, 01, 11) of a symmetric 2x2 matrix.
 Entries2 = tuple[float, float, float]
 
@@ -123,12 +126,12 @@ def certify(problem: Problem, p: Sequence[float], gain: float | None = None,
         'certificate_gap': math.inf if rtol is None else rtol + error / cost,
         'certificate_multiplier': mu, 'certificate_residual': residual}
     name = INTERIOR if mu == 0.0 else BOUNDARY
-    if rtol is None:
-        return NONE, details
-    if rtol < math.inf:
+    if rtol is not None and rtol < math.inf:
         return name, details
-    if exact or (exact is None and mu > 0.0):
-        return _exact_stage(problem, x, y, g, mu, details)
+    # rtol None: the floating-point cost or scale broke down (the cost far below the rounding
+    # of tr(W P W) - gain); only a proof requested in any case goes on, in exact arithmetic
+    if exact or (exact is None and mu > 0.0 and rtol is not None):
+        return _exact_stage(problem, x, y, g, mu if math.isfinite(mu) else 0.0, details)
     return NONE, details
 
 
@@ -148,6 +151,7 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
     if gn / gd != gain:             # the multiplier belongs to the exact gain
         test = _range_test if problem.measurement == RANGE else _bearing_test
         mu = test(problem, x, y, gn / gd, cn / cd, math.inf)[0]
+        mu = mu if math.isfinite(mu) else 0.0      # bearing decides exactly when it fails
     for rtol in GAP_RTOLS:
         rn, rd = rtol.as_integer_ratio()
         # target g + rtol cost, and k with 2^-k <= rtol cost 2^-40 (a positive n / d is at
@@ -162,8 +166,9 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
             multiplier = _best_range_multiplier(S, exact_bound_matrix(problem, bound, 1.0)[0])
         elif integer_positive_definite(S):
             multiplier = Fraction(mu)
-        else:                   # the float multiplier may be off: the exact KKT multiplier
-            multiplier = _exact_bearing_multiplier(problem, bound, x, y)
+        else:                   # the float multiplier may be off: decide exactly
+            multiplier = _best_bearing_multiplier(exact_bound_matrix(problem, bound, 0.0)[0],
+                                                  exact_bound_matrix(problem, bound, 1.0)[0])
         if multiplier is not None:
             mu = float(multiplier)
             # (bound - g) / cost; an int / int quotient is correctly rounded
@@ -191,28 +196,62 @@ def _best_range_multiplier(S: Sequence[int], S_plus_G: Sequence[int]) -> Fractio
     return Fraction(a, b) if t00 > 0 and t00 * t11 > t01 * t01 else None
 
 
-def _exact_bearing_multiplier(problem: Problem, bound: Fraction, x: float,
-                              y: float) -> Fraction | None:
-    """For a bearing problem, the least-squares KKT multiplier mu = -(Dk)'(T0 k) / |Dk|^2 of
-    the exact T0 = T(mu = 0) and D = T(1) - T0 of :func:`exact_bound_matrix` at p = (x, y)
-    (k = K^-1 h in its congruence, h = [-y, x, -(x^2 + y^2)]), if T0 + mu D is positive
-    definite, else None. Where S cancels (P ill-conditioned, the cost far below tr(W P W))
-    the multiplier from floating point can be off by more than the proof's margin."""
-    T0, E = exact_bound_matrix(problem, bound, 0.0)
-    T1 = exact_bound_matrix(problem, bound, 1.0)[0]
-    D = tuple(t1 - t0 for t0, t1 in zip(T0, T1))
-    (x_o, y_o, r, _), _ = _scaled_integers(            # in T's unit 2^-E
-        (*problem.slot, float(problem.r), Fraction(1, 1 << E)))
-    k2 = x_o * x_o + y_o * y_o - r * r              # K = diag(1, 1, k2)
-    (X, Y), e = _scaled_integers((x, y))
-    k = ((-Y << e) * k2, (X << e) * k2, -(X * X + Y * Y))
-    v, w = _times(T0, k), _times(D, k)
-    a, b = -sum(map(operator.mul, w, v)), sum(map(operator.mul, w, w))
-    if b == 0:
-        return None
-    a = max(a, 0)
-    T = tuple(b * t0 + a * d for t0, d in zip(T0, D))
-    return Fraction(a, b) if integer_positive_definite(T) else None
+def _best_bearing_multiplier(S: Sequence[int], S_plus_G: Sequence[int]) -> Fraction | None:
+    """For a bearing problem's exact S (mu = 0) and S + G (mu = 1) of :func:`exact_bound_matrix`
+    (the same scaling), a mu >= 0 that makes S + mu G positive definite, or None when none
+    does: a complete decision, as :func:`_best_range_multiplier` is for range.
+
+    With D = (S + G) - S, det(S + mu D) = c3 mu^3 + c2 mu^2 + c1 mu + c0 (c0 = det S,
+    c1 = tr(adj(S) D), c2 = tr(S adj(D)), c3 = det D). G has two positive eigenvalues and one
+    negative (det G = -rho^2), so the set of mu where S + mu D is positive definite is an open
+    interval, bounded above, or empty; at its ends det = 0, so an interval that lies in mu > 0
+    holds a root of the derivative 3 c3 mu^2 + 2 c2 mu + c1, and one that reaches below 0
+    holds mu = 0. The candidates are therefore 0 and the two critical points of the cubic,
+    rational approximations with 2^-k relative error for k of MULTIPLIER_BITS (finer ones
+    only when coarser ones fail: an interval narrower than the distance between the critical
+    points times 2^-k would slip through the coarser ones); each is tested exactly.
+    Where S cancels (P ill-conditioned, the cost far below tr(W P W)) the multiplier from
+    floating point can miss the interval by far more than its width."""
+    D = tuple(t1 - t0 for t0, t1 in zip(S, S_plus_G))
+    if integer_positive_definite(S):
+        return Fraction(0)
+    c1, c2, c3 = _trace_product(_adjugate(S), D), _trace_product(S, _adjugate(D)), _det(D)
+    candidates: list[tuple[int, int]] = []              # (numerator, denominator > 0)
+    if c3 == 0:
+        if c2 != 0:
+            candidates.append((-c1, 2 * c2) if c2 > 0 else (c1, -2 * c2))
+    elif c2 * c2 - 3 * c3 * c1 >= 0:
+        discriminant = c2 * c2 - 3 * c3 * c1
+        sign = 1 if c3 > 0 else -1
+        for k in MULTIPLIER_BITS:
+            root = math.isqrt(discriminant << (2 * k))
+            candidates += [(sign * ((-c2 << k) + root), sign * 3 * c3 << k),
+                           (sign * ((-c2 << k) - root), sign * 3 * c3 << k)]
+    for a, b in candidates:
+        if a > 0 and integer_positive_definite([b * t + a * d for t, d in zip(S, D)]):
+            return Fraction(a, b)
+    return None
+
+
+def _det(T: Sequence[int]) -> int:
+    """Determinant of the symmetric 3x3 matrix with entries (00, 01, 02, 11, 12, 22)."""
+    t00, t01, t02, t11, t12, t22 = T
+    return (t00 * (t11 * t22 - t12 * t12) - t01 * (t01 * t22 - t12 * t02)
+            + t02 * (t01 * t12 - t11 * t02))
+
+
+def _adjugate(T: Sequence[int]) -> tuple[int, int, int, int, int, int]:
+    """Adjugate (transposed cofactors) of a symmetric 3x3 matrix, entries (00, 01, 02, 11, 12,
+    22): symmetric too."""
+    t00, t01, t02, t11, t12, t22 = T
+    return (t11 * t22 - t12 * t12, t02 * t12 - t01 * t22, t01 * t12 - t02 * t11,
+            t00 * t22 - t02 * t02, t01 * t02 - t00 * t12, t00 * t11 - t01 * t01)
+
+
+def _trace_product(X: Sequence[int], Y: Sequence[int]) -> int:
+    """tr(X Y) for symmetric 3x3 matrices given by entries (00, 01, 02, 11, 12, 22)."""
+    return (X[0] * Y[0] + X[3] * Y[3] + X[5] * Y[5]
+            + 2 * (X[1] * Y[1] + X[2] * Y[2] + X[4] * Y[4]))
 
 
 def _times(X: Sequence[int], h: Sequence[int]) -> tuple[int, int, int]:
@@ -506,7 +545,7 @@ def exact_base_cost(problem: Problem) -> Fraction:
     return Fraction(*_exact_base_ratio(problem))
 
 
-def integer_positive_definite(T: tuple[int, int, int, int, int, int]) -> bool:
+def integer_positive_definite(T: Sequence[int]) -> bool:
     """True when the symmetric integer matrix with entries (00, 01, 02, 11, 12, 22) is positive
     definite: its leading principal minors are positive (Sylvester), in exact arithmetic."""
     t00, t01, t02, t11, t12, t22 = T
