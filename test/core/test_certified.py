@@ -671,6 +671,8 @@ def test_bearing_checks_sample_the_q_circle_too(case: int) -> None:
 #: worse than another basin's best, where the search stopped 2.7e-9 (relative) above it.
 #: 2: P near rank one (eigenvalues 1e-7 to 8e8), an interior optimum at the end of a narrow
 #: curved ridge, which the compass search crawled along until its budget ran out, 2.3e-7 above.
+#: 3: a boundary optimum whose basin along the boundary is narrower than the search's first
+#: step: from a start next to it the search went inwards and stopped 3.2e-8 above it.
 NARROW_BASINS = [
     (('0x1.c88881e7adb87p+33', '0x1.f30419d784563p+5', '-0x1.b507b3de860a6p+0',
       '0x1.f30419d784563p+5', '0x1.7cc995084d414p-20', '-0x1.9697c8cba1599p-27',
@@ -681,7 +683,12 @@ NARROW_BASINS = [
       '0x1.0208deadb6a81p+27', '0x1.040679c558bc0p+25', '0x1.6c860d08b1007p+26',
       '0x1.69bba55aece0cp+28', '0x1.6c860d08b1007p+26', '0x1.ff047c23d6adap+27'),
      ('0x1.2e5c17f9e949ep-12', '0x1.2fe013176aad8p-5'), '0x1.2cd87b0eda7a1p-5',
-     '0x1.db8977cfa7b79p-14', ('-0x1.ccf84d9f19f81p-13', '0x1.c967ec74c1eeep-11'))]
+     '0x1.db8977cfa7b79p-14', ('-0x1.ccf84d9f19f81p-13', '0x1.c967ec74c1eeep-11')),
+    (('0x1.975141b0b83a1p+18', '0x1.14c69d9218b11p+19', '0x1.31b1cd735bff6p+15',
+      '0x1.14c69d9218b11p+19', '0x1.7824b25f18860p+19', '0x1.9f71c2d65bdcdp+15',
+      '0x1.31b1cd735bff6p+15', '0x1.9f71c2d65bdcdp+15', '0x1.cada0c2c37454p+11'),
+     ('0x1.cabf366b46060p+3', '0x1.b8549b1b0ff9cp+4'), '0x1.effe8be0247ecp+4',
+     '0x1.12e0be826d695p-30', ('0x1.62e601ee2c51bp+2', '0x1.c9fb8804ac3d1p+5'))]
 
 
 @pytest.mark.parametrize('case', range(len(NARROW_BASINS)))
@@ -689,8 +696,8 @@ def test_exact_search_reaches_narrow_basins(case: int) -> None:
     """Each of NARROW_BASINS: RQ's and RAM's answers are proved and, in exact arithmetic, no
     worse than the witness (mpmath's optimum rounded to a feasible float point) beyond the
     gap. The exact search now also starts from the local maxima of the samples' exact gains
-    along each ring (case 1) and alternates Newton's method with rounds of the compass search
-    (case 2)."""
+    along each ring (case 1), alternates Newton's method with rounds of the compass search
+    (case 2) and from a start on the boundary moves along it first (case 3)."""
     P, p_o, r, sigma, witness = NARROW_BASINS[case]
     H = float.fromhex
     problem = Problem(np.array([H(v) for v in P]).reshape(3, 3), np.array([H(v) for v in p_o]),

@@ -121,6 +121,11 @@ def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others
     return chosen, False
 
 
+#: The exact search's moves (d rho, d phi): the eight compass directions, and along the circle.
+_COMPASS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1))
+_ALONG_BOUNDARY = ((0, 1), (0, -1))
+
+
 def refine_exactly(problem: Problem, p: Sequence[float],
                    budget: int = REFINE_EVALUATIONS) -> tuple[tuple[float, float], Ratio]:
     """A compass search for a better point than p (2,) on exact gains: ((x, y) m, its exact
@@ -134,7 +139,9 @@ def refine_exactly(problem: Problem, p: Sequence[float],
     to the disc's radius. It moves along the eight compass directions of (rho, phi) with
     steps from REFINE_FIRST_STEP (of the radius, and rad) halved down to REFINE_LAST_STEP,
     comparing exact gains (:func:`~.certificate.exact_gain_ratio`, by cross-multiplying), at
-    most ``budget`` of them; on the boundary the phi moves follow the circle. Points that
+    most ``budget`` of them; on the boundary the phi moves follow the circle, and a start on
+    the boundary moves along it first (a reviewer's problem: the boundary's basin narrower than
+    the first step, the search went inwards and stopped 3.2e-8 above the optimum). Points that
     rounding puts outside the disc's tolerance (``Problem.feasible``) are passed over. For
     bearing, Newton steps on exact residuals come first (:func:`exact_quotient_newton_step`);
     the search runs in rounds of Newton steps and at most REFINE_ROUND compass evaluations
@@ -179,25 +186,28 @@ def refine_exactly(problem: Problem, p: Sequence[float],
                     break
                 u, v, x, y, best = u_new, v_new, x_new, y_new, gain
         rho, phi = min(math.hypot(u - c0, v - c1), radius), math.atan2(v - c1, u - c0)
-        step, round_end = REFINE_FIRST_STEP, min(budget, evaluations + REFINE_ROUND)
-        while step >= REFINE_LAST_STEP and evaluations < round_end:
-            moved = False
-            for d_rho, d_phi in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1),
-                                 (-1, -1)):
-                rho_new = min(max(rho + d_rho * step * radius, 0.0), radius)
-                phi_new = phi + d_phi * step
-                if rho_new == rho and phi_new == phi:
-                    continue
-                x_new, y_new = point(rho_new, phi_new)
-                if not problem.feasible((x_new, y_new)):      # rounding, on a tiny disc
-                    continue
-                gain = exact_gain_ratio(problem, x_new, y_new)
-                evaluations += 1
-                if gain[0] * best[1] > best[0] * gain[1]:
-                    rho, phi, x, y, best, moved = rho_new, phi_new, x_new, y_new, gain, True
-                    break
-            if not moved:
-                step *= 0.5
+        # from a point on the boundary, along the boundary first: where the boundary's basin is
+        # narrower than the first step, a step inwards would win and leave it for good
+        for moves in ((_ALONG_BOUNDARY, _COMPASS) if rho == radius else (_COMPASS,)):
+            step, round_end = REFINE_FIRST_STEP, min(budget, evaluations + REFINE_ROUND)
+            while step >= REFINE_LAST_STEP and evaluations < round_end:
+                moved = False
+                for d_rho, d_phi in moves:
+                    rho_new = min(max(rho + d_rho * step * radius, 0.0), radius)
+                    phi_new = phi + d_phi * step
+                    if rho_new == rho and phi_new == phi:
+                        continue
+                    x_new, y_new = point(rho_new, phi_new)
+                    if not problem.feasible((x_new, y_new)):      # rounding, on a tiny disc
+                        continue
+                    gain = exact_gain_ratio(problem, x_new, y_new)
+                    evaluations += 1
+                    if gain[0] * best[1] > best[0] * gain[1]:
+                        rho, phi, x, y, best = rho_new, phi_new, x_new, y_new, gain
+                        moved = True
+                        break
+                if not moved:
+                    step *= 0.5
         # where the compass search stalls on a narrow ridge, Newton may go on from its end
         u, v = c0 + rho * math.cos(phi), c1 + rho * math.sin(phi)
         improved = best[0] * before[1] > before[0] * best[1]
