@@ -331,12 +331,14 @@ def exact_cost(problem: Problem, p: np.ndarray) -> Fraction:
 @pytest.mark.parametrize('kind', KINDS)
 def test_exact_gain_equals_rational_reference(kind: str) -> None:
     """certificate.exact_gain and exact_base_cost (scaled integers) equal exact_cost's plain
-    Fractions to the last bit, on 100 hard and 100 minor-axis problems at the slot and at a
-    boundary point."""
+    Fractions to the last bit, on 100 hard and 100 minor-axis problems at the slot, at a
+    boundary point and at a point whose unit is finer than the data's (the data's integers,
+    computed once per problem, are then shifted)."""
     rng = np.random.default_rng(40 + KINDS.index(kind))
     for index in range(200):
         problem = (hard_problem if index % 2 else minor_axis_problem)(rng, kind)
-        for p in (problem.p_o, problem.p_o + problem.r * np.array([0.6, -0.8])):
+        for p in (problem.p_o, problem.p_o + problem.r * np.array([0.6, -0.8]),
+                  problem.p_o * np.array([1.0, 2.0 ** -1000])):
             exact = certificate.exact_base_cost(problem) - certificate.exact_gain(
                 problem, float(p[0]), float(p[1]))
             assert exact == exact_cost(problem, p)

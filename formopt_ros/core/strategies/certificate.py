@@ -457,11 +457,24 @@ def _exact_forms(problem: Problem, *points: float) -> tuple[
         tuple[int, int, int, int, int, int], list[int], int, list[int], int]:
     """(M = P W^2 P (degree 4), P's entries (degree 2), R = sigma^2 (degree 2), ``points`` as
     integers (degree 1), E) in the integer units of :func:`_scaled_integers`: N is P plus R
-    where the sensor puts it."""
-    (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma, *scaled), E = _scaled_integers(
-        (*problem.entries, *problem.slot, float(problem.sigma), *points))
-    M = _exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E)
-    return M, [p << E for p in (p00, p01, p02, p11, p12, p22)], sigma * sigma, scaled, E
+    where the sensor puts it. The data's integers are computed once per problem, at their own
+    finest unit, and shifted up to E when a point has a finer one (a term of degree k by k
+    times the difference)."""
+    data = problem.__dict__.get('_exact_data')
+    if data is None:
+        (p00, p01, p02, p11, p12, p22, x_o, y_o, sigma), E = _scaled_integers(
+            (*problem.entries, *problem.slot, float(problem.sigma)))
+        data = (_exact_weighted_square(p00, p01, p02, p11, p12, p22, x_o * x_o + y_o * y_o, E),
+                [p << E for p in (p00, p01, p02, p11, p12, p22)], sigma * sigma, E)
+        problem.__dict__['_exact_data'] = data      # a cache, as lazy_property keeps its own
+    M, N, R, E_data = data
+    ratios = [v.as_integer_ratio() for v in points]
+    E = max(E_data, *(d.bit_length() - 1 for _, d in ratios))
+    shift = E - E_data
+    if shift:
+        M = tuple(m << 4 * shift for m in M)
+        N, R = [n << 2 * shift for n in N], R << 2 * shift
+    return M, list(N), R, [n << (E - d.bit_length() + 1) for n, d in ratios], E
 
 
 def exact_gain_ratio(problem: Problem, x: float, y: float) -> Ratio:
