@@ -37,7 +37,7 @@ REFINE_ROUND = 100
 REFINED_REASON = ('rounding spoilt the critical points: the point is the best an exact local '
                   'search found from them, not proved optimal')
 #: Local maxima of each ring of boundary samples from which the exact search starts too (the
-#: boundary has at most three; more are rounding's).
+#: gain has at most three along the boundary, and so has a ring of its exact values).
 RING_PEAKS = 3
 #: Newton steps at most that the exact search tries first on a bearing problem.
 REFINE_NEWTON_STEPS = 8
