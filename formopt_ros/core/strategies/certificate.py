@@ -144,8 +144,7 @@ def _exact_stage(problem: Problem, x: float, y: float, gain: float, mu: float,
     this stage)."""
     # in integer ratios, not Fractions: reducing these big integers costs more than the rest
     gn, gd = exact_gain_ratio(problem, x, y)
-    bn, bd = _exact_base_ratio(problem)
-    cn, cd = bn * gd - gn * bd, bd * gd                 # the exact cost at p, cd > 0
+    cn, cd = _exact_cost_ratio(problem, (gn, gd))
     if cn <= 0:
         return NONE, details
     if gn / gd != gain:             # the multiplier belongs to the exact gain
@@ -520,9 +519,8 @@ def exact_gain(problem: Problem, x: float, y: float) -> Fraction:
 
 def exact_cost(problem: Problem, x: float, y: float) -> float:
     """tr(W P_post W) at (x, y) (m) in exact arithmetic, rounded to the nearest float (m^2)."""
-    gn, gd = exact_gain_ratio(problem, x, y)
-    bn, bd = _exact_base_ratio(problem)
-    return (bn * gd - gn * bd) / (bd * gd)          # int / int is correctly rounded
+    cn, cd = _exact_cost_ratio(problem, exact_gain_ratio(problem, x, y))
+    return cn / cd                                  # int / int is correctly rounded
 
 
 def tied_with_best(problem: Problem, points: Sequence[Sequence[float]],
@@ -553,6 +551,12 @@ def _exact_base_ratio(problem: Problem) -> Ratio:
     return (p00 + p11 << 2 * E) + (x_o * x_o + y_o * y_o) * p22, 1 << 3 * E
 
 
+def _exact_cost_ratio(problem: Problem, gain: Ratio) -> Ratio:
+    """tr(W P W) - gain for an exact gain (m^2), as a ratio with a positive denominator."""
+    (bn, bd), (gn, gd) = _exact_base_ratio(problem), gain
+    return bn * gd - gn * bd, bd * gd
+
+
 def exact_base_cost(problem: Problem) -> Fraction:
     """:func:`_exact_base_ratio` as a Fraction (m^2)."""
     return Fraction(*_exact_base_ratio(problem))
@@ -561,8 +565,4 @@ def exact_base_cost(problem: Problem) -> Fraction:
 def integer_positive_definite(T: Sequence[int]) -> bool:
     """True when the symmetric integer matrix with entries (00, 01, 02, 11, 12, 22) is positive
     definite: its leading principal minors are positive (Sylvester), in exact arithmetic."""
-    t00, t01, t02, t11, t12, t22 = T
-    minor2 = t00 * t11 - t01 * t01
-    return t00 > 0 and minor2 > 0 and (
-        t00 * (t11 * t22 - t12 * t12) - t01 * (t01 * t22 - t12 * t02)
-        + t02 * (t01 * t12 - t11 * t02)) > 0
+    return T[0] > 0 and T[0] * T[3] - T[1] * T[1] > 0 and _det(T) > 0

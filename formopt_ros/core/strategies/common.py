@@ -65,8 +65,10 @@ def check_points(problem: Problem, extra: Sequence[tuple[float, float]] = ()) ->
     return np.vstack([*parts, problem.p_o[None, :], np.reshape(extra, (-1, 2))])
 
 
-def ring_peaks(problem: Problem, samples: np.ndarray) -> list[tuple[float, float]]:
-    """The samples (x, y) (m) of each ring of :func:`check_points` (its first rows) whose exact
+def ring_peaks(problem: Problem, samples: np.ndarray,
+               gains: np.ndarray) -> list[tuple[float, float]]:
+    """The samples (x, y) (m) of each ring of :func:`check_points` (its first rows; ``gains``:
+    their computed gains, ``problem.gain(samples)``) whose exact
     gain beats both neighbours on the ring: the boundary's local maxima (at most three: the
     boundary's stationarity polynomial has degree 6), each a start for :func:`refine_exactly`
     in its own basin. Neighbours are compared on computed gains where their rounding bounds
@@ -80,15 +82,15 @@ def ring_peaks(problem: Problem, samples: np.ndarray) -> list[tuple[float, float
     for first in range(0, CHECK_SAMPLES * (1 if problem.measurement == RANGE else 2),
                        CHECK_SAMPLES):
         ring = samples[first:first + CHECK_SAMPLES].tolist()
-        gains = problem.gain(np.array(ring)).tolist()
-        errors = [problem.gain_error_at(x, y, g) for (x, y), g in zip(ring, gains)]
+        values = gains[first:first + CHECK_SAMPLES].tolist()
+        errors = [problem.gain_error_at(x, y, g) for (x, y), g in zip(ring, values)]
         exact: dict[int, Ratio] = {}
 
         def beats(k: int, j: int) -> bool:
             """Sample k's exact gain exceeds sample j's."""
-            if gains[k] - errors[k] > gains[j] + errors[j]:
+            if values[k] - errors[k] > values[j] + errors[j]:
                 return True
-            if gains[k] + errors[k] < gains[j] - errors[j]:
+            if values[k] + errors[k] < values[j] - errors[j]:
                 return False
             for i in (k, j):
                 if i not in exact:
@@ -97,7 +99,7 @@ def ring_peaks(problem: Problem, samples: np.ndarray) -> list[tuple[float, float
         better = [beats(k, k - 1) for k in range(CHECK_SAMPLES)]      # k beats k - 1
         tops = [k for k in range(CHECK_SAMPLES)
                 if better[k] and not better[(k + 1) % CHECK_SAMPLES]]
-        tops.sort(key=gains.__getitem__, reverse=True)
+        tops.sort(key=values.__getitem__, reverse=True)
         peaks += [(ring[k][0], ring[k][1]) for k in tops[:RING_PEAKS]]
     return peaks
 
@@ -157,12 +159,15 @@ def refine_exactly(problem: Problem, p: Sequence[float],
         n2 = x * x + y * y
         u, v = -y / n2, x / n2
 
-    def point(rho: float, phi: float) -> tuple[float, float]:
-        u, v = c0 + rho * math.cos(phi), c1 + rho * math.sin(phi)
+    def to_p(u: float, v: float) -> tuple[float, float]:
+        """The point (m) of search coordinates (u, v): p itself (range) or q (bearing)."""
         if problem.measurement == RANGE:
             return u, v
         n2 = u * u + v * v
         return v / n2, -u / n2
+
+    def point(rho: float, phi: float) -> tuple[float, float]:
+        return to_p(c0 + rho * math.cos(phi), c1 + rho * math.sin(phi))
 
     best = exact_gain_ratio(problem, x, y)
     evaluations = 0
@@ -176,8 +181,7 @@ def refine_exactly(problem: Problem, p: Sequence[float],
                 u_new, v_new = u + du, v + dv
                 if not math.hypot(u_new - c0, v_new - c1) <= radius:
                     break
-                n2 = u_new * u_new + v_new * v_new
-                x_new, y_new = v_new / n2, -u_new / n2
+                x_new, y_new = to_p(u_new, v_new)
                 if not problem.feasible((x_new, y_new)):
                     break
                 gain = exact_gain_ratio(problem, x_new, y_new)
@@ -244,7 +248,7 @@ def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
             starts += [(float(critical[k][0]), float(critical[k][1])) for k in tied
                        if k < len(critical) and not np.array_equal(critical[k], p)]
         if problem.measurement != RANGE:        # range: one basin per half-turn of bearing
-            starts += [q for q in ring_peaks(problem, others) if q not in starts]
+            starts += [q for q in ring_peaks(problem, others, other_gains) if q not in starts]
         best: tuple[tuple[float, float], Ratio] | None = None
         for count, start in enumerate(starts):
             refined, gain = refine_exactly(problem, start, REFINE_EVALUATIONS if count == 0
