@@ -157,6 +157,26 @@ def quotient_gain(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[A
 GAIN_ROUNDING_UNITS = 24 * 2.0 ** -53
 
 
+def gain_rounding(measurement: str, coefficients: tuple[tuple[Any, ...], tuple[Any, ...]],
+                  x: Any, y: Any) -> tuple[Any, Any, Any, Any]:
+    """(n, d, e_n, e_d): the numerator and denominator of :func:`quotient_gain` at points
+    (x, y) (m, floats or arrays) and bounds on their rounding (see
+    :meth:`Problem.gain_error_at`)."""
+    num, den = coefficients
+    terms = monomials(measurement, x, y)
+    n, d = weighted_sum(num, terms, num[-1]), weighted_sum(den, terms, den[-1])
+    # x_ii h_i^2: a diagonal coefficient (>= 0) times a squared monomial
+    if measurement == RANGE:
+        t0, _, t2 = terms
+        n_abs = 2.0 * (num[0] * t0 + num[2] * t2)
+        d_abs = 2.0 * (den[0] * t0 + den[2] * t2) + den[3]
+    else:
+        t0, _, t2, _, _ = terms
+        n_abs = 3.0 * (num[0] * t0 + num[2] * t2 + num[5])
+        d_abs = 3.0 * (den[0] * t0 + den[2] * t2 + den[5])
+    return n, d, GAIN_ROUNDING_UNITS * n_abs, GAIN_ROUNDING_UNITS * d_abs
+
+
 #: Largest allowed deviation r as a fraction of |p_o|. Closer to the leader the image of the
 #: disc under the bearing's inversion (radius r / (|p_o|^2 - r^2)) grows without bound and the
 #: boundary series lose every digit: at r = 0.999999 |p_o| RQ and RAM returned points worse
@@ -551,19 +571,7 @@ class Problem(_QuotientForms, _ProblemValues):
         formula cancels: P ill-conditioned and the point's direction near its minor axis.
         Returns inf when d may vanish.
         """
-        num, den = self.coefficients
-        terms = monomials(self.measurement, x, y)
-        n, d = weighted_sum(num, terms, num[-1]), weighted_sum(den, terms, den[-1])
-        # x_ii h_i^2: a diagonal coefficient (>= 0) times a squared monomial
-        if self.measurement == RANGE:
-            t0, _, t2 = terms
-            n_abs = 2.0 * (num[0] * t0 + num[2] * t2)
-            d_abs = 2.0 * (den[0] * t0 + den[2] * t2) + den[3]
-        else:
-            t0, _, t2, _, _ = terms
-            n_abs = 3.0 * (num[0] * t0 + num[2] * t2 + num[5])
-            d_abs = 3.0 * (den[0] * t0 + den[2] * t2 + den[5])
-        e_n, e_d = GAIN_ROUNDING_UNITS * n_abs, GAIN_ROUNDING_UNITS * d_abs
+        n, d, e_n, e_d = gain_rounding(self.measurement, self.coefficients, x, y)
         if not d - e_d > 0.0:
             return math.inf
         low, high = max(n - e_n, 0.0) / (d + e_d), (n + e_n) / (d - e_d)
@@ -676,6 +684,27 @@ class ProblemBatch(_QuotientForms):
     def R(self) -> np.ndarray:
         """Noise variances, shape (T,)."""
         return self.sigma * self.sigma
+
+    @lazy_property
+    def slot(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x_o, y_o) per problem, two arrays (T,), m."""
+        return self.p_o[:, 0], self.p_o[:, 1]
+
+    @lazy_property
+    def base_cost(self) -> np.ndarray:
+        """tr(W P W) per problem, shape (T,), m^2 (the formula of :class:`Problem`)."""
+        p00, _, _, p11, _, p22 = self.entries
+        return trace_entries(p00, p11, p22, self.d_o * self.d_o)
+
+    def gain_error_at(self, x: np.ndarray, y: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        """:meth:`Problem.gain_error_at` per problem, for arrays (T,) of points (m) and their
+        gains (m^2): the same arithmetic; inf where the denominator may vanish, nan where the
+        scalar bound would not be a number."""
+        n, d, e_n, e_d = gain_rounding(self.measurement, self.coefficients, x, y)
+        with np.errstate(all='ignore'):
+            low, high = np.maximum(n - e_n, 0.0) / (d + e_d), (n + e_n) / (d - e_d)
+            error = np.maximum(gain - low, high - gain) * (1.0 + 1e-12) + 1e-15 * np.abs(gain)
+        return np.where(d - e_d > 0.0, error, np.inf)
 
     def gains_of(self, owner: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gains (m^2) at points x, y (C,) (m) of the problems ``owner`` (C,); shape (C,).

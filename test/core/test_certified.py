@@ -809,6 +809,59 @@ def test_ram_batch_equals_single_problems(kind: str) -> None:
         assert fallback[index] == (single.fallback is not None)
 
 
+# --- RQ on a batch -----------------------------------------------------------------------------
+@pytest.mark.parametrize('kind', KINDS)
+def test_rq_batch_equals_single_problems(kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """rq_batch gives each of 20 problems of every slow-tier family (hard, mirrored ties, tiny
+    and wide discs, extreme scales, condition numbers to 1e13, nearly flat range, clustered and
+    other interior optima) the point rq_optimum gives it alone, bit for bit; and it solves most
+    hard problems itself (the scalar solver runs only where the vectorised first route is not
+    proved)."""
+    rng = np.random.default_rng(22 + KINDS.index(kind))
+    problems = [generator(rng) for generator, _ in families(kind).values() for _ in range(20)]
+    singles = [rq.rq_optimum(problem).p for problem in problems]
+    delegated: list[float] = []
+    scalar = rq.rq_optimum
+    monkeypatch.setattr(rq, 'rq_optimum', lambda problem, method='rq': (
+        delegated.append(problem.d_o), scalar(problem, method))[1])
+    points = rq.rq_batch(ProblemBatch.stack(problems))
+    for index, single in enumerate(singles):
+        np.testing.assert_array_equal(points[index], single)
+    assert 0 < len(delegated) < len(problems), len(delegated)
+    hard = [hard_problem(rng, kind) for _ in range(100)]
+    delegated.clear()
+    rq.rq_batch(ProblemBatch.stack(hard))
+    assert len(delegated) <= {RANGE: 2, BEARING: 30}[kind], len(delegated)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_batch_proof_is_the_single_proof(kind: str) -> None:
+    """proved_batch reaches certify's floating-point verdict (exact=False) on every point of
+    600: optima of hard and clustered problems, and the same points moved along the boundary,
+    inward or outward by 1e-12 to 1e-3 of r (many fail); never proved where certify is not."""
+    rng = np.random.default_rng(24 + KINDS.index(kind))
+    problems, points = [], []
+    for index in range(600):
+        problem = hard_problem(rng, kind) if index % 3 or kind == RANGE else \
+            clustered_interior_problem(rng)
+        p = rq.rq_optimum(problem).p
+        if index % 2:
+            angle, size = rng.uniform(-math.pi, math.pi), 10.0 ** rng.uniform(-12.0, -3.0)
+            moved = p + size * problem.r * np.array([math.cos(angle), math.sin(angle)])
+            offset = moved - problem.p_o
+            p = problem.p_o + offset * min(1.0, problem.r / math.hypot(*offset))
+        problems.append(problem)
+        points.append(p)
+    batch = ProblemBatch.stack(problems)
+    x, y = np.array(points).T
+    gains = np.asarray(batch.gains_of(np.arange(len(problems)), x, y))
+    proved = certificate.proved_batch(batch, x, y, gains)
+    singles = [certify(problem, point, float(gain), exact=False)[0] in PROVED
+               for problem, point, gain in zip(problems, points, gains)]
+    assert proved.tolist() == singles
+    assert 200 < sum(singles) < 600, sum(singles)
+
+
 # --- GBS ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize('kind', KINDS)
 @pytest.mark.parametrize('cell', [0.05, 0.02])
@@ -840,7 +893,8 @@ def test_every_answer_is_certified_and_optimal(kind: str) -> None:
     sensor): RQ's answers carry a proof (or, when rounding defeats it, the enumeration of all
     critical points), RAM's answers carry a proof or are RQ's with ``fallback`` set, and every
     cost is within 1e-9 relative (plus the cost formula's own rounding) of the independent
-    quick reference. The clustered-interior family, where RAM used to return wrong points, is
+    quick reference; rq_batch gives every problem rq_optimum's point, bit for bit. The
+    clustered-interior family, where RAM used to return wrong points, is
     also checked against the dense reference (40 problems), and RAM's own route must stand on
     all of it; overall it stands on 90 % or more (it falls back, visibly, where its
     elimination polynomials lose accuracy: mostly condition numbers above 1e9)."""
@@ -851,8 +905,11 @@ def test_every_answer_is_certified_and_optimal(kind: str) -> None:
         problems = [generator(rng) for _ in range(count)]
         total += count
         points, fallback = ram.ram_batch(ProblemBatch.stack(problems))
+        rq_points = rq.rq_batch(ProblemBatch.stack(problems))
         for index, problem in enumerate(problems):
             exact = rq.rq_optimum(problem)
+            if not np.array_equal(rq_points[index], exact.p):
+                failures.append((name, index, 'rq_batch differs from rq_optimum'))
             tally[('rq', exact.certificate)] += 1
             if exact.certificate not in (*PROVED, CRITICAL_POINTS):
                 failures.append((name, index, 'rq uncertified', exact.details))

@@ -41,11 +41,14 @@ point h makes h'Sh <= mu h'Gh <= 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import operator
+from collections.abc import Callable, Sequence
 from fractions import Fraction
 from typing import Any
 
-from formopt_ros.core.cost import Entries, Problem, positive_definite_entries
+import numpy as np
+
+from formopt_ros.core.cost import Entries, Problem, ProblemBatch, positive_definite_entries
 from formopt_ros.core.linalg import EPS
 from formopt_ros.core.model import RANGE
 
@@ -68,9 +71,12 @@ ENTRY_ERROR = 16 * EPS
 MULTIPLIER_BITS = (64, 256, 1024)
 #: The entries (00, 01, 11) of a symmetric 2x2 matrix.
 Entries2 = tuple[float, float, float]
+#: Vectors of 3 and 2 components (floats, or arrays (T,) for a batch).
+Vector3 = tuple[Any, Any, Any]
+Vector2 = tuple[Any, Any]
 
 
-def bearing_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
+def bearing_system(problem: Problem | ProblemBatch) -> tuple[Entries, Entries, Entries, Any]:
     """(A, B, G, size of G's entries before cancellation) of the module docstring for a bearing
     problem, as the six distinct entries of 3x3 matrices."""
     M, N = problem.forms
@@ -79,7 +85,7 @@ def bearing_system(problem: Problem) -> tuple[Entries, Entries, Entries, float]:
             c0 * c0 + c1 * c1 + rho * rho)
 
 
-def range_system(problem: Problem) -> tuple[Entries2, Entries2, Entries2]:
+def range_system(problem: Problem | ProblemBatch) -> tuple[Entries2, Entries2, Entries2]:
     """(A, B, G) of the module docstring for a range problem, each as the entries (00, 01, 11)
     of a symmetric 2x2 matrix; G's entries are (y_o^2 - r^2, -x_o y_o, x_o^2 - r^2) / |p_o|^2,
     each term at most 1 before cancellation."""
@@ -267,6 +273,38 @@ def _times(X: Sequence[int], h: Sequence[int]) -> tuple[int, int, int]:
 Verdict = tuple[float, float, float | None]
 
 
+def _bearing_vectors(system: tuple[Entries, Entries, Entries, Any], x: Any, y: Any, g: Any,
+                     sqrt: Callable[[Any], Any]) -> tuple[Vector3, Vector3, Vector3, Vector3]:
+    """(d, v, w, h_s) of the bearing test at points (x, y) (m) with gains g, floats or arrays:
+    the Jacobi scaling d = diag(B)^-1/2, the residual v = D (g B - A) h, the constraint's
+    gradient w = D G h and the scaled h_s = D^-1 h, for h = [q0, q1, -1] and the system of
+    :func:`bearing_system`. ``sqrt`` is math.sqrt or numpy.sqrt (both correctly rounded: a
+    batch gets the same numbers as each of its problems)."""
+    (a00, a01, a02, a11, a12, a22), (b00, b01, b02, b11, b12, b22), \
+        (k00, k01, k02, k11, k12, k22), _ = system
+    d0, d1, d2 = 1.0 / sqrt(b00), 1.0 / sqrt(b11), 1.0 / sqrt(b22)
+    n2 = x * x + y * y
+    h0, h1, h2 = -y / n2, x / n2, -1.0
+    # residuals in the scaled coordinates h_s = D^-1 h: (D X D) h_s = D (X h)
+    s00, s01, s02 = g * b00 - a00, g * b01 - a01, g * b02 - a02
+    s11, s12, s22 = g * b11 - a11, g * b12 - a12, g * b22 - a22
+    v = (d0 * (s00 * h0 + s01 * h1 + s02 * h2), d1 * (s01 * h0 + s11 * h1 + s12 * h2),
+         d2 * (s02 * h0 + s12 * h1 + s22 * h2))
+    w = (d0 * (k00 * h0 + k01 * h1 + k02 * h2), d1 * (k01 * h0 + k11 * h1 + k12 * h2),
+         d2 * (k02 * h0 + k12 * h1 + k22 * h2))
+    return (d0, d1, d2), v, w, (h0 / d0, h1 / d1, h2 / d2)
+
+
+def _range_vectors(system: tuple[Entries2, Entries2, Entries2], x: Any, y: Any, g: Any,
+                   sqrt: Callable[[Any], Any]) -> tuple[Vector2, Vector2, Vector2, Vector2]:
+    """:func:`_bearing_vectors` for the 2x2 system of :func:`range_system`, h = p."""
+    (a00, a01, a11), (b00, b01, b11), (k00, k01, k11) = system
+    d0, d1 = 1.0 / sqrt(b00), 1.0 / sqrt(b11)
+    v = (d0 * ((g * b00 - a00) * x + (g * b01 - a01) * y),
+         d1 * ((g * b01 - a01) * x + (g * b11 - a11) * y))
+    return (d0, d1), v, (d0 * (k00 * x + k01 * y), d1 * (k01 * x + k11 * y)), (x / d0, y / d1)
+
+
 def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float,
                   error: float) -> Verdict:
     """The floating-point test for a bearing problem (3x3), h = [q0, q1, -1].
@@ -275,21 +313,11 @@ def _bearing_test(problem: Problem, x: float, y: float, g: float, cost: float,
     D = diag(B)^-1/2: D S D is positive definite exactly when S is, whatever the rounding of D,
     and each scaled entry carries a few more roundings than its terms, far inside the bound.
     """
+    system = bearing_system(problem)
     (a00, a01, a02, a11, a12, a22), (b00, b01, b02, b11, b12, b22), \
-        (k00, k01, k02, k11, k12, k22), g_size = bearing_system(problem)
-    d0, d1, d2 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11), 1.0 / math.sqrt(b22)
-    n2 = x * x + y * y
-    h0, h1, h2 = -y / n2, x / n2, -1.0
-    # residuals in the scaled coordinates h_s = D^-1 h: (D X D) h_s = D (X h)
-    s00, s01, s02 = g * b00 - a00, g * b01 - a01, g * b02 - a02
-    s11, s12, s22 = g * b11 - a11, g * b12 - a12, g * b22 - a22
-    v0 = d0 * (s00 * h0 + s01 * h1 + s02 * h2)
-    v1 = d1 * (s01 * h0 + s11 * h1 + s12 * h2)
-    v2 = d2 * (s02 * h0 + s12 * h1 + s22 * h2)
-    w0 = d0 * (k00 * h0 + k01 * h1 + k02 * h2)
-    w1 = d1 * (k01 * h0 + k11 * h1 + k12 * h2)
-    w2 = d2 * (k02 * h0 + k12 * h1 + k22 * h2)
-    h0, h1, h2 = h0 / d0, h1 / d1, h2 / d2
+        (k00, k01, k02, k11, k12, k22), g_size = system
+    (d0, d1, d2), (v0, v1, v2), (w0, w1, w2), (h0, h1, h2) = _bearing_vectors(
+        system, x, y, g, math.sqrt)
     ww = w0 * w0 + w1 * w1 + w2 * w2
     hh = h0 * h0 + h1 * h1 + h2 * h2
     inside = h0 * w0 + h1 * w1 + h2 * w2 < -1e-9 * hh * math.sqrt(ww)
@@ -321,12 +349,9 @@ def _range_test(problem: Problem, x: float, y: float, g: float, cost: float,
                 error: float) -> Verdict:
     """The floating-point test of :func:`_bearing_test` for the 2x2 system of
     :func:`range_system`, h = p; positive definiteness of the shifted S by its 2x2 pivots."""
-    (a00, a01, a11), (b00, b01, b11), (k00, k01, k11) = range_system(problem)
-    d0, d1 = 1.0 / math.sqrt(b00), 1.0 / math.sqrt(b11)
-    v0 = d0 * ((g * b00 - a00) * x + (g * b01 - a01) * y)
-    v1 = d1 * ((g * b01 - a01) * x + (g * b11 - a11) * y)
-    w0, w1 = d0 * (k00 * x + k01 * y), d1 * (k01 * x + k11 * y)
-    h0, h1 = x / d0, y / d1
+    system = range_system(problem)
+    (a00, a01, a11), (b00, b01, b11), (k00, k01, k11) = system
+    (d0, d1), (v0, v1), (w0, w1), (h0, h1) = _range_vectors(system, x, y, g, math.sqrt)
     ww, hh = w0 * w0 + w1 * w1, h0 * h0 + h1 * h1
     inside = h0 * w0 + h1 * w1 < -1e-9 * hh * math.sqrt(ww)
     mu = 0.0 if inside or ww == 0.0 else max(0.0, -(w0 * v0 + w1 * v1) / ww)
@@ -345,17 +370,92 @@ def _range_test(problem: Problem, x: float, y: float, g: float, cost: float,
             continue
         bound = g + rtol * cost
         S00, S11 = bound * u00 + v00, bound * u11 + v11
-        delta = _rounding_shift(scale, rtol * cost, S00, S11)
-        if S00 > delta and (S00 - delta) * (S11 - delta) > (bound * u01 + v01) ** 2:
+        S01 = bound * u01 + v01
+        delta = _rounding_shift(scale, rtol * cost, max(abs(S00), abs(S11)))
+        if S00 > delta and (S00 - delta) * (S11 - delta) > S01 * S01:
             return mu, residual, rtol
     return mu, residual, math.inf
 
 
-def _rounding_shift(scale: float, gap: float, *diagonal: float) -> float:
+#: The (row, column) of each distinct entry of a symmetric 2x2 and 3x3 matrix, in the order of
+#: Entries2 and Entries, and the positions of the diagonal among them.
+_PAIRS = {2: ((0, 0), (0, 1), (1, 1)), 3: ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))}
+_DIAGONAL = {2: (0, 2), 3: (0, 3, 5)}
+
+
+def proved_batch(batch: ProblemBatch, x: np.ndarray, y: np.ndarray,
+                 g: np.ndarray) -> np.ndarray:
+    """Per problem of a batch, True where :func:`certify` proves the point (x[t], y[t]) (m) with
+    gain g[t] (m^2, from the gain formula) in floating point: the tests of :func:`_range_test`
+    and :func:`_bearing_test` on arrays (T,), operation for operation, so that a problem's
+    verdict is the one :func:`certify` reaches on ``batch.problem(t)``. False where that
+    test fails or meets a value that is not a number (then :func:`certify` itself, with its
+    exact stage, decides): never True where :func:`certify` would not prove."""
+    cost = batch.base_cost - g
+    error = batch.gain_error_at(x, y, g)
+    A: Sequence[Any]
+    B: Sequence[Any]
+    K: Sequence[Any]
+    d: Sequence[Any]
+    v: Sequence[Any]
+    w: Sequence[Any]
+    h: Sequence[Any]
+    with np.errstate(all='ignore'):
+        if batch.measurement == RANGE:
+            range_terms = range_system(batch)
+            A, B, K = range_terms
+            d, v, w, h = _range_vectors(range_terms, x, y, g, np.sqrt)
+            factor, g_size = 1.0, 1.0
+        else:
+            bearing_terms = bearing_system(batch)
+            A, B, K, g_size = bearing_terms
+            d, v, w, h = _bearing_vectors(bearing_terms, x, y, g, np.sqrt)
+            d2, r2 = batch.d_o * batch.d_o, batch.r * batch.r
+            factor = np.maximum(1.0, (d2 + r2) / (d2 - r2))
+        n = len(d)
+        ww, hh = sum(map(operator.mul, w, w)), sum(map(operator.mul, h, h))
+        inside = sum(map(operator.mul, h, w)) < -1e-9 * hh * np.sqrt(ww)
+        mu = np.where(inside | (ww == 0.0), 0.0,
+                      np.maximum(0.0, -sum(map(operator.mul, w, v)) / ww))
+        e = [d[i] * d[j] for i, j in _PAIRS[n]]
+        diagonal = _DIAGONAL[n]
+        scale = np.abs(g) + np.maximum.reduce([A[k] * e[k] for k in diagonal])
+        scale = np.where(mu > 0.0, scale + mu * factor * (
+            np.maximum.reduce([np.abs(k) * ek for k, ek in zip(K, e)])
+            + g_size * np.maximum.reduce([e[k] for k in diagonal])), scale)
+        size = scale * np.sqrt(hh)
+        proved = np.zeros(len(batch), dtype=bool)
+        U = [b * ek for b, ek in zip(B, e)]
+        V = [(mu * k - a) * ek for a, k, ek in zip(A, K, e)]
+        for rtol in GAP_RTOLS:
+            gap = rtol * cost
+            S = [(g + gap) * u + v for u, v in zip(U, V)]
+            delta = _rounding_shift(scale, gap, np.maximum.reduce([np.abs(S[k])
+                                                                   for k in diagonal]))
+            for k in diagonal:
+                S[k] = S[k] - delta
+            proved |= ~(gap < error) & _positive_definite_pivots(S)
+    return proved & (cost > 0.0) & (0.0 < size) & (size < math.inf)
+
+
+def _positive_definite_pivots(S: list[np.ndarray]) -> np.ndarray:
+    """Where the symmetric 2x2 or 3x3 matrices of entries S (Entries2 or Entries order, arrays)
+    have positive pivots, by the arithmetic of the scalar tests."""
+    if len(S) == 3:
+        s00, s01, s11 = S
+        return (s00 > 0.0) & (s00 * s11 > s01 * s01)
+    s00, s01, s02, s11, s12, s22 = S
+    l10, l20 = s01 / s00, s02 / s00
+    d1 = s11 - l10 * s01
+    b12 = s12 - l20 * s01
+    return (s00 > 0.0) & (d1 > 0.0) & (s22 - l20 * s02 - b12 * b12 / d1 > 0.0)
+
+
+def _rounding_shift(scale: Any, gap: Any, largest: Any) -> Any:
     """Shift of S's diagonal that covers the rounding of S's entries (each within ENTRY_ERROR
     of ``scale`` + ``gap``, the bound on their terms) and of the pivots (16 EPS of the largest
-    diagonal entry)."""
-    return 3.0 * ENTRY_ERROR * (scale + gap) + 16.0 * EPS * max(map(abs, diagonal))
+    magnitude on the diagonal, ``largest``); floats or arrays."""
+    return 3.0 * ENTRY_ERROR * (scale + gap) + 16.0 * EPS * largest
 
 
 def _proved_gap(U: Entries, V: Entries, g: float, cost: float, error: float,
@@ -371,7 +471,7 @@ def _proved_gap(U: Entries, V: Entries, g: float, cost: float, error: float,
             continue
         bound = g + rtol * cost
         S00, S11, S22 = bound * u00 + v00, bound * u11 + v11, bound * u22 + v22
-        delta = _rounding_shift(scale, rtol * cost, S00, S11, S22)
+        delta = _rounding_shift(scale, rtol * cost, max(abs(S00), abs(S11), abs(S22)))
         if positive_definite_entries((S00 - delta, bound * u01 + v01, bound * u02 + v02,
                                       S11 - delta, bound * u12 + v12, S22 - delta)):
             return rtol

@@ -27,17 +27,19 @@ returned as 'none'.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q
+from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q, quotient_gain
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import PROVED, certify
+from formopt_ros.core.model import BEARING, RANGE
+from formopt_ros.core.strategies.certificate import PROVED, certify, proved_batch
 from formopt_ros.core.strategies.common import (
-    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
+    CHECK_SAMPLES, FLAT_TOLERANCE, boundary_points, boundary_stationarity, check_points, gains_tie,
     polish_boundary_angles, range_plan_from_direction, settle_unproved)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
@@ -112,10 +114,10 @@ def top_generalized_eigenvector(M: Entries, N: Entries) -> tuple[float, list[flo
     return value, [y0 * d0, y1 * d1, y2 * d2]
 
 
-def _circle_series(X: Entries, c0: float, c1: float,
-                   rho: float) -> tuple[float, float, float, float, float]:
+def _circle_series(X: Entries, c0: Any, c1: Any, rho: Any) -> tuple[Any, Any, Any, Any, Any]:
     """(k0, k1c, k1s, k2c, k2s) with h(t)'Xh(t) = k0 + k1c cos t + k1s sin t + k2c cos 2t
-    + k2s sin 2t on h(t) = [c0 + rho cos t, c1 + rho sin t, -1]."""
+    + k2s sin 2t on h(t) = [c0 + rho cos t, c1 + rho sin t, -1] (floats, or arrays for a
+    batch)."""
     x00, x01, x02, x11, x12, x22 = X
     a0 = x00 * c0 + x01 * c1 - x02
     a1 = x01 * c0 + x11 * c1 - x12
@@ -385,6 +387,130 @@ def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
     return fast if fast is not None else _plan_bearing_exhaustive(problem, method, tried)
 
 
+def _elementwise(function: Callable[..., float], *arrays: np.ndarray) -> np.ndarray:
+    """``function`` (from Python's math) applied element by element: the very numbers the scalar
+    solver computes (numpy's own sin, cos and atan2 may differ in the last bit)."""
+    return np.fromiter(map(function, *(np.asarray(a).tolist() for a in arrays)), float,
+                       len(arrays[0]))
+
+
+def _range_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                     np.ndarray]:
+    """:func:`_plan_range`'s closed form and arc choice on arrays (T,): (x, y, gain, usable);
+    not usable where the scalar solver would take another branch (B singular to working
+    precision, every direction tying) or a value is not a number."""
+    (a00, a01, _, a11, _, _), _ = batch.forms
+    p00, p01, _, p11, _, _ = batch.entries
+    R = batch.R
+    l00 = np.sqrt(p00 + R)
+    l10 = p01 / l00
+    pivot = p11 + R - l10 * l10
+    l11 = np.sqrt(pivot)
+    x00, x01 = a00 / l00, a01 / l00
+    x10, x11 = (a01 - l10 * x00) / l11, (a11 - l10 * x01) / l11
+    c00, c01 = x00 / l00, x10 / l00
+    c11 = (x11 - l10 * c01) / l11
+    half = 0.5 * (c00 - c11)
+    spread = _elementwise(math.hypot, half, c01)
+    mean = 0.5 * (c00 + c11)
+    upper = half >= 0.0
+    v0, v1 = np.where(upper, spread + half, c01), np.where(upper, c01, spread - half)
+    u1 = v1 / l11
+    u0 = (v0 - l10 * u1) / l00
+    gain_max = mean + spread
+    flat = (spread == 0.0) | (gain_max - (mean - spread) <= FLAT_TOLERANCE * np.maximum(
+        batch.base_cost - gain_max, 1e-300))
+    x_o, y_o = batch.slot
+    theta_o = _elementwise(math.atan2, y_o, x_o)
+    delta = _elementwise(math.asin, batch.r / batch.d_o)
+    offset = (_elementwise(math.atan2, u1, u0) - theta_o + 0.5 * math.pi) % math.pi \
+        - 0.5 * math.pi
+    inside = np.abs(offset) <= delta
+    ends = []
+    for theta in (np.where(inside, theta_o + offset, theta_o - delta), theta_o + delta):
+        c, s = _elementwise(math.cos, theta), _elementwise(math.sin, theta)
+        along = c * x_o + s * y_o
+        x, y = along * c, along * s
+        ends.append((x, y, quotient_gain(RANGE, batch.coefficients, x, y)))
+    second = ~inside & (ends[1][2] > ends[0][2])
+    x, y, g = (np.where(second, b, a) for a, b in zip(*ends))
+    return x, y, g, (pivot > 0.0) & ~flat
+
+
+def _bearing_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                       np.ndarray]:
+    """The first try of :func:`_plan_bearing_fast` on arrays (T,): the best boundary sample
+    moved to its parabola's vertex (:func:`_boundary_starts`), then Newton's method
+    (:func:`_boundary_newton`), each problem stopping where the scalar loop stops: (x, y,
+    gain, usable); not usable where a sample or a step is not a number."""
+    M, N = batch.forms
+    c0, c1, rho = batch.q_circle
+    num, den = _circle_series(M, c0, c1, rho), _circle_series(N, c0, c1, rho)
+    n0, n1c, n1s, n2c, n2s = num
+    d0, d1c, d1s, d2c, d2s = den
+    half = BOUNDARY_SAMPLES // 2
+    values = np.empty((BOUNDARY_SAMPLES, len(batch)))
+    for k, (ck, sk, c2k, s2k) in enumerate(_HALF_SAMPLES):
+        n_even, n_odd = n0 + n2c * c2k + n2s * s2k, n1c * ck + n1s * sk
+        d_even, d_odd = d0 + d2c * c2k + d2s * s2k, d1c * ck + d1s * sk
+        plus, minus = d_even + d_odd, d_even - d_odd
+        values[k] = np.where(plus > 0.0, (n_even + n_odd) / plus, -np.inf)
+        values[k + half] = np.where(minus > 0.0, (n_even - n_odd) / minus, -np.inf)
+    usable = np.isfinite(values).all(axis=0)
+    best = np.argmax(values, axis=0)             # the first of equal maxima, as the scalar
+    lanes = np.arange(len(batch))
+    before, here = values[best - 1, lanes], values[best, lanes]
+    after = values[(best + 1) % BOUNDARY_SAMPLES, lanes]
+    curvature = before - 2.0 * here + after
+    shift = np.where(curvature < 0.0, 0.5 * (before - after) / curvature, 0.0)
+    t = SAMPLE_STEP * (best + np.clip(shift, -1.0, 1.0))
+    moving = np.ones(len(batch), dtype=bool)
+    for _ in range(NEWTON_ITERATIONS):
+        c, s = _elementwise(math.cos, t), _elementwise(math.sin, t)
+        c2, s2 = c * c - s * s, 2.0 * s * c
+        n1, n2 = n1c * c + n1s * s, n2c * c2 + n2s * s2
+        d1, d2 = d1c * c + d1s * s, d2c * c2 + d2s * s2
+        n, d = n0 + n1 + n2, d0 + d1 + d2
+        n_t = n1s * c - n1c * s + 2.0 * (n2s * c2 - n2c * s2)
+        d_t = d1s * c - d1c * s + 2.0 * (d2s * c2 - d2c * s2)
+        F = n_t * d - n * d_t
+        slope = (-n1 - 4.0 * n2) * d + n * (d1 + 4.0 * d2)
+        step = np.where(slope < 0.0, np.clip(-F / slope, -NEWTON_MAX_STEP, NEWTON_MAX_STEP),
+                        np.where(F >= 0.0, 0.1, -0.1))
+        t = np.where(moving, t + step, t)
+        moving &= (step < -NEWTON_STEP_TOLERANCE) | (step > NEWTON_STEP_TOLERANCE)
+        if not moving.any():
+            break
+    q0 = c0 + rho * _elementwise(math.cos, t)
+    q1 = c1 + rho * _elementwise(math.sin, t)
+    n2 = q0 * q0 + q1 * q1
+    x, y = q1 / n2, -q0 / n2
+    return x, y, quotient_gain(BEARING, batch.coefficients, x, y), usable & np.isfinite(t)
+
+
+def rq_batch(batch: ProblemBatch, method: str = 'rq') -> np.ndarray:
+    """RQ on T problems at once: the points (T, 2) (m) that :func:`rq_optimum` returns for
+    ``batch.problem(t)``, bit for bit.
+
+    The scalar solver's first route (range: the closed-form direction and the arc; bearing:
+    the best boundary sample polished by Newton's method) and the floating-point stage of its
+    certificate (:func:`~.certificate.proved_batch`) run on arrays, operation for operation
+    in the scalar order (sin, cos, atan2, asin and hypot from Python's math, element by
+    element), so each problem gets the numbers and the decisions of the scalar solver. A
+    problem whose answer that stage proves is done; any other (an interior optimum, a
+    proof that needs exact arithmetic, a tie, a value that is not a number) is solved by
+    :func:`rq_optimum`, which repeats the first route and goes on."""
+    with np.errstate(all='ignore'):
+        route = _range_first_route if batch.measurement == RANGE else _bearing_first_route
+        x, y, g, usable = route(batch)
+        usable &= np.isfinite(x) & np.isfinite(y) & np.isfinite(g)
+    done = usable & proved_batch(batch, x, y, g)
+    points = np.stack([x, y], axis=1)
+    for t in np.flatnonzero(~done).tolist():
+        points[t] = rq_optimum(batch.problem(t), method).p
+    return points
+
+
 class RayleighQuotient(Strategy):
     """RQ: the exact generalised-Rayleigh-quotient solver (beyond the paper)."""
 
@@ -395,10 +521,9 @@ class RayleighQuotient(Strategy):
         return rq_optimum(problem, self.name)
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
-        """Problem by problem (the fast path is plain Python; a batch gains nothing)."""
-        return BatchPlan(np.array([rq_optimum(problems.problem(t), self.name).p
-                                   for t in range(len(problems))]))
+        """:func:`rq_batch`: the first route and its proof vectorised over the trials."""
+        return BatchPlan(rq_batch(problems, self.name))
 
 
-__all__ = ['RayleighQuotient', 'boundary_candidates', 'generalized_eigh', 'rq_optimum',
+__all__ = ['RayleighQuotient', 'boundary_candidates', 'generalized_eigh', 'rq_batch', 'rq_optimum',
            'top_generalized_eigenvector']
