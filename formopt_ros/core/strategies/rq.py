@@ -59,6 +59,8 @@ SAMPLE_STEP = 2.0 * math.pi / BOUNDARY_SAMPLES
 #: (cos t, sin t, cos 2t, sin 2t) of the first half of the samples (t + pi flips cos t, sin t).
 _HALF_SAMPLES = [(math.cos(t), math.sin(t), math.cos(2.0 * t), math.sin(2.0 * t))
                  for t in (SAMPLE_STEP * k for k in range(BOUNDARY_SAMPLES // 2))]
+#: The same as four columns (BOUNDARY_SAMPLES // 2, 1), for a batch.
+_SAMPLE_COLUMNS = tuple(np.array(column)[:, None] for column in zip(*_HALF_SAMPLES))
 
 
 def generalized_eigh(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -448,14 +450,12 @@ def _bearing_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, n
     num, den = _circle_series(M, c0, c1, rho), _circle_series(N, c0, c1, rho)
     n0, n1c, n1s, n2c, n2s = num
     d0, d1c, d1s, d2c, d2s = den
-    half = BOUNDARY_SAMPLES // 2
-    values = np.empty((BOUNDARY_SAMPLES, len(batch)))
-    for k, (ck, sk, c2k, s2k) in enumerate(_HALF_SAMPLES):
-        n_even, n_odd = n0 + n2c * c2k + n2s * s2k, n1c * ck + n1s * sk
-        d_even, d_odd = d0 + d2c * c2k + d2s * s2k, d1c * ck + d1s * sk
-        plus, minus = d_even + d_odd, d_even - d_odd
-        values[k] = np.where(plus > 0.0, (n_even + n_odd) / plus, -np.inf)
-        values[k + half] = np.where(minus > 0.0, (n_even - n_odd) / minus, -np.inf)
+    ck, sk, c2k, s2k = _SAMPLE_COLUMNS          # (half, 1) against (T,): rows of samples
+    n_even, n_odd = n0 + n2c * c2k + n2s * s2k, n1c * ck + n1s * sk
+    d_even, d_odd = d0 + d2c * c2k + d2s * s2k, d1c * ck + d1s * sk
+    plus, minus = d_even + d_odd, d_even - d_odd
+    values = np.concatenate([np.where(plus > 0.0, (n_even + n_odd) / plus, -np.inf),
+                             np.where(minus > 0.0, (n_even - n_odd) / minus, -np.inf)])
     usable = np.isfinite(values).all(axis=0)
     best = np.argmax(values, axis=0)             # the first of equal maxima, as the scalar
     lanes = np.arange(len(batch))
@@ -464,9 +464,12 @@ def _bearing_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, n
     curvature = before - 2.0 * here + after
     shift = np.where(curvature < 0.0, 0.5 * (before - after) / curvature, 0.0)
     t = SAMPLE_STEP * (best + np.clip(shift, -1.0, 1.0))
-    moving = np.ones(len(batch), dtype=bool)
+    moving = lanes                              # the problems whose Newton loop runs on
     for _ in range(NEWTON_ITERATIONS):
-        c, s = _elementwise(math.cos, t), _elementwise(math.sin, t)
+        n0, n1c, n1s, n2c, n2s = (k[moving] for k in num)
+        d0, d1c, d1s, d2c, d2s = (k[moving] for k in den)
+        angle = t[moving]
+        c, s = _elementwise(math.cos, angle), _elementwise(math.sin, angle)
         c2, s2 = c * c - s * s, 2.0 * s * c
         n1, n2 = n1c * c + n1s * s, n2c * c2 + n2s * s2
         d1, d2 = d1c * c + d1s * s, d2c * c2 + d2s * s2
@@ -477,9 +480,9 @@ def _bearing_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, n
         slope = (-n1 - 4.0 * n2) * d + n * (d1 + 4.0 * d2)
         step = np.where(slope < 0.0, np.clip(-F / slope, -NEWTON_MAX_STEP, NEWTON_MAX_STEP),
                         np.where(F >= 0.0, 0.1, -0.1))
-        t = np.where(moving, t + step, t)
-        moving &= (step < -NEWTON_STEP_TOLERANCE) | (step > NEWTON_STEP_TOLERANCE)
-        if not moving.any():
+        t[moving] = angle + step
+        moving = moving[(step < -NEWTON_STEP_TOLERANCE) | (step > NEWTON_STEP_TOLERANCE)]
+        if not len(moving):
             break
     q0 = c0 + rho * _elementwise(math.cos, t)
     q1 = c1 + rho * _elementwise(math.sin, t)
