@@ -11,6 +11,9 @@ Methods:
 * ram, rq, mtf, crm, mme: ``solve(...)`` (input validation included);
 * rq-loop: RQ as the simulator and the nodes call it each step, on a ``Problem`` built without
   validation (they validate their setting once per run);
+* rq-batch: RQ on all the problems of a kind at once, as the batched Monte Carlo engine calls
+  it each step (:func:`~formopt_ros.core.strategies.rq.rq_batch`, stacking the arrays
+  included); its time per problem is the call's time divided by the number of problems;
 * gbs: one-off grid search at cell 0.005 r on a new geometry (the grid cache is cleared before
   each call, so building the grid is included); gbs-cached: the same call again, grid reused;
 * peers (:mod:`formopt_ros.analysis.peers`): slsqp (SciPy SLSQP from p_o, default options),
@@ -44,7 +47,8 @@ from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
 from formopt_ros.core import METHODS, Problem, solve
 from formopt_ros.core.solver import DEFAULT_CONTEXT
 from formopt_ros.core.strategies import baselines
-from formopt_ros.core.strategies.rq import RayleighQuotient
+from formopt_ros.core.cost import ProblemBatch
+from formopt_ros.core.strategies.rq import RayleighQuotient, rq_batch
 from formopt_ros.core.strategies.certificate import PROVED
 
 KINDS = ('range', 'bearing')
@@ -53,8 +57,8 @@ MISS_RTOL = 1e-9
 #: GBS cell of the one-off and cached rows, fraction of r (the library default).
 GBS_CELL = baselines.DEFAULT_GBS_CELL
 PEERS = ('slsqp', 'slsqp-8', 'ipopt', 'ipopt-tuned', 'ipopt-8')
-ALL_METHODS = (*METHODS, 'rq-loop', 'gbs-cached', *PEERS)
-DEFAULT_METHODS = ('ram', 'rq', 'rq-loop', 'gbs', 'gbs-cached', *PEERS)
+ALL_METHODS = (*METHODS, 'rq-loop', 'rq-batch', 'gbs-cached', *PEERS)
+DEFAULT_METHODS = ('ram', 'rq', 'rq-loop', 'rq-batch', 'gbs', 'gbs-cached', *PEERS)
 
 ProblemData = tuple[np.ndarray, np.ndarray, float, float]
 
@@ -90,6 +94,8 @@ def runners(kind: str, methods: Sequence[str]) -> dict[str, Runner]:
             out[method] = _gbs(kind, cached=method == 'gbs-cached')
         elif method == 'rq-loop':
             out[method] = _loop(kind)
+        elif method == 'rq-batch':
+            continue                            # one call for all problems: run_kind
         else:
             out[method] = _solver(kind, method)
     return out
@@ -111,6 +117,21 @@ def _loop(kind: str) -> Runner:
         P, p_o, r, sigma = data
         return strategy.plan(Problem(P, p_o, r, sigma, kind, False), DEFAULT_CONTEXT).cost, False
     return run
+
+
+def time_batch(kind: str, data: Sequence[ProblemData],
+               repeats: int) -> tuple[float, np.ndarray]:
+    """(best wall time s of ``repeats`` calls, costs (n,) m^2) of RQ on all problems at once:
+    stacking them into a ProblemBatch and :func:`rq_batch`."""
+    best, points = math.inf, np.empty((0, 2))
+    for _ in range(repeats):
+        start = time.perf_counter()
+        batch = ProblemBatch(np.array([d[0] for d in data]), np.array([d[1] for d in data]),
+                             np.array([d[2] for d in data]), np.array([d[3] for d in data]),
+                             kind)
+        points = rq_batch(batch)
+        best = min(best, time.perf_counter() - start)
+    return best, np.array([float(Problem(*d, kind).cost(p)) for d, p in zip(data, points)])
 
 
 def _gbs(kind: str, cached: bool) -> Runner:
@@ -155,8 +176,10 @@ def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, pee
         run(warm)
     optimum = np.zeros(problems)
     proved = 0
+    drawn = []
     for index in range(problems):
         data = random_problem(rng, kind)
+        drawn.append(data)
         reference = solve(*data, measurement=kind, method='rq')
         optimum[index] = reference.cost
         proved += reference.certificate in PROVED
@@ -168,6 +191,11 @@ def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, pee
             results[method]['time'][index] = elapsed
             results[method]['cost'][index] = cost
             results[method]['fallback'][index] = fallback
+    if 'rq-batch' in methods:
+        time_batch(kind, [warm], 1)
+        elapsed, costs = time_batch(kind, drawn, repeats)
+        results['rq-batch'] = {'time': np.full(problems, elapsed / problems), 'cost': costs,
+                               'fallback': np.zeros(problems, dtype=bool)}
     return results, optimum, proved
 
 

@@ -32,7 +32,7 @@ def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureF
     """A small run prints one row per kind and method with the miss columns; the CSV has one
     row per (kind, problem, method) and refuses to overwrite an existing file."""
     path = tmp_path / 'bench.csv'
-    methods = 'ram,rq,rq-loop,gbs,gbs-cached,slsqp'
+    methods = 'ram,rq,rq-loop,rq-batch,gbs,gbs-cached,slsqp'
     assert bench.main(['--problems', '3', '--repeats', '1', '--methods', methods,
                        '--csv', str(path)]) == 0
     out = capsys.readouterr().out
@@ -42,8 +42,9 @@ def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureF
             assert any(line.split()[:2] == [kind, method] for line in out.splitlines())
     with open(path, newline='') as handle:
         rows = list(csv.DictReader(handle))
-    assert len(rows) == 2 * 3 * 6
-    assert {row['miss'] for row in rows if row['method'] in ('ram', 'rq', 'rq-loop')} == {'0'}
+    assert len(rows) == 2 * 3 * 7
+    assert {row['miss'] for row in rows
+            if row['method'] in ('ram', 'rq', 'rq-loop', 'rq-batch')} == {'0'}
     with pytest.raises(SystemExit) as stop:
         bench.main(['--problems', '1', '--csv', str(path)])
     assert stop.value.code == 2
