@@ -108,8 +108,8 @@ class StudyResult:
 #: A unit of work: (config, strategies advanced together, trials).
 Task = tuple[StudyConfig, tuple[str, ...], tuple[int, ...]]
 #: Rough relative cost of a strategy in the batched engine (to balance the worker processes).
-COST = {('bearing', 'ram'): 5.0, ('bearing', 'rq'): 4.5, ('bearing', 'gbs'): 2.5,
-        ('bearing', 'periodic'): 6.5, ('range', 'ram'): 3.0, ('range', 'rq'): 2.5,
+COST = {('bearing', 'ram'): 5.0, ('bearing', 'rq'): 3.3, ('bearing', 'gbs'): 2.5,
+        ('bearing', 'periodic'): 6.5, ('range', 'ram'): 3.0, ('range', 'rq'): 1.9,
         ('range', 'gbs'): 2.0, ('range', 'periodic'): 8.5}
 
 
