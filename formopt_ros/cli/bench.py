@@ -196,7 +196,7 @@ def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, pee
         elapsed, costs = time_batch(kind, drawn, repeats)
         results['rq-batch'] = {'time': np.full(problems, elapsed / problems), 'cost': costs,
                                'fallback': np.zeros(problems, dtype=bool)}
-    return results, optimum, proved
+    return {m: results[m] for m in methods if m in results}, optimum, proved
 
 
 def summarise(kind: str, results: Results, optimum: np.ndarray) -> list[list[str]]:
