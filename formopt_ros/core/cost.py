@@ -621,7 +621,8 @@ class ProblemBatch(_QuotientForms):
     """T problems of one measurement kind, stacked for vectorised strategies and tests.
 
     Every derived quantity uses the same entry-wise formulas as :class:`Problem`, so problem t
-    of a batch and ``batch.problem(t)`` give bit-identical numbers.
+    of a batch and ``batch.problem(t)`` give bit-identical numbers. The arrays are held as
+    float64 (other dtypes are converted, as :class:`Problem` converts to Python floats).
 
     Attributes:
         P: prior covariances, shape (T, 3, 3).
@@ -636,6 +637,13 @@ class ProblemBatch(_QuotientForms):
     r: np.ndarray
     sigma: np.ndarray
     measurement: str
+
+    def __post_init__(self) -> None:
+        # float64 throughout (a view where the array is float64 already): problem t is built
+        # from these numbers, so a float32 or longdouble batch would compute in another
+        # precision than its problems
+        for name in ('P', 'p_o', 'r', 'sigma'):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=float))
 
     @classmethod
     def shared(cls, P: np.ndarray, p_o: np.ndarray, r: float, sigma: float,
@@ -700,11 +708,11 @@ class ProblemBatch(_QuotientForms):
         """:meth:`Problem.gain_error_at` per problem, for arrays (T,) of points (m) and their
         gains (m^2): the same arithmetic; inf where the denominator may vanish, nan where the
         scalar bound would not be a number."""
-        n, d, e_n, e_d = gain_rounding(self.measurement, self.coefficients, x, y)
         with np.errstate(all='ignore'):
+            n, d, e_n, e_d = gain_rounding(self.measurement, self.coefficients, x, y)
             low, high = np.maximum(n - e_n, 0.0) / (d + e_d), (n + e_n) / (d - e_d)
             error = np.maximum(gain - low, high - gain) * (1.0 + 1e-12) + 1e-15 * np.abs(gain)
-        return np.where(d - e_d > 0.0, error, np.inf)
+            return np.where(d - e_d > 0.0, error, np.inf)
 
     def gains_of(self, owner: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gains (m^2) at points x, y (C,) (m) of the problems ``owner`` (C,); shape (C,).

@@ -45,6 +45,14 @@ def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureF
     assert len(rows) == 2 * 3 * 7
     assert {row['miss'] for row in rows
             if row['method'] in ('ram', 'rq', 'rq-loop', 'rq-batch')} == {'0'}
+    # rq-batch in calls of 2 problems: the third problem's call is another call
+    assert bench.main(['--problems', '3', '--repeats', '1', '--methods', 'rq-batch',
+                       '--batch-size', '2', '--measurement', 'range',
+                       '--csv', str(tmp_path / 'batch.csv')]) == 0
+    assert 'rq-batch: 2 problems per call' in capsys.readouterr().out
+    with open(tmp_path / 'batch.csv', newline='') as handle:
+        times = [row['time_us'] for row in csv.DictReader(handle)]
+    assert times[0] == times[1] != times[2]
     with pytest.raises(SystemExit) as stop:
         bench.main(['--problems', '1', '--csv', str(path)])
     assert stop.value.code == 2

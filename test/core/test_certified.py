@@ -4,6 +4,7 @@ independent reference (test/harness/problems.py)."""
 from __future__ import annotations
 
 import math
+import warnings
 from collections import Counter
 from collections.abc import Callable
 from fractions import Fraction
@@ -832,6 +833,14 @@ def test_rq_batch_equals_single_problems(kind: str, monkeypatch: pytest.MonkeyPa
     delegated.clear()
     rq.rq_batch(ProblemBatch.stack(hard))
     assert len(delegated) <= {RANGE: 2, BEARING: 30}[kind], len(delegated)
+    # float32 and longdouble arrays are held as float64, as problem(t) reads them
+    batch = ProblemBatch.stack(hard[:20])
+    for dtype in (np.float32, np.longdouble):
+        other = ProblemBatch(batch.P.astype(dtype), batch.p_o.astype(dtype), batch.r,
+                             batch.sigma.astype(dtype), kind)
+        points = rq.rq_batch(other)
+        for index in range(20):
+            np.testing.assert_array_equal(points[index], scalar(other.problem(index)).p)
 
 
 @pytest.mark.parametrize('kind', KINDS)
@@ -860,6 +869,21 @@ def test_batch_proof_is_the_single_proof(kind: str) -> None:
                for problem, point, gain in zip(problems, points, gains)]
     assert proved.tolist() == singles
     assert 200 < sum(singles) < 600, sum(singles)
+    # float32 points are read as float64; data that are not numbers (every other problem
+    # here), or the leader's own position, give False and no numpy warning
+    narrow = x.astype(np.float32), y.astype(np.float32)
+    wide = [v.astype(float) for v in narrow]
+    assert certificate.proved_batch(batch, *narrow, batch.gains_of(
+        np.arange(len(problems)), *wide)).tolist() == certificate.proved_batch(
+            batch, *wide, batch.gains_of(np.arange(len(problems)), *wide)).tolist()
+    broken = ProblemBatch(np.where(np.arange(600)[:, None, None] % 2, batch.P, np.inf),
+                          batch.p_o, batch.r, batch.sigma, kind)
+    zeros = np.zeros(600)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        verdicts = certificate.proved_batch(broken, x, y, gains)
+        assert not verdicts[::2].any() and verdicts[1::2].tolist() == singles[1::2]
+        assert not certificate.proved_batch(batch, zeros, zeros, zeros).any()
 
 
 # --- GBS ---------------------------------------------------------------------------------------

@@ -390,9 +390,10 @@ def proved_batch(batch: ProblemBatch, x: np.ndarray, y: np.ndarray,
     and :func:`_bearing_test` on arrays (T,), operation for operation, so that a problem's
     verdict is the one :func:`certify` reaches on ``batch.problem(t)``. False where that
     test fails or meets a value that is not a number (then :func:`certify` itself, with its
-    exact stage, decides): never True where :func:`certify` would not prove."""
-    cost = batch.base_cost - g
-    error = batch.gain_error_at(x, y, g)
+    exact stage, decides): never True where :func:`certify` would not prove. x, y and g are
+    taken as float64 (float32 points would be rounded differently from the scalar's); no
+    numpy warning is raised."""
+    x, y, g = (np.asarray(v, dtype=float) for v in (x, y, g))
     A: Sequence[Any]
     B: Sequence[Any]
     K: Sequence[Any]
@@ -401,6 +402,8 @@ def proved_batch(batch: ProblemBatch, x: np.ndarray, y: np.ndarray,
     w: Sequence[Any]
     h: Sequence[Any]
     with np.errstate(all='ignore'):
+        cost = batch.base_cost - g
+        error = batch.gain_error_at(x, y, g)
         if batch.measurement == RANGE:
             range_terms = range_system(batch)
             A, B, K = range_terms
