@@ -377,10 +377,19 @@ def _range_test(problem: Problem, x: float, y: float, g: float, cost: float,
     return mu, residual, math.inf
 
 
-#: The (row, column) of each distinct entry of a symmetric 2x2 and 3x3 matrix, in the order of
-#: Entries2 and Entries, and the positions of the diagonal among them.
-_PAIRS = {2: ((0, 0), (0, 1), (1, 1)), 3: ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))}
-_DIAGONAL = {2: (0, 2), 3: (0, 3, 5)}
+#: The rows and the columns of the distinct entries of a symmetric 2x2 and 3x3 matrix, in the
+#: order of Entries2 and Entries, and the positions of the diagonal among them.
+_PAIRS = {2: (np.array([0, 0, 1]), np.array([0, 1, 1])),
+          3: (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))}
+_DIAGONAL = {2: np.array([0, 2]), 3: np.array([0, 3, 5])}
+
+
+def _stacked(values: Sequence[Any], size: int) -> np.ndarray:
+    """Floats or arrays (size,) as the rows of one array (len(values), size)."""
+    out = np.empty((len(values), size))
+    for index, value in enumerate(values):
+        out[index] = value
+    return out
 
 
 def proved_batch(batch: ProblemBatch, x: np.ndarray, y: np.ndarray,
@@ -420,30 +429,29 @@ def proved_batch(batch: ProblemBatch, x: np.ndarray, y: np.ndarray,
         inside = sum(map(operator.mul, h, w)) < -1e-9 * hh * np.sqrt(ww)
         mu = np.where(inside | (ww == 0.0), 0.0,
                       np.maximum(0.0, -sum(map(operator.mul, w, v)) / ww))
-        e = [d[i] * d[j] for i, j in _PAIRS[n]]
+        # the entries as rows (entries, T), each entry's arithmetic as in the scalar test
+        rows, columns = _PAIRS[n]
         diagonal = _DIAGONAL[n]
-        scale = np.abs(g) + np.maximum.reduce([A[k] * e[k] for k in diagonal])
+        D = _stacked(d, len(batch))
+        E = D[rows] * D[columns]
+        A2, B2, K2 = (_stacked(X, len(batch)) for X in (A, B, K))
+        scale = np.abs(g) + (A2[diagonal] * E[diagonal]).max(axis=0)
         scale = np.where(mu > 0.0, scale + mu * factor * (
-            np.maximum.reduce([np.abs(k) * ek for k, ek in zip(K, e)])
-            + g_size * np.maximum.reduce([e[k] for k in diagonal])), scale)
+            (np.abs(K2) * E).max(axis=0) + g_size * E[diagonal].max(axis=0)), scale)
         size = scale * np.sqrt(hh)
         proved = np.zeros(len(batch), dtype=bool)
-        U = [b * ek for b, ek in zip(B, e)]
-        V = [(mu * k - a) * ek for a, k, ek in zip(A, K, e)]
+        U, V = B2 * E, (mu * K2 - A2) * E
         for rtol in GAP_RTOLS:
             gap = rtol * cost
-            S = [(g + gap) * u + v for u, v in zip(U, V)]
-            delta = _rounding_shift(scale, gap, np.maximum.reduce([np.abs(S[k])
-                                                                   for k in diagonal]))
-            for k in diagonal:
-                S[k] = S[k] - delta
+            S = (g + gap) * U + V
+            S[diagonal] -= _rounding_shift(scale, gap, np.abs(S[diagonal]).max(axis=0))
             proved |= ~(gap < error) & _positive_definite_pivots(S)
     return proved & (cost > 0.0) & (0.0 < size) & (size < math.inf)
 
 
-def _positive_definite_pivots(S: list[np.ndarray]) -> np.ndarray:
-    """Where the symmetric 2x2 or 3x3 matrices of entries S (Entries2 or Entries order, arrays)
-    have positive pivots, by the arithmetic of the scalar tests."""
+def _positive_definite_pivots(S: np.ndarray) -> np.ndarray:
+    """Where the symmetric 2x2 or 3x3 matrices whose entries are the rows of S (3 or 6, in
+    Entries2 or Entries order) have positive pivots, by the arithmetic of the scalar tests."""
     if len(S) == 3:
         s00, s01, s11 = S
         return (s00 > 0.0) & (s00 * s11 > s01 * s01)

@@ -328,15 +328,24 @@ def _plan_bearing_exhaustive(problem: Problem, method: str,
                                   **details})
 
 
-def _plan_range(problem: Problem, method: str) -> Solution:
-    """Range: the top generalised eigenvector of the 2x2 pencil (A, B + R I) in closed form
-    (Cholesky reduction to C = L^-1 A L^-T, whose eigenvalues are mean +- spread)."""
+def _range_cholesky(problem: Problem | ProblemBatch,
+                    sqrt: Callable[[Any], Any]) -> tuple[Any, Any, Any, Any, Any, Any]:
+    """(a00, a01, a11, l00, l10, pivot): the range pencil's A = (P W^2 P)[:2, :2] and the
+    Cholesky factor of B = P[:2, :2] + R I up to its last pivot (l11^2, positive unless B is
+    singular to working precision); floats, or arrays for a batch (``sqrt``: math.sqrt or
+    numpy.sqrt, both correctly rounded)."""
     (a00, a01, _, a11, _, _), _ = problem.forms
     p00, p01, _, p11, _, _ = problem.entries
     R = problem.R
-    l00 = math.sqrt(p00 + R)
+    l00 = sqrt(p00 + R)
     l10 = p01 / l00
-    pivot = p11 + R - l10 * l10
+    return a00, a01, a11, l00, l10, p11 + R - l10 * l10
+
+
+def _plan_range(problem: Problem, method: str) -> Solution:
+    """Range: the top generalised eigenvector of the 2x2 pencil (A, B + R I) in closed form
+    (Cholesky reduction to C = L^-1 A L^-T, whose eigenvalues are mean +- spread)."""
+    a00, a01, a11, l00, l10, pivot = _range_cholesky(problem, math.sqrt)
     if not pivot > 0.0:         # B is singular to working precision (P passed its LDL' check)
         return _plan_range_by_stationarity(problem, method)
     l11 = math.sqrt(pivot)
@@ -401,12 +410,7 @@ def _range_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, np.
     """:func:`_plan_range`'s closed form and arc choice on arrays (T,): (x, y, gain, usable);
     not usable where the scalar solver would take another branch (B singular to working
     precision, every direction tying) or a value is not a number."""
-    (a00, a01, _, a11, _, _), _ = batch.forms
-    p00, p01, _, p11, _, _ = batch.entries
-    R = batch.R
-    l00 = np.sqrt(p00 + R)
-    l10 = p01 / l00
-    pivot = p11 + R - l10 * l10
+    a00, a01, a11, l00, l10, pivot = _range_cholesky(batch, np.sqrt)
     l11 = np.sqrt(pivot)
     x00, x01 = a00 / l00, a01 / l00
     x10, x11 = (a01 - l10 * x00) / l11, (a11 - l10 * x01) / l11
@@ -464,18 +468,16 @@ def _bearing_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, n
     curvature = before - 2.0 * here + after
     shift = np.where(curvature < 0.0, 0.5 * (before - after) / curvature, 0.0)
     t = SAMPLE_STEP * (best + np.clip(shift, -1.0, 1.0))
+    series = np.array([num, den])               # (2, 5, T): both series, one operation each
     moving = lanes                              # the problems whose Newton loop runs on
     for _ in range(NEWTON_ITERATIONS):
-        n0, n1c, n1s, n2c, n2s = (k[moving] for k in num)
-        d0, d1c, d1s, d2c, d2s = (k[moving] for k in den)
+        k0, k1c, k1s, k2c, k2s = series[:, :, moving].transpose(1, 0, 2)
         angle = t[moving]
         c, s = _elementwise(math.cos, angle), _elementwise(math.sin, angle)
         c2, s2 = c * c - s * s, 2.0 * s * c
-        n1, n2 = n1c * c + n1s * s, n2c * c2 + n2s * s2
-        d1, d2 = d1c * c + d1s * s, d2c * c2 + d2s * s2
-        n, d = n0 + n1 + n2, d0 + d1 + d2
-        n_t = n1s * c - n1c * s + 2.0 * (n2s * c2 - n2c * s2)
-        d_t = d1s * c - d1c * s + 2.0 * (d2s * c2 - d2c * s2)
+        x1, x2 = k1c * c + k1s * s, k2c * c2 + k2s * s2      # rows: numerator, denominator
+        (n, d), (n_t, d_t) = k0 + x1 + x2, k1s * c - k1c * s + 2.0 * (k2s * c2 - k2c * s2)
+        (n1, d1), (n2, d2) = x1, x2
         F = n_t * d - n * d_t
         slope = (-n1 - 4.0 * n2) * d + n * (d1 + 4.0 * d2)
         step = np.where(slope < 0.0, np.clip(-F / slope, -NEWTON_MAX_STEP, NEWTON_MAX_STEP),
