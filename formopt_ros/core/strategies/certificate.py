@@ -37,6 +37,9 @@ critical point of the cubic det(S + mu G) (:func:`_best_bearing_multiplier`), wh
 whenever one exists: where S cancels, the float one can be off by more than the proof's margin.
 A point that is not optimal fails the test, however accurate the arithmetic: a better feasible
 point h makes h'Sh <= mu h'Gh <= 0.
+
+:func:`proved_batch` is the floating-point test on arrays, for many problems at once, with the
+scalar test's arithmetic operation for operation (so the same verdicts).
 """
 from __future__ import annotations
 

@@ -23,6 +23,11 @@ path is better (rounding lost a root): that point is then returned as 'none', wi
 An answer still without a proof is the start of an exact local search
 (:func:`~.common.refine_exactly`); a better point it finds is certified in exact arithmetic, or
 returned as 'none'.
+
+Many problems at once (the batched Monte Carlo engine's trials): :func:`rq_batch` runs the
+first route and the floating-point stage of its proof on arrays, with the scalar arithmetic,
+and hands every problem it does not prove to :func:`rq_optimum`; each problem gets the point
+:func:`rq_optimum` gives it, bit for bit.
 """
 from __future__ import annotations
 
