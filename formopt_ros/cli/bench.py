@@ -174,7 +174,8 @@ def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, pee
     ``batch_size`` problems per call (None: all)."""
     calls = runners(kind, methods)
     results = {m: {'time': np.zeros(problems), 'cost': np.zeros(problems),
-                   'fallback': np.zeros(problems, dtype=bool)} for m in calls}
+                   'fallback': np.zeros(problems, dtype=bool)}
+               for m in methods if m in calls or m == 'rq-batch'}
     warm = random_problem(np.random.default_rng(0), kind)
     for run in calls.values():        # warm-up: lazy imports, problem-independent caches
         run(warm)
@@ -198,14 +199,12 @@ def run_kind(kind: str, methods: Sequence[str], problems: int, repeats: int, pee
     if 'rq-batch' in methods:
         time_batch(kind, [warm], 1)
         size = batch_size or problems
-        results['rq-batch'] = {'time': np.zeros(problems), 'cost': np.zeros(problems),
-                               'fallback': np.zeros(problems, dtype=bool)}
         for start in range(0, problems, size):
             chunk = slice(start, min(start + size, problems))
             elapsed, costs = time_batch(kind, drawn[chunk], repeats)
             results['rq-batch']['time'][chunk] = elapsed / len(costs)
             results['rq-batch']['cost'][chunk] = costs
-    return {m: results[m] for m in methods if m in results}, optimum, proved
+    return results, optimum, proved
 
 
 def summarise(kind: str, results: Results, optimum: np.ndarray) -> list[list[str]]:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from fractions import Fraction
 from typing import Any
 
@@ -43,9 +43,11 @@ RING_PEAKS = 3
 REFINE_NEWTON_STEPS = 8
 
 
-def gains_tie(problem: Problem, gain_max: float, gain_min: float) -> bool:
-    """True when the best and worst gain differ by less than FLAT_TOLERANCE of the cost."""
-    return gain_max - gain_min <= FLAT_TOLERANCE * max(problem.base_cost - gain_max, 1e-300)
+def gains_tie(problem: Problem | ProblemBatch, gain_max: Any, gain_min: Any,
+              maximum: Callable[[Any, Any], Any] = max) -> Any:
+    """True when the best and worst gain differ by less than FLAT_TOLERANCE of the cost (floats;
+    for a batch, arrays (T,) with ``maximum=numpy.maximum``)."""
+    return gain_max - gain_min <= FLAT_TOLERANCE * maximum(problem.base_cost - gain_max, 1e-300)
 
 
 def check_points(problem: Problem, extra: Sequence[tuple[float, float]] = ()) -> np.ndarray:

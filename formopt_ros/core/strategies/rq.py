@@ -44,7 +44,7 @@ from formopt_ros.core.strategies.base import (
 from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.strategies.certificate import PROVED, certify, proved_batch
 from formopt_ros.core.strategies.common import (
-    CHECK_SAMPLES, FLAT_TOLERANCE, boundary_points, boundary_stationarity, check_points, gains_tie,
+    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
     polish_boundary_angles, range_plan_from_direction, settle_unproved)
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
@@ -428,9 +428,7 @@ def _range_first_route(batch: ProblemBatch) -> tuple[np.ndarray, np.ndarray, np.
     v0, v1 = np.where(upper, spread + half, c01), np.where(upper, c01, spread - half)
     u1 = v1 / l11
     u0 = (v0 - l10 * u1) / l00
-    gain_max = mean + spread
-    flat = (spread == 0.0) | (gain_max - (mean - spread) <= FLAT_TOLERANCE * np.maximum(
-        batch.base_cost - gain_max, 1e-300))
+    flat = (spread == 0.0) | gains_tie(batch, mean + spread, mean - spread, np.maximum)
     x_o, y_o = batch.slot
     theta_o = _elementwise(math.atan2, y_o, x_o)
     delta = _elementwise(math.asin, batch.r / batch.d_o)
