@@ -543,17 +543,33 @@ class Problem(_QuotientForms, _ProblemValues):
         return -y_o * k, x_o * k, r * k
 
     # --- the cost -----------------------------------------------------------------------------
-    def gain_at(self, x: Value, y: Value) -> Value:
+    @overload
+    def gain_at(self, x: float, y: float) -> float:
+        ...
+
+    @overload
+    def gain_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        ...
+
+    def gain_at(self, x: Any, y: Any) -> Any:
         """Information gain tr(W P W) - tr(W P_post W) (m^2) at points (x, y) in {L} (m), given as
         floats or as arrays of one shape.
 
         At a point where the denominator h'Nh rounds to zero (P near-singular along h) the
         formula says nothing: the gain is -inf there, so that no choice rests on it (the
-        certificates' exact stage and exact tie-break evaluate such points exactly)."""
-        try:
-            return quotient_gain(self.measurement, self.coefficients, x, y)
-        except ZeroDivisionError:       # floats only (arrays divide to inf or nan)
-            return -math.inf    # type: ignore[return-value]
+        certificates' exact stage and exact tie-break evaluate such points exactly). The same
+        holds where the formula is not finite (the origin, an overflow), for Python floats,
+        numpy scalars and arrays alike, and no numpy warning is raised."""
+        if type(x) is float and type(y) is float:           # the solvers' hot path
+            try:
+                return quotient_gain(self.measurement, self.coefficients, x, y)
+            except ZeroDivisionError:
+                return -math.inf
+        with np.errstate(all='ignore'):
+            gains = quotient_gain(self.measurement, self.coefficients, np.asarray(x, dtype=float),
+                                  np.asarray(y, dtype=float))
+        gains = np.where(np.isfinite(gains), gains, -np.inf)
+        return gains if gains.ndim else gains[()]
 
     def gain_error_at(self, x: float, y: float, gain: float) -> float:
         """A rigorous bound (m^2) on |gain - g(x, y)|, g the exact gain at the floats (x, y) on
@@ -582,10 +598,7 @@ class Problem(_QuotientForms, _ProblemValues):
         """Information gain (m^2) at points of shape (n, 2) or (2,) in {L}, m; shape (n,);
         -inf where the formula's denominator rounds to zero (:meth:`gain_at`)."""
         pts = np.atleast_2d(np.asarray(points, dtype=float))
-        with np.errstate(divide='ignore', invalid='ignore'):
-            gains = np.asarray(self.gain_at(pts[:, 0], pts[:, 1]))
-        finite = np.isfinite(gains)
-        return gains if finite.all() else np.where(finite, gains, -np.inf)
+        return self.gain_at(pts[:, 0], pts[:, 1])
 
     def cost(self, points: np.ndarray) -> np.ndarray | float:
         """tr(W P_post W) (m^2) at points (n, 2) -> (n,), or at one point (2,) -> float."""

@@ -382,6 +382,23 @@ def test_cost_depends_on_position() -> None:
         assert np.all(costs < problem.base_cost)     # a measurement always helps
 
 
+@pytest.mark.filterwarnings('error')
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_gain_at_is_minus_infinity_where_the_formula_breaks_down_for_every_type(kind: str) -> None:
+    """At the origin the gain formula divides by zero: gain_at gives -inf for Python floats,
+    numpy scalars of any precision, ints, 0-d and n-d arrays, without a warning; elsewhere a
+    numpy scalar gives the Python float's number exactly."""
+    problem = random_problem(np.random.default_rng(SEED + 2), kind)
+    for zero in (0.0, np.float64(0.0), np.float32(0.0), 0, np.array(0.0)):
+        assert problem.gain_at(zero, zero) == -math.inf
+    gains = problem.gain_at(np.array([0.0, *problem.p_o[:1]]), np.array([0.0, problem.p_o[1]]))
+    assert gains[0] == -math.inf and gains[1] == problem.gain_at(*problem.slot)
+    assert problem.gain(np.zeros(2)).tolist() == [-math.inf]
+    x, y = problem.slot
+    assert problem.gain_at(np.float64(x), np.float64(y)) == problem.gain_at(x, y)
+    assert type(problem.gain_at(x, y)) is float
+
+
 def test_q_disc_maps_boundary_circle_and_inverts() -> None:
     """p -> q = (-y, x)/|p|^2 maps the disc boundary onto q_disc's circle; point_from_q inverts."""
     rng = np.random.default_rng(SEED + 2)
