@@ -308,18 +308,31 @@ _FLOAT = np.dtype(float)
 _FLOAT_SCALARS = (float, np.float64)
 
 
+#: Relative difference of P[i, j] and P[j, i] that :func:`check_covariance` takes for rounding.
+SYMMETRY_TOLERANCE = 1e-9
+
+
 def check_covariance(P: object, name: str = 'P', variances: tuple[float, float] | None = None
                      ) -> tuple[np.ndarray, Entries]:
     """(P as a symmetric float (3, 3) array, its six distinct entries) or ValueError when P is
-    not symmetric positive definite (asymmetry up to 1e-9 relative is averaged away) or, when
-    ``variances`` = (low, high) is given, when a diagonal entry lies outside it."""
+    not symmetric positive definite or, when ``variances`` = (low, high) is given, when a
+    diagonal entry lies outside it.
+
+    P[i, j] and P[j, i] may differ by rounding, up to SYMMETRY_TOLERANCE of their own scale
+    max(sqrt(P[i, i] P[j, j]), |P[i, j]|, |P[j, i]|) (the first bounds |P[i, j]| of a
+    covariance), and are then averaged. The scale is the pair's, not the whole matrix's: with
+    variances 1e4 and 1e-16, P[1, 2] = 9e-7 and P[2, 1] = -9e-7 are a correlation of +0.9 and
+    one of -0.9, not rounding."""
     arr, (p00, p01, p02, p10, p11, p12, p20, p21, p22) = _check_array(name, P, (3, 3))
     if p01 != p10 or p02 != p20 or p12 != p21:
-        scale = max(map(abs, (p00, p01, p02, p10, p11, p12, p20, p21, p22)))
-        asym = max(abs(p01 - p10), abs(p02 - p20), abs(p12 - p21))
-        if asym > 1e-9 * max(scale, 1e-300):
-            raise ValueError(f'{name} must be symmetric, got max |P - P^T| = {asym:.3g} '
-                             f'(max |P| = {scale:.3g})')
+        roots = [math.sqrt(abs(value)) for value in (p00, p11, p22)]
+        for (i, j), upper, lower in (((0, 1), p01, p10), ((0, 2), p02, p20), ((1, 2), p12, p21)):
+            scale = max(roots[i] * roots[j], abs(upper), abs(lower), 1e-300)
+            if abs(upper - lower) > SYMMETRY_TOLERANCE * scale:
+                raise ValueError(
+                    f'{name} must be symmetric, got {name}[{i}, {j}] = {upper!r} and '
+                    f'{name}[{j}, {i}] = {lower!r} (rounding may make them differ by '
+                    f'{SYMMETRY_TOLERANCE:g} of their scale {scale:.3g} at most)')
         arr = 0.5 * (arr + arr.T)
         p01, p02, p12 = float(arr[0, 1]), float(arr[0, 2]), float(arr[1, 2])
     entries = (p00, p01, p02, p11, p12, p22)

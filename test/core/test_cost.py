@@ -43,9 +43,14 @@ def bad_problem_cases() -> list[tuple[str, dict, str]]:
     """(label, keyword overrides, regex the message must start with) for every bad input."""
     not_symmetric = GOOD_P.copy()
     not_symmetric[0, 1] += 1e-3
+    # a correlation of +0.9 above the diagonal and -0.9 below, between variances 1e4 and 1e-16:
+    # tiny next to P's largest entry, but not rounding (a reviewer found it averaged to 0)
+    sign_flipped = np.array([[1e4, 0.0, 0.0], [0.0, 1e4, 9e-7], [0.0, -9e-7, 1e-16]])
     not_pd = np.diag([1.0, 1.0, -1e-3])
     singular = np.diag([1.0, 1.0, 0.0])
     cases = [('P not symmetric', {'P': not_symmetric}, r'P must be symmetric'),
+             ('P sign-flipped correlation', {'P': sign_flipped},
+              r'P must be symmetric, got P\[1, 2\] = 9e-07 and P\[2, 1\] = -9e-07'),
              ('P indefinite', {'P': not_pd}, r'P must be positive definite'),
              ('P singular', {'P': singular}, r'P must be positive definite'),
              ('P shape', {'P': np.eye(2)}, r'P must have shape'),
@@ -145,6 +150,22 @@ def test_problem_accepts_every_real_number_type(kind: str) -> None:
         solution = solve(**arguments, measurement=kind, method='rq')
         np.testing.assert_array_equal(solution.p, reference.p)
         assert solution.cost == reference.cost
+
+
+def test_rounding_level_asymmetry_is_averaged_per_pair() -> None:
+    """P[i, j] and P[j, i] differing by up to 1e-9 of the pair's scale are averaged (the
+    solution is that of the averaged P), whatever the other entries; 1e-8 is refused."""
+    P = np.array([[1e4, 0.0, 0.0], [0.0, 1e4, 9e-7], [0.0, 9e-7, 1e-16]])
+    for tolerated, factor in ((True, 1.0 + 5e-10), (False, 1.0 + 1e-8)):
+        skewed = P.copy()
+        skewed[2, 1] *= factor
+        if not tolerated:
+            with pytest.raises(ValueError, match=r'^P must be symmetric'):
+                Problem(skewed, GOOD_P_O, 0.3, 0.05, BEARING)
+            continue
+        averaged = 0.5 * (skewed + skewed.T)
+        assert Problem(skewed, GOOD_P_O, 0.3, 0.05, BEARING).entries == Problem(
+            averaged, GOOD_P_O, 0.3, 0.05, BEARING).entries
 
 
 def test_positive_definite_exactly_agrees_with_exact_minors() -> None:
