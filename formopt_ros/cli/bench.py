@@ -13,7 +13,8 @@ Methods:
   validation (they validate their setting once per run);
 * rq-batch: RQ on ``--batch-size`` problems per call (default: all the problems of a kind in
   one call), as the batched Monte Carlo engine calls it each step with its trials
-  (:func:`~formopt_ros.core.strategies.rq.rq_batch`, stacking the arrays included); a
+  (:func:`~formopt_ros.core.strategies.rq.rq_batch`, stacking the arrays included, on a
+  ``ProblemBatch`` built without validation, as the engine builds it); a
   problem's time is its call's time divided by the problems in the call (the time per problem
   falls with the batch size: the call has a fixed numpy cost);
 * gbs: one-off grid search at cell 0.005 r on a new geometry (the grid cache is cleared before
@@ -130,7 +131,7 @@ def time_batch(kind: str, data: Sequence[ProblemData],
         start = time.perf_counter()
         batch = ProblemBatch(np.array([d[0] for d in data]), np.array([d[1] for d in data]),
                              np.array([d[2] for d in data]), np.array([d[3] for d in data]),
-                             kind)
+                             kind, validate=False)      # as the engine: checked beforehand
         points = rq_batch(batch)
         best = min(best, time.perf_counter() - start)
     return best, np.array([float(Problem(*d, kind).cost(p)) for d, p in zip(data, points)])

@@ -156,7 +156,8 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
         prior = driven_prior(s, x, P, slot, leader)
         p = np.empty((S * T, 2))
         for planner, lane, lane_rngs in zip(planners, lanes, rngs):
-            problems = ProblemBatch.shared(prior[lane], slot, s.r, s.sigma, s.measurement)
+            problems = ProblemBatch.shared(prior[lane], slot, s.r, s.sigma, s.measurement,
+                                           validate=False)
             if isinstance(planner, _PerTrialPlanner):
                 planner.plan(k + 1, leader, x[lane], P[lane], problems, p[lane],
                              decision_time[lane, k], fallback[lane, k])

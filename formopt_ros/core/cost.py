@@ -25,7 +25,7 @@ import operator
 import reprlib
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass
 from decimal import Decimal
 from fractions import Fraction
 from typing import Any, Generic, TypeVar, cast, overload
@@ -441,6 +441,83 @@ def check_problem_thoroughly(P: object, p_o: object, r: object, sigma: object,
             check_disc(x_o, y_o, r_checked))
 
 
+#: A checked batch: P (T, 3, 3), p_o (T, 2), r (T,) and sigma (T,) as float64 arrays.
+CheckedBatch = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _batch_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """value as a float64 array of the given shape (-1: the batch size, any), or ValueError
+    naming ``name``; real numbers only (an object array is converted entry by entry; booleans,
+    complex numbers and masked entries are refused, as by :func:`check_problem`)."""
+    if np.ma.isMaskedArray(value) and np.ma.is_masked(value):
+        raise ValueError(f'{name} has masked entries; give every entry a value')
+    try:
+        raw = np.asarray(value)
+    except ValueError as error:          # ragged nesting
+        raise ValueError(f'{name} must be an array of shape {shape}: {error}') from None
+    if raw.dtype.kind not in 'iufO' or raw.dtype.kind == 'O' and any(
+            isinstance(v, (bool, np.bool_, complex, np.complexfloating)) for v in raw.flat):
+        raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
+    try:
+        arr = raw.astype(float)
+    except (TypeError, ValueError, OverflowError) as error:
+        raise ValueError(f'{name} must hold real numbers: {error}') from None
+    if arr.ndim != len(shape) or any(n not in (-1, m) for n, m in zip(shape, arr.shape)):
+        wanted = ', '.join('T' if n == -1 else str(n) for n in shape)
+        raise ValueError(f'{name} must have shape ({wanted}{"," if len(shape) == 1 else ""}) '
+                         f'for T problems, got shape {arr.shape}')
+    return arr
+
+
+def check_batch(P: object, p_o: object, r: object, sigma: object,
+                measurement: str) -> CheckedBatch:
+    """The inputs of a :class:`ProblemBatch`, checked: every problem as :func:`check_problem`
+    checks one, or ValueError naming the first bad problem and what is wrong with it.
+
+    The checks of :func:`check_problem`'s quick path run on the arrays at once (the same
+    float comparisons and LDL' pivots); a problem that fails one of them is checked alone,
+    which either names what is wrong or accepts it (P symmetric up to rounding, whose pair
+    is then averaged; P positive definite only in exact arithmetic's judgement).
+    """
+    if measurement not in MEASUREMENT_KINDS:
+        raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, got {measurement!r}')
+    arrays = [_batch_array(name, value, shape) for name, value, shape in (
+        ('P', P, (-1, 3, 3)), ('p_o', p_o, (-1, 2)), ('r', r, (-1,)), ('sigma', sigma, (-1,)))]
+    sizes = [len(a) for a in arrays]
+    if len(set(sizes)) != 1:
+        raise ValueError(f'P, p_o, r and sigma must hold one entry per problem, got '
+                         f'{sizes[0]}, {sizes[1]}, {sizes[2]} and {sizes[3]}')
+    P_a, p_o_a, r_a, sigma_a = arrays
+    low, high = VARIANCE_RANGE
+    with np.errstate(all='ignore'):
+        p00, p01, p02, p11, p12, p22 = (P_a[:, i, j] for i, j in (
+            (0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))
+        d_o = np.array([math.hypot(x, y) for x, y in p_o_a.tolist()]).reshape(len(p_o_a))
+        l10, l20 = p01 / p00, p02 / p00
+        d1 = p11 - l10 * p01
+        b12 = p12 - l20 * p01
+        d2 = p22 - l20 * p02 - b12 * b12 / d1
+        quick = ((p01 == P_a[:, 1, 0]) & (p02 == P_a[:, 2, 0]) & (p12 == P_a[:, 2, 1])
+                 & (low <= p00) & (p00 <= high) & (low <= p11) & (p11 <= high)
+                 & (low <= p22) & (p22 <= high)
+                 & (SIGMA_RANGE[0] <= sigma_a) & (sigma_a <= SIGMA_RANGE[1])
+                 & (SLOT_DISTANCE_RANGE[0] <= d_o) & (d_o <= SLOT_DISTANCE_RANGE[1])
+                 & (MIN_DEVIATION * d_o <= r_a) & (r_a <= MAX_DEVIATION * d_o)
+                 & np.isfinite(p01 + p02 + p12)
+                 & (d1 > 1e-12 * p11) & (d2 > 1e-14 * p22 * (2.0 + np.sqrt(p11 / d1))))
+    others = np.flatnonzero(~quick).tolist()
+    if others:
+        P_a, p_o_a = P_a.copy(), p_o_a.copy()
+    for t in others:
+        try:
+            checked = check_problem(P_a[t], p_o_a[t], float(r_a[t]), float(sigma_a[t]),
+                                    measurement)
+        except ValueError as error:
+            raise ValueError(f'problem {t} of the batch: {error}') from None
+        P_a[t], p_o_a[t] = checked[0], checked[1]
+    return P_a, p_o_a, r_a, sigma_a
+
+
 class _QuotientForms:
     """The gain's quadratic forms, derived on first use from ``entries`` (P's six distinct
     entries), ``d_o`` and ``R``: floats for a :class:`Problem`, arrays (T,) for a
@@ -656,6 +733,10 @@ class ProblemBatch(_QuotientForms):
         r: allowed deviations, shape (T,), m.
         sigma: noise standard deviations, shape (T,).
         measurement: 'range' or 'bearing'.
+        validate: check every problem as :class:`Problem` does (default; :func:`check_batch`).
+            The batched Monte Carlo engine, whose setting is validated once and whose P come
+            from its own EKF, passes False, as do :meth:`stack` and :meth:`subset` (their
+            problems were checked when they were made).
     """
 
     P: np.ndarray
@@ -663,21 +744,27 @@ class ProblemBatch(_QuotientForms):
     r: np.ndarray
     sigma: np.ndarray
     measurement: str
+    validate: InitVar[bool] = True
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, validate: bool) -> None:
         # float64 throughout (a view where the array is float64 already): problem t is built
         # from these numbers, so a float32 or longdouble batch would compute in another
         # precision than its problems
-        for name in ('P', 'p_o', 'r', 'sigma'):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=float))
+        names = ('P', 'p_o', 'r', 'sigma')
+        P, p_o, r, sigma = (getattr(self, name) for name in names)
+        checked = check_batch(P, p_o, r, sigma, self.measurement) if validate else [
+            np.asarray(value, dtype=float) for value in (P, p_o, r, sigma)]
+        for name, value in zip(names, checked):
+            object.__setattr__(self, name, value)
 
     @classmethod
     def shared(cls, P: np.ndarray, p_o: np.ndarray, r: float, sigma: float,
-               measurement: str) -> 'ProblemBatch':
+               measurement: str, validate: bool = True) -> 'ProblemBatch':
         """A batch whose problems share slot, r and sigma (a study step), P of shape (T, 3, 3)."""
         T = len(P)
         return cls(P, np.broadcast_to(np.asarray(p_o, dtype=float), (T, 2)),
-                   np.full(T, float(r)), np.full(T, float(sigma)), measurement)
+                   np.full(T, r, dtype=float), np.full(T, sigma, dtype=float), measurement,
+                   validate)
 
     @classmethod
     def stack(cls, problems: list[Problem]) -> 'ProblemBatch':
@@ -688,7 +775,7 @@ class ProblemBatch(_QuotientForms):
         return cls(np.array([p.P for p in problems], dtype=float),
                    np.array([p.p_o for p in problems], dtype=float),
                    np.array([p.r for p in problems], dtype=float),
-                   np.array([p.sigma for p in problems], dtype=float), kinds.pop())
+                   np.array([p.sigma for p in problems], dtype=float), kinds.pop(), False)
 
     def __len__(self) -> int:
         return len(self.P)
@@ -696,7 +783,7 @@ class ProblemBatch(_QuotientForms):
     def subset(self, index: np.ndarray) -> 'ProblemBatch':
         """The batch of the problems ``index`` (an index array)."""
         return ProblemBatch(self.P[index], self.p_o[index], self.r[index], self.sigma[index],
-                            self.measurement)
+                            self.measurement, False)
 
     def problem(self, t: int) -> Problem:
         """Problem t of the batch (not validated again)."""

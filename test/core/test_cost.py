@@ -280,6 +280,60 @@ def test_quick_checks_decide_like_the_thorough_ones(monkeypatch: pytest.MonkeyPa
     assert outcomes['quick alone'] >= 60 * 3, outcomes
 
 
+def test_batch_checks_each_problem_as_problem_does() -> None:
+    """check_batch (ProblemBatch's validation) on batches of three valid problems and one case
+    of quick_check_inputs at index 2: it accepts what check_problem accepts, with the same
+    numbers (an averaged P included), and refuses the rest with 'problem 2 of the batch: '
+    and check_problem's own message; its vectorised checks never accept what check_problem
+    refuses."""
+    outcomes = Counter()
+    for case in quick_check_inputs(np.random.default_rng(SEED + 8)):
+        kind = case['measurement']
+        columns = [np.array([GOOD_P, GOOD_P, np.asarray(case['P'], dtype=float), GOOD_P]),
+                   np.array([GOOD_P_O, GOOD_P_O, np.asarray(case['p_o'], dtype=float),
+                             GOOD_P_O]),
+                   np.array([0.3, 0.3, float(case['r']), 0.3]),
+                   np.array([0.05, 0.05, float(case['sigma']), 0.05])]
+        try:
+            expected = cost.check_problem(*(column[2] for column in columns), kind)
+        except ValueError as error:
+            prefix = '' if kind not in (RANGE, BEARING) else 'problem 2 of the batch: '
+            with pytest.raises(ValueError) as refused:
+                cost.check_batch(*columns, kind)
+            assert str(refused.value) == prefix + str(error)
+            outcomes['refused'] += 1
+            continue
+        P, p_o, r, sigma = cost.check_batch(*columns, kind)
+        np.testing.assert_array_equal(P[2], expected[0])
+        np.testing.assert_array_equal(p_o[2], expected[1])
+        assert (r[2], sigma[2]) == expected[2:4]
+        np.testing.assert_array_equal(P[[0, 1, 3]], columns[0][[0, 1, 3]])
+        outcomes['accepted'] += 1
+    assert outcomes['accepted'] > 300 and outcomes['refused'] > 2000, outcomes
+
+
+@pytest.mark.parametrize('label, arguments, message', [
+    ('single P', (GOOD_P, [GOOD_P_O], [0.3], [0.05]), r'P must have shape \(T, 3, 3\)'),
+    ('lengths', ([GOOD_P] * 3, [GOOD_P_O] * 2, [0.3] * 2, [0.05] * 2),
+     'P, p_o, r and sigma must hold one entry per problem, got 3, 2, 2 and 2'),
+    ('complex', ([GOOD_P], [GOOD_P_O], [0.3 + 1j], [0.05]), 'r must hold real numbers'),
+    ('boolean', ([GOOD_P], [GOOD_P_O], [0.3], np.array([True], dtype=object)),
+     'sigma must hold real numbers'),
+    ('text', ([GOOD_P], [GOOD_P_O], ['0.3'], [0.05]), 'r must hold real numbers'),
+    ('masked', ([GOOD_P], np.ma.masked_array([GOOD_P_O], mask=[[False, True]]), [0.3],
+                [0.05]), 'p_o has masked entries'),
+    ('measurement', ([GOOD_P], [GOOD_P_O], [0.3], [0.05], 'lidar'),
+     r"measurement must be one of \('range', 'bearing'\), got 'lidar'")])
+def test_problem_batch_refuses_bad_arrays(label: str, arguments: tuple, message: str) -> None:
+    """A ProblemBatch of malformed arrays is refused in one line naming the array; an empty
+    batch and one built with validate=False (the engine's) are accepted."""
+    with pytest.raises(ValueError, match='^' + message):
+        cost.ProblemBatch(*arguments[:4], *(arguments[4:] or (BEARING,)))
+    assert len(cost.ProblemBatch(np.zeros((0, 3, 3)), np.zeros((0, 2)), [], [], RANGE)) == 0
+    unchecked = cost.ProblemBatch(-np.array([GOOD_P]), [GOOD_P_O], [5.0], [0.0], RANGE, False)
+    assert unchecked.P[0, 0, 0] == -GOOD_P[0, 0]
+
+
 def test_solve_shares_only_stateless_strategies() -> None:
     """solve() reuses one object per stateless method (PERIODIC keeps a cycle's state, so it
     gets a new one) and answers the same problem alike on every call."""
