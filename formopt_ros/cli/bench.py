@@ -33,7 +33,6 @@ by more than 1e-9 relative), the largest relative excess, and how often RAM fell
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import os
@@ -46,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from formopt_ros.analysis.peers import casadi_available, peer_methods
-from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
+from formopt_ros.cli.common import ArgumentParser, command, integer, name_list, new_file
 from formopt_ros.core import METHODS, Problem, solve
 from formopt_ros.core.solver import DEFAULT_CONTEXT
 from formopt_ros.core.strategies import baselines
@@ -259,16 +258,6 @@ def write_csv(path: Path, all_results: dict[str, tuple[Results, np.ndarray]]) ->
                                      int(excess > MISS_RTOL), int(r['fallback'][index])])
 
 
-def parse_methods(text: str) -> list[str]:
-    """Comma-separated method names among ALL_METHODS."""
-    methods = [m.strip() for m in text.split(',') if m.strip()]
-    unknown = [m for m in methods if m not in ALL_METHODS]
-    if not methods or unknown:
-        raise argparse.ArgumentTypeError(
-            f'methods must be a comma list of {", ".join(ALL_METHODS)}; got {text!r}')
-    return list(dict.fromkeys(methods))
-
-
 def build_parser() -> ArgumentParser:
     """The command-line interface."""
     parser = ArgumentParser(
@@ -284,7 +273,7 @@ def build_parser() -> ArgumentParser:
                         help='calls per problem of the (slow) peers (default: 1)')
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of the problem generator (default: 0)')
-    parser.add_argument('--methods', type=parse_methods, default=list(DEFAULT_METHODS),
+    parser.add_argument('--methods', type=name_list(ALL_METHODS), default=list(DEFAULT_METHODS),
                         help=f'comma-separated methods among {",".join(ALL_METHODS)} '
                              f'(default: {",".join(DEFAULT_METHODS)})')
     parser.add_argument('--batch-size', type=integer(1, 10**7), default=None,

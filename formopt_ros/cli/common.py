@@ -8,7 +8,7 @@ import math
 import os
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -89,10 +89,32 @@ def number(low: float, high: float = math.inf, low_open: bool = False) -> Callab
     return parse
 
 
+def name_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
+    """argparse type: a comma list of names among ``choices``, each once, none empty (in the
+    order given)."""
+    def parse(text: str) -> list[str]:
+        names = [name.strip() for name in text.split(',')]
+        if not all(names):
+            raise argparse.ArgumentTypeError(
+                f'must be a comma list of names among {",".join(choices)}, got {text!r} (an '
+                'empty name)')
+        unknown = [name for name in names if name not in choices]
+        if unknown:
+            raise argparse.ArgumentTypeError(
+                f'unknown {", ".join(map(repr, unknown))}: the names are {",".join(choices)}')
+        repeated = [name for index, name in enumerate(names) if name in names[:index]]
+        if repeated:
+            raise argparse.ArgumentTypeError(f'{", ".join(map(repr, repeated))} given twice in '
+                                             f'{text!r}')
+        return names
+    return parse
+
+
 def new_file(text: str) -> Path:
-    """argparse type: a file path that does not exist yet and whose folder can be made."""
+    """argparse type: a file path that does not exist yet (not even as a dangling symbolic
+    link, which writing would follow) and whose folder can be made."""
     path = Path(text)
-    if path.exists():
+    if os.path.lexists(path):
         raise argparse.ArgumentTypeError(f'{text} exists; refusing to overwrite it')
     _check_parent(path, text)
     return path
@@ -101,7 +123,7 @@ def new_file(text: str) -> Path:
 def new_folder(text: str) -> Path:
     """argparse type: an output folder that does not exist yet, or exists and is empty."""
     path = Path(text)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+    if os.path.lexists(path) and (not path.is_dir() or any(path.iterdir())):
         raise argparse.ArgumentTypeError(f'{text} exists and is not an empty folder; refusing '
                                          'to overwrite what is in it (choose a new folder)')
     _check_parent(path, text)

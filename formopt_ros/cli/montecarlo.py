@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, command, fail, integer, new_folder, number
+from formopt_ros.cli.common import (
+    ArgumentParser, command, fail, integer, name_list, new_folder, number)
 from formopt_ros.core.estimator import INNOVATION_GATE
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
@@ -44,8 +45,8 @@ def build_parser() -> ArgumentParser:
                         help='measurement steps per trial, 0.1 s each (default: 600)')
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of all random numbers; trial i uses (seed, i) (default: 0)')
-    parser.add_argument('--strategies', default=','.join(METHODS),
-                        help=f'comma list among {",".join(METHODS)} (default: all)')
+    parser.add_argument('--strategies', type=name_list(METHODS), default=list(METHODS),
+                        help=f'comma list among {",".join(METHODS)}, each once (default: all)')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='worker processes; results do not depend on it (default: all '
                              'cores)')
@@ -166,7 +167,8 @@ def report_markdown(summary: dict[str, Any]) -> str:
     ram = summary['strategies'].get('ram')
 
     def versus(row: dict[str, float], key: str) -> str:
-        return f'{100 * (row[key] / ram[key] - 1):+.1f} %' if ram else '-'
+        # rounded first and + 0.0: a difference in the last bits reads '+0.0 %', not '-0.0 %'
+        return f'{round(100 * (row[key] / ram[key] - 1), 1) + 0.0:+.1f} %' if ram else '-'
 
     for name, row in summary['strategies'].items():
         lines.append(f"| {name.upper()} | {row['steady_trace']:.6g} | "
@@ -242,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    strategies = tuple(s.strip() for s in args.strategies.split(',') if s.strip())
+    strategies = tuple(args.strategies)
     kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
     start = time.perf_counter()
     try:

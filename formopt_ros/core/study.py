@@ -10,6 +10,7 @@ alone, so results depend neither on the engine nor on the number of worker proce
 from __future__ import annotations
 
 import multiprocessing
+import numbers
 import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -55,13 +56,29 @@ class StudyConfig:
     scenario: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        unknown = [s for s in self.strategies if s not in METHODS]
-        if unknown:
-            raise ValueError(f'strategies must be among {METHODS}, got unknown {unknown}')
+        for name in ('trials', 'steps', 'seed'):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+                raise ValueError(f'{name} must be an integer, got {value!r}')
+            object.__setattr__(self, name, int(value))
         if self.trials < 1 or self.steps < 1:
             raise ValueError(f'trials and steps must be >= 1, got {self.trials}, {self.steps}')
         if self.seed < 0:
             raise ValueError(f'seed must be >= 0, got {self.seed}')
+        if isinstance(self.strategies, str) or not self.strategies:
+            raise ValueError(f'strategies must be a non-empty sequence of names among '
+                             f'{METHODS}, got {self.strategies!r}')
+        object.__setattr__(self, 'strategies', tuple(self.strategies))
+        unknown = [s for s in self.strategies if s not in METHODS]
+        if unknown:
+            raise ValueError(f'strategies must be among {METHODS}, got unknown {unknown}')
+        repeated = [s for i, s in enumerate(self.strategies) if s in self.strategies[:i]]
+        if repeated:
+            raise ValueError(f'strategies must be named once each, got {repeated} twice')
+        stray = [name for name in self.options if name not in METHODS]
+        if stray:
+            raise ValueError(f'options are keyed by strategy names among {METHODS}, got '
+                             f'unknown {stray}')
         merged = {name: dict(STUDY_OPTIONS.get(name, {}), **self.options.get(name, {}))
                   for name in METHODS}
         for name, values in merged.items():

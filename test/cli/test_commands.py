@@ -25,9 +25,14 @@ def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFi
     taken.write_text('keep me')
     (tmp_path / 'busy').mkdir()
     (tmp_path / 'busy' / 'summary.json').write_text('keep me')
+    # a dangling symbolic link: writing would follow it (a reviewer's run ended on it)
+    dangling = tmp_path / 'dangling'
+    dangling.symlink_to(tmp_path / 'nowhere')
     for main, argv in ((montecarlo.main, ['--out', str(tmp_path / 'busy')]),
                        (montecarlo.main, ['--out', str(taken)]),
+                       (montecarlo.main, ['--out', str(dangling)]),
                        (bench.main, ['--csv', str(taken)]),
+                       (bench.main, ['--csv', str(dangling)]),
                        (bench_ros.main, ['--json', str(taken)]),
                        (bench_ros.main, ['--json', str(tmp_path / 'busy')]),
                        (periodic.main, ['--figure', str(taken)]),
@@ -39,6 +44,25 @@ def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFi
         assert 'refusing to overwrite' in err or 'is a folder' in err, argv
     assert taken.read_text() == 'keep me'
     assert (tmp_path / 'busy' / 'summary.json').read_text() == 'keep me'
+    assert not (tmp_path / 'nowhere').exists()
+
+
+@pytest.mark.parametrize('text, message', [
+    (',', "got ',' (an empty name)"), ('', "got '' (an empty name)"),
+    ('rq,,ram', "got 'rq,,ram' (an empty name)"), ('rq,rq', "'rq' given twice in 'rq,rq'"),
+    ('rq,foo', "unknown 'foo': the names are ")])
+def test_name_lists_refuse_empty_repeated_and_unknown_names(
+        text: str, message: str, capsys: pytest.CaptureFixture) -> None:
+    """--strategies of formopt-montecarlo and --methods of formopt-bench: exit 2 and one line
+    for an empty, repeated or unknown name (',' used to crash the study with a traceback)."""
+    from formopt_ros.cli import bench, montecarlo
+    for main, option in ((montecarlo.main, '--strategies'), (bench.main, '--methods')):
+        with pytest.raises(SystemExit) as stop:
+            main([option, text])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert f'argument {option}: ' in err and message in err, err
+        assert len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize('argv', [

@@ -408,6 +408,13 @@ def test_solve_rejects_unknown_method_and_option() -> None:
     with pytest.raises(ValueError, match=r'^rng must be a numpy.random.Generator .*got 3'):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='crm',
               rng=3)  # type: ignore[arg-type]
+    # a reviewer's: OverflowError or a message without the option's name
+    for method, option, value in (('mme', 'period', math.inf), ('mme', 'period', math.nan),
+                                  ('periodic', 'horizon', math.inf),
+                                  ('mme', 'period', np.float64(-math.inf))):
+        with pytest.raises(ValueError, match=f'^{method} option {option} must be an integer'):
+            solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=method,
+                  **{option: value})
     for method in ('mme', 'periodic', 'rq'):
         with pytest.raises(ValueError, match=r"^context must be a PlanContext, got 'x'"):
             solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=method,

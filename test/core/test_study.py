@@ -9,7 +9,7 @@ import pytest
 from formopt_ros.core import Problem
 from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.cost import weighted_trace
-from formopt_ros.core.model import propagate_state
+from formopt_ros.core.model import RANGE, propagate_state
 from formopt_ros.core.protocol import motion_commands
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
@@ -218,6 +218,22 @@ def test_command_per_trial_engine(tmp_path, capsys: pytest.CaptureFixture) -> No
         assert row['gated_updates'] == other['gated_updates']
 
 
+@pytest.mark.parametrize('overrides, message', [
+    ({'strategies': ()}, 'strategies must be a non-empty sequence'),
+    ({'strategies': 'rq'}, 'strategies must be a non-empty sequence'),
+    ({'strategies': ('rq', 'ram', 'rq')}, r"strategies must be named once each, got \['rq'\]"),
+    ({'options': {'gbss': {'cell': 0.5}}}, r"options are keyed by strategy names .*\['gbss'\]"),
+    ({'trials': 2.0}, 'trials must be an integer, got 2.0'),
+    ({'steps': True}, 'steps must be an integer, got True'),
+    ({'seed': '1'}, "seed must be an integer, got '1'")])
+def test_study_config_refuses_misuse(overrides: dict, message: str) -> None:
+    """StudyConfig names what is wrong (a reviewer's empty strategy list crashed the worker
+    pool; a misspelt strategy in options was ignored; a float count failed deep inside)."""
+    with pytest.raises(ValueError, match='^' + message):
+        StudyConfig(RANGE, **overrides)
+    assert StudyConfig(RANGE, trials=np.int64(3), strategies=['rq']).trials == 3
+
+
 def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
     """Unknown strategies and bad counts stop with exit code 2 and a message."""
     from formopt_ros.cli.montecarlo import main
@@ -229,3 +245,17 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2
     assert 'foo' in capsys.readouterr().err
+
+
+def test_report_shows_a_last_bit_difference_as_plus_zero() -> None:
+    """RQ's and RAM's study values may differ in the last bit (a reviewer saw '-0.0 %' in the
+    bearing report where README says 0): the report rounds first and shows '+0.0 %'."""
+    from formopt_ros.cli.montecarlo import report_markdown
+    summary = summarize(run_study(StudyConfig(RANGE, trials=2, steps=20, seed=3,
+                                              strategies=('ram', 'rq')), jobs=1))
+    ram, rq = summary['strategies']['ram'], summary['strategies']['rq']
+    for key in ('steady_trace', 'mean_trace'):
+        rq[key] = float(np.nextafter(ram[key], 0.0))
+    row = next(line for line in report_markdown(summary).splitlines()
+               if line.startswith('| RQ |'))
+    assert row.count('| +0.0 % |') == 2 and '-0.0' not in row, row

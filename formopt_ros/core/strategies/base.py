@@ -218,7 +218,8 @@ class OptionSpec:
         if isinstance(value, bool) or not isinstance(value, numeric):
             raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
         if isinstance(self.default, int):
-            if float(value) != int(value):
+            # int() of an infinite or NaN float raises OverflowError or ValueError itself
+            if not math.isfinite(float(value)) or float(value) != int(value):
                 raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
             number: float | int = int(value)
         else:
