@@ -37,9 +37,12 @@ def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureF
                        '--csv', str(path)]) == 0
     out = capsys.readouterr().out
     assert 'proved: range 3/3, bearing 3/3' in out
+    lines = out.splitlines()
+    assert 'below bound' in lines[1]
     for kind in ('range', 'bearing'):
         for method in methods.split(','):
-            assert any(line.split()[:2] == [kind, method] for line in out.splitlines())
+            row = next(line.split() for line in lines if line.split()[:2] == [kind, method])
+            assert row[-2] == '0', row          # no cost below a proved bound
     with open(path, newline='') as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 2 * 3 * 7
@@ -57,6 +60,17 @@ def test_bench_prints_the_table_and_writes_csv(tmp_path, capsys: pytest.CaptureF
         bench.main(['--problems', '1', '--csv', str(path)])
     assert stop.value.code == 2
     assert 'refusing to overwrite' in capsys.readouterr().err
+
+
+def test_a_cost_below_the_proved_bound_is_counted() -> None:
+    """summarise counts a cost below optimum (1 - gap) by more than 1e-9 as 'below bound' (a
+    contradicted certificate is shown, not clipped away), and only that."""
+    optimum, gap = np.array([1.0, 1.0, 1.0]), np.array([1e-10, 1e-10, np.nan])
+    results = {'rq': {'time': np.ones(3), 'cost': optimum, 'fallback': np.zeros(3, bool)},
+               'other': {'time': np.ones(3), 'cost': np.array([1.0 - 1e-6, 1.0 - 5e-10, 0.5]),
+                         'fallback': np.zeros(3, bool)}}
+    rows = {row[1]: row for row in bench.summarise('range', results, optimum, gap)}
+    assert rows['rq'][-2] == '0' and rows['other'][-2] == '1'
 
 
 def test_bench_skips_ipopt_without_casadi(monkeypatch: pytest.MonkeyPatch,
