@@ -31,7 +31,8 @@ and 99th-percentile time (microseconds), the speed-up over one-off and cached GB
 problems of the time ratio), how often the method missed the certified optimum (cost above it
 by more than 1e-9 relative), the largest relative excess, on how many problems the method
 found a cost below the reference's proved lower bound (its cost times 1 - its certificate gap,
-less 1e-9: that would contradict a certificate, and the count shows it instead of hiding it),
+less 1e-9: that would contradict a certificate, and the count shows it instead of hiding it;
+an unproved reference's bound is its cost),
 and how often RAM fell back to RQ.
 """
 from __future__ import annotations
@@ -214,7 +215,8 @@ def summarise(kind: str, results: Results, optimum: np.ndarray,
               gap: np.ndarray) -> list[list[str]]:
     """Table rows (as strings) for one measurement kind. 'below bound' counts the problems on
     which a method's cost lies below the reference's proved lower bound on the optimum,
-    optimum (1 - gap), by more than MISS_RTOL: a certificate contradicted (never seen)."""
+    optimum (1 - gap), by more than MISS_RTOL: a certificate contradicted (never seen); where
+    the reference carries no proof (gap nan), below the reference's cost itself."""
     rows = []
     for method, r in results.items():
         micro = r['time'] * 1e6
@@ -224,7 +226,7 @@ def summarise(kind: str, results: Results, optimum: np.ndarray,
                          if base in results else '-')
         excess = (r['cost'] - optimum) / optimum
         misses = int(np.sum(excess > MISS_RTOL))
-        below = int(np.sum(-excess > gap + MISS_RTOL))
+        below = int(np.sum(-excess > np.nan_to_num(gap) + MISS_RTOL))
         fallbacks = str(int(r['fallback'].sum())) if method == 'ram' else '-'
         # one rq-batch call: every problem has the same (amortised) time, no percentile
         p99 = '-' if method == 'rq-batch' and np.ptp(micro) == 0.0 else \

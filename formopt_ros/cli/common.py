@@ -114,6 +114,7 @@ def new_file(text: str) -> Path:
     """argparse type: a file path that does not exist yet (not even as a dangling symbolic
     link, which writing would follow) and whose folder can be made."""
     path = Path(text)
+    _refuse_dangling(path, text)
     if os.path.lexists(path):
         raise argparse.ArgumentTypeError(f'{text} exists; refusing to overwrite it')
     _check_parent(path, text)
@@ -123,11 +124,22 @@ def new_file(text: str) -> Path:
 def new_folder(text: str) -> Path:
     """argparse type: an output folder that does not exist yet, or exists and is empty."""
     path = Path(text)
+    _refuse_dangling(path, text)
     if os.path.lexists(path) and (not path.is_dir() or any(path.iterdir())):
         raise argparse.ArgumentTypeError(f'{text} exists and is not an empty folder; refusing '
                                          'to overwrite what is in it (choose a new folder)')
     _check_parent(path, text)
     return path
+
+
+def _refuse_dangling(path: Path, text: str) -> None:
+    """Refuse a path that is, or lies below, a symbolic link to nothing: writing would follow
+    the link (or fail on it after the work)."""
+    for entry in (path, *path.parents):
+        if entry.is_symlink() and not entry.exists():
+            raise argparse.ArgumentTypeError(
+                f'cannot create {text}: {entry} is a symbolic link to {os.readlink(entry)}, '
+                'which does not exist')
 
 
 def _check_parent(path: Path, text: str) -> None:

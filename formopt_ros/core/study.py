@@ -15,7 +15,7 @@ import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -65,16 +65,21 @@ class StudyConfig:
             raise ValueError(f'trials and steps must be >= 1, got {self.trials}, {self.steps}')
         if self.seed < 0:
             raise ValueError(f'seed must be >= 0, got {self.seed}')
-        if isinstance(self.strategies, str) or not self.strategies:
+        if isinstance(self.strategies, (str, set, frozenset, dict)) or not isinstance(
+                self.strategies, Iterable) or not tuple(self.strategies):
             raise ValueError(f'strategies must be a non-empty sequence of names among '
-                             f'{METHODS}, got {self.strategies!r}')
-        object.__setattr__(self, 'strategies', tuple(self.strategies))
+                             f'{METHODS} (ordered: a set has none), got {self.strategies!r}')
+        object.__setattr__(self, 'strategies', tuple(map(str, self.strategies)))
         unknown = [s for s in self.strategies if s not in METHODS]
         if unknown:
             raise ValueError(f'strategies must be among {METHODS}, got unknown {unknown}')
         repeated = [s for i, s in enumerate(self.strategies) if s in self.strategies[:i]]
         if repeated:
             raise ValueError(f'strategies must be named once each, got {repeated} twice')
+        if not isinstance(self.options, dict) or not all(
+                isinstance(values, dict) for values in self.options.values()):
+            raise ValueError(f'options must map strategy names to dicts of options, e.g. '
+                             f"{{'gbs': {{'cell': 0.01}}}}, got {self.options!r}")
         stray = [name for name in self.options if name not in METHODS]
         if stray:
             raise ValueError(f'options are keyed by strategy names among {METHODS}, got '

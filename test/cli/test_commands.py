@@ -25,14 +25,9 @@ def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFi
     taken.write_text('keep me')
     (tmp_path / 'busy').mkdir()
     (tmp_path / 'busy' / 'summary.json').write_text('keep me')
-    # a dangling symbolic link: writing would follow it (a reviewer's run ended on it)
-    dangling = tmp_path / 'dangling'
-    dangling.symlink_to(tmp_path / 'nowhere')
     for main, argv in ((montecarlo.main, ['--out', str(tmp_path / 'busy')]),
                        (montecarlo.main, ['--out', str(taken)]),
-                       (montecarlo.main, ['--out', str(dangling)]),
                        (bench.main, ['--csv', str(taken)]),
-                       (bench.main, ['--csv', str(dangling)]),
                        (bench_ros.main, ['--json', str(taken)]),
                        (bench_ros.main, ['--json', str(tmp_path / 'busy')]),
                        (periodic.main, ['--figure', str(taken)]),
@@ -44,7 +39,30 @@ def test_commands_refuse_to_overwrite_outputs(tmp_path, capsys: pytest.CaptureFi
         assert 'refusing to overwrite' in err or 'is a folder' in err, argv
     assert taken.read_text() == 'keep me'
     assert (tmp_path / 'busy' / 'summary.json').read_text() == 'keep me'
-    assert not (tmp_path / 'nowhere').exists()
+
+
+def test_outputs_through_a_dangling_link_are_refused_at_start(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """An output named through a symbolic link to nothing (the output itself, or a folder on its
+    way) stops every command at start with exit 2 naming the link; before, the work ran and
+    the write failed at the end (exit 1)."""
+    from formopt_ros.cli import bag, bench, bench_ros, montecarlo, periodic, replay, report
+    link = tmp_path / 'link'
+    link.symlink_to(tmp_path / 'missing' / 'deeper')
+    for target in (link, link / 'out.csv', link / 'new' / 'out.csv'):
+        for main, argv in ((montecarlo.main, ['--out', str(target)]),
+                           (report.main, [__file__, '--out', str(target)]),
+                           (bench.main, ['--csv', str(target)]),
+                           (bench_ros.main, ['--json', str(target)]),
+                           (periodic.main, ['--figure', str(target)]),
+                           (replay.main, [__file__, '--offline', '--json', str(target)]),
+                           (bag.main, ['repair', __file__, str(target)])):
+            with pytest.raises(SystemExit) as stop:
+                main(argv)
+            assert stop.value.code == 2, argv
+            err = capsys.readouterr().err
+            assert f'{link} is a symbolic link to ' in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / 'missing').exists()
 
 
 @pytest.mark.parametrize('text, message', [

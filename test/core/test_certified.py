@@ -833,11 +833,12 @@ def test_rq_batch_equals_single_problems(kind: str, monkeypatch: pytest.MonkeyPa
     delegated.clear()
     rq.rq_batch(ProblemBatch.stack(hard))
     assert len(delegated) <= {RANGE: 2, BEARING: 30}[kind], len(delegated)
-    # float32 and longdouble arrays are held as float64, as problem(t) reads them
+    # float32 and longdouble arrays are held as float64, as problem(t) reads them (unchecked:
+    # a hard P rounded to float32 need not be positive definite any more)
     batch = ProblemBatch.stack(hard[:20])
     for dtype in (np.float32, np.longdouble):
         other = ProblemBatch(batch.P.astype(dtype), batch.p_o.astype(dtype), batch.r,
-                             batch.sigma.astype(dtype), kind)
+                             batch.sigma.astype(dtype), kind, validate=False)
         points = rq.rq_batch(other)
         for index in range(20):
             np.testing.assert_array_equal(points[index], scalar(other.problem(index)).p)
@@ -877,7 +878,7 @@ def test_batch_proof_is_the_single_proof(kind: str) -> None:
         np.arange(len(problems)), *wide)).tolist() == certificate.proved_batch(
             batch, *wide, batch.gains_of(np.arange(len(problems)), *wide)).tolist()
     broken = ProblemBatch(np.where(np.arange(600)[:, None, None] % 2, batch.P, np.inf),
-                          batch.p_o, batch.r, batch.sigma, kind)
+                          batch.p_o, batch.r, batch.sigma, kind, validate=False)
     zeros = np.zeros(600)
     with warnings.catch_warnings():
         warnings.simplefilter('error')

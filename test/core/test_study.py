@@ -221,6 +221,9 @@ def test_command_per_trial_engine(tmp_path, capsys: pytest.CaptureFixture) -> No
 @pytest.mark.parametrize('overrides, message', [
     ({'strategies': ()}, 'strategies must be a non-empty sequence'),
     ({'strategies': 'rq'}, 'strategies must be a non-empty sequence'),
+    ({'strategies': {'rq', 'ram'}}, 'strategies must be a non-empty sequence'),
+    ({'options': None}, 'options must map strategy names to dicts'),
+    ({'options': {'mme': 3}}, 'options must map strategy names to dicts'),
     ({'strategies': ('rq', 'ram', 'rq')}, r"strategies must be named once each, got \['rq'\]"),
     ({'options': {'gbss': {'cell': 0.5}}}, r"options are keyed by strategy names .*\['gbss'\]"),
     ({'trials': 2.0}, 'trials must be an integer, got 2.0'),
@@ -232,6 +235,7 @@ def test_study_config_refuses_misuse(overrides: dict, message: str) -> None:
     with pytest.raises(ValueError, match='^' + message):
         StudyConfig(RANGE, **overrides)
     assert StudyConfig(RANGE, trials=np.int64(3), strategies=['rq']).trials == 3
+    assert StudyConfig(RANGE, strategies=np.array(['ram', 'rq'])).strategies == ('ram', 'rq')
 
 
 def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:

@@ -11,6 +11,7 @@ simulator or the nodes.
 from __future__ import annotations
 
 import math
+import reprlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -207,25 +208,31 @@ class OptionSpec:
     def check(self, strategy: str, name: str, value: object) -> float | int | bool:
         """The value as the option's type, or ValueError naming strategy, option and range."""
         if isinstance(self.default, bool):
+            expected = f'true or false ({self.description})'
+        else:
+            kind = 'an integer' if isinstance(self.default, int) else 'a number'
+            expected = f'{kind} in [{self.low:g}, {self.high:g}] ({self.description})'
+        refused = ValueError(f'{strategy} option {name} must be {expected}, got '
+                             f'{reprlib.repr(value)}')
+        if isinstance(self.default, bool):
             if not isinstance(value, (bool, np.bool_)):
-                raise ValueError(f'{strategy} option {name} must be true or false '
-                                 f'({self.description}), got {value!r}')
+                raise refused
             return bool(value)
-        expected = f'a number in [{self.low:g}, {self.high:g}] ({self.description})'
-        if isinstance(self.default, int):
-            expected = f'an integer in [{self.low:g}, {self.high:g}] ({self.description})'
         numeric = (int, float, np.integer, np.floating)
         if isinstance(value, bool) or not isinstance(value, numeric):
-            raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
+            raise refused
+        try:
+            as_float = float(value)
+        except OverflowError:           # an integer beyond the doubles (10**400)
+            raise refused from None
+        number: float | int = as_float
         if isinstance(self.default, int):
             # int() of an infinite or NaN float raises OverflowError or ValueError itself
-            if not math.isfinite(float(value)) or float(value) != int(value):
-                raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
-            number: float | int = int(value)
-        else:
-            number = float(value)
+            if not math.isfinite(as_float) or as_float != int(value):
+                raise refused
+            number = int(value)
         if not (math.isfinite(number) and self.low <= number <= self.high):
-            raise ValueError(f'{strategy} option {name} must be {expected}, got {value!r}')
+            raise refused
         return number
 
 
