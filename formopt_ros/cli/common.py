@@ -12,6 +12,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
+from formopt_ros.wire.outputs import broken_link_on
+
 #: Exit codes of :func:`command`: an interrupted command and one whose reader closed the pipe
 #: (128 + SIGINT or SIGPIPE, as a shell reports a process those signals end), and a failure
 #: of the system (a file that cannot be written).
@@ -133,13 +135,10 @@ def new_folder(text: str) -> Path:
 
 
 def _refuse_dangling(path: Path, text: str) -> None:
-    """Refuse a path that is, or lies below, a symbolic link to nothing: writing would follow
-    the link (or fail on it after the work)."""
-    for entry in (path, *path.parents):
-        if entry.is_symlink() and not entry.exists():
-            raise argparse.ArgumentTypeError(
-                f'cannot create {text}: {entry} is a symbolic link to {os.readlink(entry)}, '
-                'which does not exist')
+    """Refuse a path that is, or lies below, a symbolic link to nothing or a loop of links."""
+    problem = broken_link_on(path)
+    if problem:
+        raise argparse.ArgumentTypeError(f'cannot create {text}: {problem}')
 
 
 def _check_parent(path: Path, text: str) -> None:

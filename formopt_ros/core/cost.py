@@ -231,7 +231,8 @@ def _refuse_hidden_values(name: str, value: object) -> None:
     if any(np.ma.is_masked(v) for v in rows if np.ma.isMaskedArray(v)) or any(
             np.ma.isMaskedArray(v) or v is np.ma.masked for v in elements):
         raise ValueError(f'{name} has masked entries; give every entry a value')
-    if any(isinstance(v, (bool, np.bool_)) for v in elements):
+    if any(isinstance(v, (bool, np.bool_)) or isinstance(v, np.ndarray) and v.dtype.kind == 'b'
+           for v in elements):          # a 0-d boolean array among numbers stays an array
         raise ValueError(f'{name} must hold real numbers, got a boolean among '
                          f'{reprlib.repr(value)}')
 
@@ -774,11 +775,12 @@ class ProblemBatch(_QuotientForms):
     def shared(cls, P: np.ndarray, p_o: np.ndarray, r: float, sigma: float,
                measurement: str, validate: bool = True) -> 'ProblemBatch':
         """A batch whose problems share slot, r and sigma (a study step), P of shape (T, 3, 3)."""
-        T = len(P)
         if validate:            # one r and one sigma, checked as Problem checks them
+            P = _batch_array('P', P, (-1, 3, 3))
             unit = 'm' if measurement == RANGE else 'rad'
             r, sigma = _check_positive('r', r, 'm'), _check_positive('sigma', sigma, unit)
             p_o = _check_array('p_o', p_o, (2,))[0]
+        T = len(P)
         return cls(P, np.broadcast_to(np.asarray(p_o, dtype=float), (T, 2)),
                    np.full(T, r, dtype=float), np.full(T, sigma, dtype=float), measurement,
                    validate)

@@ -14,7 +14,7 @@ import numbers
 import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -65,11 +65,13 @@ class StudyConfig:
             raise ValueError(f'trials and steps must be >= 1, got {self.trials}, {self.steps}')
         if self.seed < 0:
             raise ValueError(f'seed must be >= 0, got {self.seed}')
-        if isinstance(self.strategies, (str, set, frozenset, dict)) or not isinstance(
-                self.strategies, Iterable) or not tuple(self.strategies):
+        given = self.strategies
+        names = () if isinstance(given, (str, set, frozenset, dict)) or not isinstance(
+            given, Iterable) or np.ndim(given) != 1 else tuple(given)   # a generator, once
+        if not names:
             raise ValueError(f'strategies must be a non-empty sequence of names among '
-                             f'{METHODS} (ordered: a set has none), got {self.strategies!r}')
-        object.__setattr__(self, 'strategies', tuple(map(str, self.strategies)))
+                             f'{METHODS} (ordered: a set has none), got {given!r}')
+        object.__setattr__(self, 'strategies', tuple(map(str, names)))
         unknown = [s for s in self.strategies if s not in METHODS]
         if unknown:
             raise ValueError(f'strategies must be among {METHODS}, got unknown {unknown}')
@@ -77,7 +79,8 @@ class StudyConfig:
         if repeated:
             raise ValueError(f'strategies must be named once each, got {repeated} twice')
         if not isinstance(self.options, dict) or not all(
-                isinstance(values, dict) for values in self.options.values()):
+                isinstance(values, dict) and all(isinstance(key, str) for key in values)
+                for values in self.options.values()):
             raise ValueError(f'options must map strategy names to dicts of options, e.g. '
                              f"{{'gbs': {{'cell': 0.01}}}}, got {self.options!r}")
         stray = [name for name in self.options if name not in METHODS]
@@ -89,6 +92,11 @@ class StudyConfig:
         for name, values in merged.items():
             make_strategy(name, **values)           # ValueError naming a bad option
         object.__setattr__(self, 'options', merged)
+        known = sorted(field.name for field in fields(Scenario) if field.name != 'measurement')
+        if not isinstance(self.scenario, dict) or any(
+                not isinstance(key, str) or key not in known for key in self.scenario):
+            raise ValueError(f'scenario must map overrides among {known} to values, got '
+                             f'{self.scenario!r}')
         self.make_scenario()                        # ValueError naming a bad override
 
     def make_scenario(self) -> Scenario:

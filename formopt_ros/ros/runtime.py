@@ -19,6 +19,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from formopt_ros.ros.params import ROS_PARAMETERS, Param, ParameterError
 from formopt_ros.wire.jsonfile import write_json
+from formopt_ros.wire.outputs import broken_link_on
 
 
 class Throttle:
@@ -101,6 +102,9 @@ def check_output_path(name: str, path: str, may_exist: bool = True) -> None:
     if not path:
         return
     target = Path(path)
+    problem = broken_link_on(target)
+    if problem:
+        raise ParameterError(f"parameter '{name}': cannot write {path}: {problem}")
     if target.exists() and not may_exist and not target.is_dir():
         raise ParameterError(f"parameter '{name}': {path} exists; refusing to overwrite it "
                              '(remove it or choose another path)')

@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import pytest
 
+from formopt_ros.ros.params import ParameterError
+from formopt_ros.ros.runtime import check_output_path
+
 CASES = [
     ('leader_sim', 'dt', '-1.0', '-1.0'),
     ('follower_sim', 'dt', '0.0', '0.0'),
@@ -93,3 +96,19 @@ def test_an_integer_is_accepted_for_a_float_parameter(ros_init) -> None:
         assert durations == [1.0, 2.0] and all(isinstance(d, float) for d in durations)
     finally:
         node.destroy_node()
+
+
+def test_outputs_through_a_broken_link_are_refused_at_start(node_process, tmp_path) -> None:
+    """A summary or checkpoint path through a symbolic link to nothing, or through a loop of
+    links, is refused at start naming the parameter (a reviewer's checkpoint_path below a
+    dangling link ended in a traceback mid-run, and a summary_path was lost at shutdown)."""
+    (tmp_path / 'dangling').symlink_to(tmp_path / 'missing' / 'deeper')
+    (tmp_path / 'loop').symlink_to(tmp_path / 'loop')
+    for path in ('dangling', 'dangling/s.json', 'loop/s.json'):
+        with pytest.raises(ParameterError, match="^parameter 'summary_path': cannot write "
+                                                 '.* is a symbolic link to '):
+            check_output_path('summary_path', str(tmp_path / path))
+    process = node_process('leader_sim', {'checkpoint_path': str(tmp_path / 'dangling/c.pkl')})
+    assert process.wait(timeout=60.0) == 2, process.stderr
+    assert "parameter 'checkpoint_path': cannot write" in process.stderr
+    assert 'Traceback' not in process.stderr and not (tmp_path / 'missing').exists()
