@@ -237,11 +237,14 @@ def _refuse_hidden_values(name: str, value: object) -> None:
                          f'{reprlib.repr(value)}')
 
 
-def _check_array(name: str, value: object,
-                 shape: tuple[int, ...]) -> tuple[np.ndarray, list[float]]:
-    """(value as a float array, its entries as a flat list) or ValueError naming ``name``;
-    only real numbers are accepted (not booleans, complex numbers, strings or masked
-    entries; exact numbers such as Fraction and Decimal are rounded to floats)."""
+def _real_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """value as a float array of ``shape`` (-1: any length, the T problems of a batch), or
+    ValueError naming ``name``; only real numbers are accepted (not booleans, complex numbers,
+    strings, None or masked entries; exact numbers such as Fraction and Decimal are rounded to
+    floats)."""
+    wanted = str(shape) if -1 not in shape else '(' + ', '.join(
+        'T' if n == -1 else str(n) for n in shape) + (',)' if len(shape) == 1 else ')') + \
+        ' for T problems'
     if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
         where = np.argwhere(np.ma.getmaskarray(value)).tolist()
         raise ValueError(f'{name} has masked entries (at {where}); give every entry a value')
@@ -249,17 +252,29 @@ def _check_array(name: str, value: object,
         _refuse_hidden_values(name, value)
     try:
         raw = np.asarray(value)
-        if raw.dtype.kind == 'O' and raw.size and all(map(_is_real_number, raw.flat)):
-            raw = raw.astype(float)
     except ValueError as error:         # ragged nesting
-        raise ValueError(f'{name} must be an array of shape {shape}: {error}') from None
+        raise ValueError(f'{name} must be an array of shape {wanted}: {error}') from None
+    if raw.dtype.kind == 'O':
+        for entry in raw.flat:
+            if not _is_real_number(entry):
+                raise ValueError(f'{name} must hold real numbers, got {reprlib.repr(entry)} '
+                                 f'({type(entry).__name__})')
+    elif raw.dtype.kind not in 'iuf':
+        raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
+    try:
+        arr = raw.astype(float)
     except OverflowError:
         raise ValueError(f'{name} holds a number beyond the range of doubles') from None
-    if raw.dtype.kind not in 'iuf':
-        raise ValueError(f'{name} must hold real numbers, got {raw.dtype} values')
-    arr = raw.astype(float)
-    if arr.shape != shape:
-        raise ValueError(f'{name} must have shape {shape}, got shape {arr.shape}')
+    if arr.ndim != len(shape) or any(n not in (-1, m) for n, m in zip(shape, arr.shape)):
+        raise ValueError(f'{name} must have shape {wanted}, got shape {arr.shape}')
+    return arr
+
+
+def _check_array(name: str, value: object,
+                 shape: tuple[int, ...]) -> tuple[np.ndarray, list[float]]:
+    """(value as a finite float array of ``shape`` (:func:`_real_array`), its entries as a flat
+    list) or ValueError naming ``name``."""
+    arr = _real_array(name, value, shape)
     flat = arr.ravel().tolist()
     if not math.isfinite(sum(flat)) and not all(map(math.isfinite, flat)):
         raise ValueError(f'{name} must be finite, got {arr.tolist()}')
@@ -451,37 +466,6 @@ def check_problem_thoroughly(P: object, p_o: object, r: object, sigma: object,
 CheckedBatch = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-def _batch_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
-    """value as a float64 array of the given shape (-1: the batch size, any), or ValueError
-    naming ``name``; real numbers only (an object array is converted entry by entry; booleans,
-    complex numbers and masked entries are refused, as by :func:`check_problem`)."""
-    wanted = '(' + ', '.join('T' if n == -1 else str(n) for n in shape) + (
-        ',)' if len(shape) == 1 else ')')
-    if np.ma.isMaskedArray(value) and np.ma.is_masked(value):
-        raise ValueError(f'{name} has masked entries; give every entry a value')
-    if not isinstance(value, np.ndarray):
-        _refuse_hidden_values(name, value)
-    try:
-        raw = np.asarray(value)
-    except ValueError as error:          # ragged nesting
-        raise ValueError(f'{name} must be an array of shape {wanted} for T problems: '
-                         f'{error}') from None
-    if raw.dtype.kind not in 'iufO' or raw.dtype.kind == 'O' and not all(
-            map(_is_real_number, raw.flat)):
-        shown = next((v for v in raw.flat if not _is_real_number(v)), raw.dtype)
-        raise ValueError(f'{name} must hold real numbers, got {shown!r} '
-                         f'({type(shown).__name__})' if raw.dtype.kind == 'O' else
-                         f'{name} must hold real numbers, got {raw.dtype} values')
-    try:
-        arr = raw.astype(float)
-    except OverflowError:
-        raise ValueError(f'{name} holds a number beyond the range of doubles') from None
-    if arr.ndim != len(shape) or any(n not in (-1, m) for n, m in zip(shape, arr.shape)):
-        raise ValueError(f'{name} must have shape {wanted} for T problems, got shape '
-                         f'{arr.shape}')
-    return arr
-
-
 def check_batch(P: object, p_o: object, r: object, sigma: object,
                 measurement: str) -> CheckedBatch:
     """The inputs of a :class:`ProblemBatch`, checked: every problem as :func:`check_problem`
@@ -494,7 +478,7 @@ def check_batch(P: object, p_o: object, r: object, sigma: object,
     """
     if measurement not in MEASUREMENT_KINDS:
         raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, got {measurement!r}')
-    arrays = [_batch_array(name, value, shape) for name, value, shape in (
+    arrays = [_real_array(name, value, shape) for name, value, shape in (
         ('P', P, (-1, 3, 3)), ('p_o', p_o, (-1, 2)), ('r', r, (-1,)), ('sigma', sigma, (-1,)))]
     sizes = [len(a) for a in arrays]
     if len(set(sizes)) != 1:
@@ -776,7 +760,7 @@ class ProblemBatch(_QuotientForms):
                measurement: str, validate: bool = True) -> 'ProblemBatch':
         """A batch whose problems share slot, r and sigma (a study step), P of shape (T, 3, 3)."""
         if validate:            # one r and one sigma, checked as Problem checks them
-            P = _batch_array('P', P, (-1, 3, 3))
+            P = _real_array('P', P, (-1, 3, 3))
             unit = 'm' if measurement == RANGE else 'rad'
             r, sigma = _check_positive('r', r, 'm'), _check_positive('sigma', sigma, unit)
             p_o = _check_array('p_o', p_o, (2,))[0]
