@@ -15,7 +15,7 @@ import numpy as np
 from formopt_ros.cli.common import (
     ArgumentParser, command, fail, integer, name_list, new_folder, number)
 from formopt_ros.core.estimator import INNOVATION_GATE
-from formopt_ros.core.model import MEASUREMENT_KINDS
+from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
@@ -155,7 +155,7 @@ def report_markdown(summary: dict[str, Any]) -> str:
              f"{summary['trials']} trials x {summary['steps']} steps, seed {summary['seed']}, "
              f"GBS cell {summary['gbs_cell']} r. Slot {scenario['p_o']} m, r = "
              f"{scenario['r']:.4g} m, sigma = {scenario['sigma']:.4g}, leader "
-             f"{describe_path(scenario['leader'])}. Steady "
+             f"{describe_path(scenario['leader'])}, {scenario['kinematics']} kinematics. Steady "
              f"value: mean over the last {summary['steady_window']} steps; mean: over all "
              f'steps; vs RAM: relative difference. NEES band (95 %, 3 dof, trial mean): '
              f'[{lo:.3f}, {hi:.3f}].',
@@ -195,6 +195,10 @@ def add_scenario_options(parser: ArgumentParser) -> None:
     parser.add_argument('--sigma-scale', type=number(0.0, 1e6, low_open=True), default=None,
                         help="factor on the paper's range / bearing noise std 0.1 m / 0.02 rad "
                              '(default: 1)')
+    parser.add_argument('--kinematics', choices=KINEMATICS, default=EULER,
+                        help="motion model of the truth and the EKF: euler (the paper's eq. 9, "
+                             'with which its Sec. V simulates; default) or exact (arcs of '
+                             'constant velocities, as the ROS nodes run)')
     paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
     paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
                        default='straight', help='straight, arc (--leader-yaw-rate) or s-curve '
@@ -231,6 +235,8 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     path = leader_path(args)
     if path != paper.leader:
         overrides['leader'] = path
+    if args.kinematics != paper.kinematics:
+        overrides['kinematics'] = args.kinematics
     return overrides
 
 

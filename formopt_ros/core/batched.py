@@ -89,7 +89,7 @@ class _PerTrialPlanner:
 
             view = EstimatorView(x_t, P_t, self.histories[t], prior_for)
             context = PlanContext(step, leader, self.rngs[t], view, s.dt, s.sigma_v,
-                                  s.sigma_omega)
+                                  s.sigma_omega, s.kinematics)
             solution = timed_plan(strategy, problems.problem(t), context)
             p[t], times[t], fallback[t] = solution.p, solution.solve_time_s, \
                 solution.fallback is not None
@@ -164,17 +164,20 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
                 continue
             start = time.perf_counter()
             plan = planner.plan_batch(problems, BatchContext(k + 1, leader, lane_rngs, s.dt,
-                                                             s.sigma_v, s.sigma_omega))
+                                                             s.sigma_v, s.sigma_omega,
+                                                             s.kinematics))
             decision_time[lane, k] = (time.perf_counter() - start) / T
             p[lane] = plan.p
             if plan.fallback is not None:
                 fallback[lane, k] = plan.fallback
-        speed, turn_rate = command_velocities(x, p, s.dt, leader[0][0], leader[0][1])
+        speed, turn_rate = command_velocities(x, p, s.dt, leader[0][0], leader[0][1],
+                                              s.kinematics)
         for j, substep in enumerate(step_substeps(k + 1)):
             latest = v_l, omega_l = s.leader.velocity(substep, s.dt)
             v, omega = ((0.0, turn_rate), (speed, leader[0][1]))[j]
             truth = true_motion(s, truth, v, omega, motion[:, k, 2 * j:2 * j + 2], v_l, omega_l)
-            x, P = propagate(x, P, v, omega, s.dt, v_l, omega_l, s.sigma_v, s.sigma_omega)
+            x, P = propagate(x, P, v, omega, s.dt, v_l, omega_l, s.sigma_v, s.sigma_omega,
+                             s.sigma_v_leader, s.sigma_omega_leader, s.kinematics)
         z = true_measurement(s, truth, motion[:, k, 2 * SUBSTEPS])
         x, P, gated_in_a_row, out.innovation_nis[:, k], out.gated[:, k] = _gated_update(
             s, x, P, z, gated_in_a_row)

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.core.cost import Problem, weighted_trace
-from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
+from formopt_ros.core.model import (
+    ekf_update, normalized_estimation_error, propagate, transition_matrices)
 from formopt_ros.core.protocol import (
     MotionCommand, Timebase, held_leader_motion, motion_commands, predict_move)
 from formopt_ros.core.scenario import Scenario
@@ -125,6 +126,36 @@ def innovation_gate(innovation: Any, S: Any, variance: float,
 
 
 @dataclass(frozen=True)
+class RealNoise:
+    """Measurement-noise handling for real sensors (all off by default: the paper's filter).
+
+    Attributes:
+        bias_sigma: range only: standard deviation of a range-bias state b (m) at the start
+            (z = |p| + b + noise); 0: no bias state. Use it for UWB radios, whose ranges carry
+            biases of about 0.1 m that change slowly with geometry.
+        bias_walk: random walk of the bias, m / sqrt(s) (how fast it may drift).
+        huber: Huber threshold k in innovation standard deviations (0: off). A measurement
+            whose normalised innovation e exceeds k is used with its variance scaled by |e| / k,
+            so it pulls the estimate as much as a k-sigma one (one-sided non-line-of-sight
+            tails, outliers the gate of 10 sigma lets through). Typical: 2 to 3.
+    """
+
+    bias_sigma: float = 0.0
+    bias_walk: float = 0.0
+    huber: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ('bias_sigma', 'bias_walk', 'huber'):
+            value = float(getattr(self, name))
+            if not value >= 0.0 or not np.isfinite(value):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+            object.__setattr__(self, name, value)
+        if self.huber and self.huber < 1.0:
+            raise ValueError(f'huber must be 0 (off) or >= 1 standard deviation, got '
+                             f'{self.huber!r}')
+
+
+@dataclass(frozen=True)
 class UpdateResult:
     """What one measurement did to the filter.
 
@@ -133,12 +164,14 @@ class UpdateResult:
         nis: normalised innovation squared nu^2 / S (before any inflation).
         used: False when the innovation gate refused the measurement.
         inflation: factor applied to P before a re-opening update (1: none).
+        weight: Huber's weight of the measurement (1: full; below 1: down-weighted).
     """
 
     innovation: float
     nis: float
     used: bool
     inflation: float = 1.0
+    weight: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -156,7 +189,7 @@ def driven_prior(scenario: Scenario, x: np.ndarray, P: np.ndarray, target: np.nd
     leader velocities ``leader``, before the update: :func:`predict_move` with the scenario's
     dt and odometry noise; one pose or a batch (shapes as there), returns the shape of P."""
     return predict_move(x, P, target, leader, scenario.dt, scenario.sigma_v,
-                        scenario.sigma_omega)[1]
+                        scenario.sigma_omega, scenario.kinematics)[1]
 
 
 class EstimatorPlanner:
@@ -166,18 +199,50 @@ class EstimatorPlanner:
         scenario: the run's settings.
         strategy: a strategy object (``make_strategy(name, **options)``); it may keep state.
         rng: random stream of randomised strategies (CRM).
+        noise: range bias state and robust update (:class:`RealNoise`; default: off).
+
+    The filter's state is the pose [x, y, phi] in {L}, followed by the range bias b (m) when
+    ``noise.bias_sigma`` > 0 (range only): ``state`` (n,) and ``covariance`` (n, n); ``x`` and
+    ``P`` are the pose and its covariance (3,) and (3, 3).
     """
 
     def __init__(self, scenario: Scenario, strategy: Strategy,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, noise: RealNoise = RealNoise()) -> None:
         self.scenario = scenario
         self.strategy = strategy
         self.rng = rng
-        self.x, self.P = scenario.initial_estimate()
+        self.noise = noise
+        self.state, self.covariance = scenario.initial_estimate()
+        if noise.bias_sigma > 0.0:
+            if scenario.measurement != 'range':
+                raise ValueError('a bias state needs range measurements, got '
+                                 f'{scenario.measurement!r}')
+            self.state = np.append(self.state, 0.0)
+            self.covariance = np.pad(self.covariance, (0, 1))
+            self.covariance[3, 3] = noise.bias_sigma ** 2
         self.history: deque[StepRecord] = deque(maxlen=HISTORY_LENGTH)
         self.gated_in_a_row = 0
         self._target = scenario.slot
         self._slot = scenario.slot
+
+    @property
+    def x(self) -> np.ndarray:
+        """The pose estimate [x, y, phi] in {L}, (3,)."""
+        return self.state[:3]
+
+    @property
+    def P(self) -> np.ndarray:
+        """Its covariance (3, 3)."""
+        return self.covariance[:3, :3]
+
+    @property
+    def planning_sigma(self) -> float:
+        """The measurement noise the planner assumes: with a bias state, the bias's variance
+        is added to the noise's (the planner's problem has the pose only)."""
+        s = self.scenario
+        if self.state.size == 3:
+            return s.sigma
+        return float(np.sqrt(s.sigma ** 2 + self.covariance[3, 3]))
 
     def prior_for(self, target: np.ndarray,
                   leader: tuple[tuple[float, float], ...]) -> np.ndarray:
@@ -194,20 +259,37 @@ class EstimatorPlanner:
         """
         s = self.scenario
         prior = self.prior_for(self._slot, leader)     # the paper's planning prior (Sec. III-D)
-        problem = Problem(prior, self._slot, s.r, s.sigma, s.measurement, False)
+        problem = Problem(prior, self._slot, s.r, self.planning_sigma, s.measurement, False)
         view = EstimatorView(self.x, self.P, self.history,
                              lambda target: self.prior_for(target, leader))
-        context = PlanContext(step, leader, self.rng, view, s.dt, s.sigma_v, s.sigma_omega)
+        context = PlanContext(step, leader, self.rng, view, s.dt, s.sigma_v, s.sigma_omega,
+                              s.kinematics)
         solution = timed_plan(self.strategy, problem, context)
         self._target = solution.p
-        command = motion_commands(self.x, solution.p, s.dt, leader[0][0], leader[0][1])
+        command = motion_commands(self.x, solution.p, s.dt, leader[0][0], leader[0][1],
+                                  s.kinematics)
         return StepPlan(step, solution, command)
 
-    def propagate(self, v_f: float, omega_f: float, v_l: float, omega_l: float) -> None:
-        """EKF propagation over one sub-step with odometry (v_f, omega_f) and leader velocity."""
+    def propagate(self, v_f: float, omega_f: float, v_l: float, omega_l: float,
+                  dt: float | None = None) -> None:
+        """EKF propagation over one interval (default: the scenario's sub-step dt, s) with
+        follower odometry (v_f m/s, omega_f rad/s) and leader velocity held over it."""
         s = self.scenario
-        self.x, self.P = propagate(self.x, self.P, v_f, omega_f, s.dt, v_l, omega_l, s.sigma_v,
-                                   s.sigma_omega)
+        dt = s.dt if dt is None else dt
+        noise = (s.sigma_v, s.sigma_omega, s.sigma_v_leader, s.sigma_omega_leader)
+        if self.state.size == 3:
+            self.state, self.covariance = propagate(self.state, self.covariance, v_f, omega_f,
+                                                    dt, v_l, omega_l, *noise, s.kinematics)
+            return
+        Phi = transition_matrices(self.x, v_f, omega_f, dt, v_l, omega_l, *noise,
+                                  kinematics=s.kinematics)[0]
+        pose, pose_covariance = propagate(self.x, self.P, v_f, omega_f, dt, v_l, omega_l,
+                                          *noise, s.kinematics)
+        covariance = self.covariance.copy()
+        covariance[:3, :3] = pose_covariance
+        covariance[:3, 3] = covariance[3, :3] = Phi @ self.covariance[:3, 3]
+        covariance[3, 3] += self.noise.bias_walk ** 2 * dt
+        self.state, self.covariance = np.append(pose, self.state[3]), covariance
 
     def update(self, step: int, z: float, variance: float | None = None) -> UpdateResult:
         """EKF update with a range (m) or bearing (rad) measurement of step ``step``, behind the
@@ -215,18 +297,22 @@ class EstimatorPlanner:
         """
         s = self.scenario
         variance = s.sigma ** 2 if variance is None else variance
-        x, P, innovation, S = ekf_update(self.x, self.P, z, s.measurement, variance)
+        x, P, innovation, S = ekf_update(self.state, self.covariance, z, s.measurement,
+                                         variance)
         nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row)
         if not use:
             self.gated_in_a_row += 1
             return UpdateResult(innovation, nis, False)
-        if inflation > 1.0:
-            x, P, innovation, S = ekf_update(self.x, inflation * self.P, z, s.measurement,
-                                             variance)
+        weight = 1.0
+        if self.noise.huber and nis > self.noise.huber ** 2 and inflation == 1.0:
+            weight = self.noise.huber / float(np.sqrt(nis))
+        if inflation > 1.0 or weight < 1.0:
+            x, P, innovation, S = ekf_update(self.state, inflation * self.covariance, z,
+                                             s.measurement, variance / weight)
         self.gated_in_a_row = 0
-        self.x, self.P = x, P
+        self.state, self.covariance = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))
-        return UpdateResult(innovation, nis, True, float(inflation))
+        return UpdateResult(innovation, nis, True, float(inflation), weight)
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""

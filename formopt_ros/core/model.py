@@ -6,12 +6,19 @@ The state ``x = [x, y, phi]`` is the follower's pose in the leader's body frame 
 metres, heading in radians (follower x-axis relative to leader x-axis), wrapped to [-pi, pi).
 Velocities are body-frame forward speed (m/s) and yaw rate (rad/s).
 
-The paper assumes omega_L = 0. We keep the leader's yaw rate in the model so that a turning
-leader can be simulated; with ``omega_l = 0`` every formula reduces to the printed eqs. (9)-(12).
-Derivation of the general case: p = C_L^T (p_F - p_L) gives
-``p_dot = -omega_L J p + C(phi) e1 v_F - e1 v_L`` with ``J = [[0, -1], [1, 0]]``, i.e.
+The paper assumes omega_L = 0 and discretises with Euler's method (eq. 9). We keep the leader's
+yaw rate and propagate exactly for velocities held constant over a step: each robot drives an
+arc, whose displacement in its frame at the start is the chord
+``f(v, omega) = v dt sinc(h) [cos h, sin h]``, ``h = omega dt / 2``. With the relative pose
+``T = T_L^-1 T_F`` (SE(2)), one step is ``T' = Exp_L^-1 T Exp_F``:
+``p' = C(-omega_L dt) (p + C(phi) f(v_F, omega_F) - f(v_L, omega_L))``,
+``phi' = phi + (omega_F - omega_L) dt``. Its first-order terms are the continuous kinematics
 ``x_dot = omega_L y + cos(phi) v_F - v_L``, ``y_dot = -omega_L x + sin(phi) v_F``,
-``phi_dot = omega_F - omega_L``.
+``phi_dot = omega_F - omega_L``; with omega_L = 0 and a step that only turns (v_F = 0) or
+only drives (omega_F = 0), as in the paper's protocol, it equals eq. (9) to rounding. Euler
+is not exact once the leader turns: each step scales |p| by sqrt(1 + (omega_L dt)^2).
+The leader's odometry noise enters the covariance through the Jacobian of ``p'`` with
+respect to (v_L, omega_L) (zero by default: the paper takes the leader's motion as known).
 """
 from __future__ import annotations
 
@@ -24,6 +31,11 @@ import numpy as np
 RANGE = 'range'
 BEARING = 'bearing'
 MEASUREMENT_KINDS = (RANGE, BEARING)
+#: Motion models: 'exact' (arcs of constant velocities, SE(2)) or 'euler' (the paper's eq. 9,
+#: with which its Sec. V simulates; kept to reproduce those numbers).
+EXACT = 'exact'
+EULER = 'euler'
+KINEMATICS = (EXACT, EULER)
 
 
 def wrap_angle(angle: Any) -> Any:
@@ -85,9 +97,41 @@ def stack_vector(*components: Any) -> np.ndarray:
     return out
 
 
+def _sinc_terms(h: Any) -> tuple[Any, Any, Any, Any]:
+    """cos h, sin h, sinc h = sin(h) / h and its derivative (cos h - sinc h) / h, for a float
+    or an array; a series where the quotients would cancel (|h| < 1e-3: truncation < 1e-19)."""
+    c, s = elementwise(math.cos, h), elementwise(math.sin, h)
+    if isinstance(h, np.ndarray):
+        small = np.abs(h) < 1e-3
+        with np.errstate(divide='ignore', invalid='ignore'):
+            sinc = np.where(h == 0.0, 1.0, s / h)
+            dsinc = np.where(small, h * (h * h / 30.0 - 1.0 / 3.0), (c - sinc) / h)
+        return c, s, sinc, dsinc
+    if abs(h) < 1e-3:
+        return c, s, (1.0 if h == 0.0 else s / h), h * (h * h / 30.0 - 1.0 / 3.0)
+    sinc = s / h
+    return c, s, sinc, (c - sinc) / h
+
+
+def chord(v: Any, omega: Any, dt: float) -> tuple[Any, ...]:
+    """Displacement of a body driving at constant (v m/s, omega rad/s) for dt s, in its frame
+    at the start: the chord v dt sinc(h) [cos h, sin h] with h = omega dt / 2, and its
+    derivatives. Returns (dx, dy, ddx/dv, ddy/dv, ddx/domega, ddy/domega)."""
+    c, s, sinc, dsinc = _sinc_terms(0.5 * omega * dt)
+    length = dt * sinc                      # chord length per unit speed, s
+    dlength = 0.5 * dt * dt * dsinc         # its derivative w.r.t. omega, s^2
+    dx_dv, dy_dv = length * c, length * s
+    half = 0.5 * dt * length                # d(h)/domega * length, s^2
+    return (v * dx_dv, v * dy_dv, dx_dv, dy_dv,
+            v * (dlength * c - half * s), v * (dlength * s + half * c))
+
+
 def propagate_state(x: np.ndarray, v_f: Any, omega_f: Any, dt: float,
-                    v_l: float, omega_l: float = 0.0) -> np.ndarray:
-    """Euler step of the relative kinematics, paper eqs. (9)/(10).
+                    v_l: float, omega_l: float = 0.0, kinematics: str = EXACT) -> np.ndarray:
+    """Exact step of the relative kinematics for velocities held constant over ``dt``.
+
+    Both robots drive on circular arcs (SE(2) composition, module docstring); with omega_F = 0
+    or v_F = 0, and omega_L = 0, this is the paper's Euler step, eqs. (9)/(10), to rounding.
 
     Args:
         x: pose [x, y, phi] of the follower in {L} (m, m, rad), shape (3,) or (T, 3).
@@ -95,26 +139,18 @@ def propagate_state(x: np.ndarray, v_f: Any, omega_f: Any, dt: float,
             (floats, or arrays (T,) for a batch of poses).
         dt: step length (s).
         v_l, omega_l: leader forward speed (m/s) and yaw rate (rad/s).
+        kinematics: 'exact', or 'euler' for the paper's eq. (9) itself.
 
     Returns:
         The pose after ``dt``, shape of x, heading wrapped.
     """
-    px, py, phi = _components(x)
-    return _moved(px, py, phi, elementwise(math.cos, phi), elementwise(math.sin, phi), v_f,
-                  omega_f, dt, v_l, omega_l)
-
-
-def _moved(px: Any, py: Any, phi: Any, c: Any, s: Any, v_f: Any, omega_f: Any, dt: float,
-           v_l: float, omega_l: float) -> np.ndarray:
-    """The pose after eq. (9) (heading wrapped), given cos and sin of the heading phi."""
-    return stack_vector(px + (omega_l * py + c * v_f - v_l) * dt,
-                        py + (-omega_l * px + s * v_f) * dt,
-                        wrap_angle(phi + (omega_f - omega_l) * dt))
+    return _transition(x, v_f, omega_f, dt, v_l, omega_l, kinematics, False)[0]
 
 
 def integrate_unicycle(pose: tuple[float, float, float], v: float, omega: float,
                        dt: float) -> tuple[float, float, float]:
-    """Dead reckoning of a planar robot in a fixed frame (odometry pose), one Euler step.
+    """Dead reckoning of a planar robot in a fixed frame (odometry pose): the exact arc of
+    constant (v, omega) over dt.
 
     Args:
         pose: (x m, y m, yaw rad) in the fixed frame.
@@ -125,23 +161,71 @@ def integrate_unicycle(pose: tuple[float, float, float], v: float, omega: float,
         The pose after ``dt`` (yaw not wrapped: odometry yaw is continuous).
     """
     x, y, yaw = pose
-    return x + v * math.cos(yaw) * dt, y + v * math.sin(yaw) * dt, yaw + omega * dt
+    dx, dy = chord(v, omega, dt)[:2]
+    c, s = math.cos(yaw), math.sin(yaw)
+    return x + c * dx - s * dy, y + s * dx + c * dy, yaw + omega * dt
 
 
-def _transition_terms(phi: Any, v_f: Any, dt: float, omega_l: float, sigma_v: float,
-                      sigma_omega: float) -> tuple[Any, ...]:
-    """Entries of eqs. (11)-(12) at heading phi (a float, or an array for a batch):
-    Phi = [[1, a, b], [-a, 1, e], [0, 0, 1]] and G Q G' = qv [c, s, 0][c, s, 0]' + qw e3 e3';
-    returns (a, b, e, c, s, qv, qw)."""
-    c, s = elementwise(math.cos, phi), elementwise(math.sin, phi)
-    return omega_l * dt, -s * v_f * dt, c * v_f * dt, c, s, (sigma_v * dt) ** 2, \
-        (sigma_omega * dt) ** 2
+def _transition(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: float, omega_l: float,
+                kinematics: str, jacobians: bool) -> tuple[Any, ...]:
+    """The pose after one step (module docstring) and, with ``jacobians``, the entries of its
+    Jacobians: (pose, b0, b1, ca, sa, (a, b, e, f), scale), where Phi = [[ca, sa, b0], [-sa, ca,
+    b1], [0, 0, 1]] and scale times a, b (follower v, omega) and e, f (leader v, omega) are the
+    columns of the noise Jacobian, each a tuple of three components (floats or arrays (T,))."""
+    px, py, phi = _components(x)
+    cf, sf = elementwise(math.cos, phi), elementwise(math.sin, phi)
+    if kinematics == EULER:
+        pose = stack_vector(px + (omega_l * py + cf * v_f - v_l) * dt,
+                            py + (-omega_l * px + sf * v_f) * dt,
+                            wrap_angle(phi + (omega_f - omega_l) * dt))
+        if not jacobians:
+            return (pose,)
+        columns = ((cf, sf, 0.0), (0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (py, -px, -1.0))
+        return pose, -sf * v_f * dt, cf * v_f * dt, 1.0, omega_l * dt, columns, dt
+    fx, fy, fxv, fyv, fxw, fyw = chord(v_f, omega_f, dt)
+    lx, ly, lxv, lyv, lxw, lyw = chord(v_l, omega_l, dt)
+    qx, qy = px + (cf * fx - sf * fy) - lx, py + (sf * fx + cf * fy) - ly
+    ca, sa = math.cos(omega_l * dt), math.sin(omega_l * dt)
+    nx, ny = (qx, qy) if omega_l == 0.0 else (ca * qx + sa * qy, -sa * qx + ca * qy)
+    pose = stack_vector(nx, ny, wrap_angle(phi + (omega_f - omega_l) * dt))
+    if not jacobians:
+        return (pose,)
+
+    def turned(u: Any, w: Any) -> tuple[Any, Any]:     # A R(phi) [u, w]
+        gx, gy = cf * u - sf * w, sf * u + cf * w
+        return ca * gx + sa * gy, -sa * gx + ca * gy
+
+    b0, b1 = turned(-fy, fx)                            # A J R(phi) f
+    columns = ((*turned(fxv, fyv), 0.0), (*turned(fxw, fyw), dt),
+               (-(ca * lxv + sa * lyv), sa * lxv - ca * lyv, 0.0),
+               (dt * ny - (ca * lxw + sa * lyw), -dt * nx + (sa * lxw - ca * lyw), -dt))
+    return pose, b0, b1, ca, sa, columns, 1.0
+
+
+def _noise_covariance(columns: tuple[tuple[Any, Any, Any], ...],
+                      variances: tuple[float, ...]) -> tuple[Any, ...]:
+    """The six distinct entries (00, 01, 02, 11, 12, 22) of sum_k variance_k g_k g_k'."""
+    out = [0.0] * 6
+    for (g0, g1, g2), q in zip(columns, variances):
+        if q == 0.0:
+            continue
+        for i, (u, w) in enumerate(((g0, g0), (g0, g1), (g0, g2), (g1, g1), (g1, g2),
+                                    (g2, g2))):
+            out[i] = out[i] + q * u * w
+    return tuple(out)
+
+
+def _variances(scale: float, *sigmas: float) -> tuple[float, ...]:
+    """(scale sigma)^2 for each noise standard deviation (scale: the noise columns' unit)."""
+    return tuple((scale * sigma) ** 2 for sigma in sigmas)
 
 
 def propagate(x: np.ndarray, P: np.ndarray, v_f: Any, omega_f: Any, dt: float,
-              v_l: float, omega_l: float, sigma_v: float,
-              sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
-    """EKF propagation with measured follower velocities, paper eqs. (10)-(12).
+              v_l: float, omega_l: float, sigma_v: float, sigma_omega: float,
+              sigma_v_l: float = 0.0, sigma_omega_l: float = 0.0,
+              kinematics: str = EXACT) -> tuple[np.ndarray, np.ndarray]:
+    """EKF propagation over one step with measured follower velocities (paper eqs. (10)-(12),
+    exact for velocities held over the step: :func:`propagate_state`).
 
     Args:
         x: estimated pose [x, y, phi] in {L}, shape (3,) or (T, 3).
@@ -149,44 +233,50 @@ def propagate(x: np.ndarray, P: np.ndarray, v_f: Any, omega_f: Any, dt: float,
         v_f, omega_f: odometry (measured) follower velocities, m/s and rad/s (floats, or
             arrays (T,)).
         dt: step length, s.
-        v_l, omega_l: leader velocities (known), m/s and rad/s.
-        sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+        v_l, omega_l: leader velocities as reported by its odometry, m/s and rad/s.
+        sigma_v, sigma_omega: follower odometry noise standard deviations, m/s and rad/s.
+        sigma_v_l, sigma_omega_l: leader odometry noise standard deviations (0: the leader's
+            velocities are known exactly, as in the paper).
+        kinematics: 'exact', or 'euler' for the paper's eqs. (10)-(12) themselves.
 
     Returns:
         (x, P) after the step; P_next = Phi P Phi' + G Q G' written out (symmetric by
-        construction; a test checks it against :func:`transition_matrices`).
+        construction; a test checks it against finite differences).
     """
-    px, py, phi = _components(x)
-    a, b, e, c, s, qv, qw = _transition_terms(phi, v_f, dt, omega_l, sigma_v, sigma_omega)
+    pose, b0, b1, ca, sa, columns, scale = _transition(x, v_f, omega_f, dt, v_l, omega_l,
+                                                       kinematics, True)
     if P.ndim == 2:
         (p00, p01, p02), (_, p11, p12), (_, _, p22) = P.tolist()
     else:
         p00, p01, p02, p11, p12, p22 = (P[..., 0, 0], P[..., 0, 1], P[..., 0, 2],
                                         P[..., 1, 1], P[..., 1, 2], P[..., 2, 2])
     # rows of Phi P
-    r00, r01, r02 = p00 + a * p01 + b * p02, p01 + a * p11 + b * p12, p02 + a * p12 + b * p22
-    r10, r11, r12 = -a * p00 + p01 + e * p02, -a * p01 + p11 + e * p12, -a * p02 + p12 + e * p22
-    n00 = r00 + a * r01 + b * r02 + qv * c * c
-    n01 = -a * r00 + r01 + e * r02 + qv * c * s
-    n11 = -a * r10 + r11 + e * r12 + qv * s * s
-    n02, n12, n22 = r02, r12, p22 + qw
-    return _moved(px, py, phi, c, s, v_f, omega_f, dt, v_l, omega_l), symmetric3(
-        (n00, n01, n02, n11, n12, n22))
+    r00, r01, r02 = ca * p00 + sa * p01 + b0 * p02, ca * p01 + sa * p11 + b0 * p12, \
+        ca * p02 + sa * p12 + b0 * p22
+    r10, r11, r12 = -sa * p00 + ca * p01 + b1 * p02, -sa * p01 + ca * p11 + b1 * p12, \
+        -sa * p02 + ca * p12 + b1 * p22
+    q00, q01, q02, q11, q12, q22 = _noise_covariance(
+        columns, _variances(scale, sigma_v, sigma_omega, sigma_v_l, sigma_omega_l))
+    n00 = ca * r00 + sa * r01 + b0 * r02 + q00
+    n01 = -sa * r00 + ca * r01 + b1 * r02 + q01
+    n11 = -sa * r10 + ca * r11 + b1 * r12 + q11
+    return pose, symmetric3((n00, n01, r02 + q02, n11, r12 + q12, p22 + q22))
 
 
-def transition_matrices(x: np.ndarray, v_f: float, dt: float, omega_l: float, sigma_v: float,
-                        sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
-    """The matrices of one propagation sub-step, eqs. (11)-(12): (Phi, G Q G'), each (3, 3).
+def transition_matrices(x: np.ndarray, v_f: float, omega_f: float, dt: float, v_l: float,
+                        omega_l: float, sigma_v: float, sigma_omega: float,
+                        sigma_v_l: float = 0.0, sigma_omega_l: float = 0.0,
+                        kinematics: str = EXACT) -> tuple[np.ndarray, np.ndarray]:
+    """The matrices of one propagation step: (Phi, G Q G'), each (3, 3), for one pose (3,).
 
     :func:`propagate` applies them written out (P_next = Phi P Phi' + G Q G'); multi-step
-    planners compose them. Args as in :func:`propagate` (Phi does not depend on omega_f or v_l).
+    planners compose them. Args as in :func:`propagate`.
     """
-    a, b, e, c, s, qv, qw = _transition_terms(float(x[2]), v_f, dt, omega_l, sigma_v,
-                                              sigma_omega)
-    Phi = np.array([[1.0, a, b], [-a, 1.0, e], [0.0, 0.0, 1.0]])
-    u = np.array([c, s, 0.0])
-    GQG = qv * np.outer(u, u)
-    GQG[2, 2] += qw
+    _, b0, b1, ca, sa, columns, scale = _transition(x, v_f, omega_f, dt, v_l, omega_l,
+                                                    kinematics, True)
+    Phi = np.array([[ca, sa, b0], [-sa, ca, b1], [0.0, 0.0, 1.0]], dtype=float)
+    GQG = symmetric3(_noise_covariance(
+        columns, _variances(scale, sigma_v, sigma_omega, sigma_v_l, sigma_omega_l)))
     return Phi, GQG
 
 
@@ -229,8 +319,9 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str,
     """EKF measurement update, eq. (19), in Joseph form (stays symmetric positive definite).
 
     Args:
-        x: prior pose [x, y, phi] in {L}, shape (3,), or a batch (T, 3).
-        P: prior covariance, shape (3, 3), or (T, 3, 3).
+        x: prior pose [x, y, phi] in {L}, shape (3,), or a batch (T, 3); or, for a range with
+            a bias state, [x, y, phi, b] (4,) with z = |p| + b + noise (b in m).
+        P: prior covariance, shape (n, n), or (T, n, n), n the state size.
         z: measured range (m) or bearing (rad): a float, or an array (T,).
         kind: 'range' or 'bearing'.
         variance: measurement noise variance, m^2 or rad^2.
@@ -240,16 +331,20 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str,
         The products are stacked matrix products, so a batch gives each pose the bits it
         gets alone.
     """
-    h = measurement_jacobian(kind, x)
-    innovation = z - predict_measurement(kind, x)
+    n = x.shape[-1]
+    h = measurement_jacobian(kind, x[..., :3])
+    innovation = z - predict_measurement(kind, x[..., :3])
     if kind == BEARING:
         innovation = wrap_angle(innovation)
+    if n == 4:                                      # the range bias b enters with slope 1
+        innovation = innovation - x[..., 3]
+        h = np.concatenate([h, np.ones(h.shape[:-1] + (1,))], axis=-1)
     Ph = np.matmul(P, h[..., None])[..., 0]
     S = np.matmul(h[..., None, :], Ph[..., None])[..., 0, 0] + variance
     K = Ph / S[..., None]
     x_post = x + K * np.asarray(innovation)[..., None]
     x_post[..., 2] = wrap_angle(x_post[..., 2])
-    A = np.eye(3) - K[..., :, None] * h[..., None, :]
+    A = np.eye(n) - K[..., :, None] * h[..., None, :]
     P_post = A @ P @ np.swapaxes(A, -1, -2) + variance * (K[..., :, None] * K[..., None, :])
     P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
     if x.ndim == 1:

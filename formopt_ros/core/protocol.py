@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import elementwise, propagate, propagate_state, wrap_angle
+from formopt_ros.core.model import (
+    EXACT, EULER, chord, elementwise, propagate, propagate_state, wrap_angle)
 
 #: Sub-steps per measurement step: rotate, then translate.
 SUBSTEPS = 2
@@ -86,32 +87,47 @@ class MotionCommand:
 
 
 def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
-                       omega_l: float) -> tuple[Any, Any]:
+                       omega_l: float, kinematics: str = EXACT) -> tuple[Any, Any]:
     """(translation speed m/s, rotation yaw rate rad/s) of :func:`motion_commands`, for one pose
-    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,)."""
-    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l)      # position after rotating
-    dx = target[..., 0] - x1[..., 0] - omega_l * x1[..., 1] * dt + v_l * dt
-    dy = target[..., 1] - x1[..., 1] + omega_l * x1[..., 0] * dt
-    turn = wrap_angle(elementwise(math.atan2, dy, dx) - x[..., 2])
-    return elementwise(math.hypot, dx, dy) / dt, turn / dt + omega_l
+    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,).
+
+    After the rotation (v = 0: the position moves only with the leader, to p1) the translation
+    at omega_F = omega_L must satisfy C(phi1) f(v, omega_L) = C(omega_L dt) target +
+    f(v_L, omega_L) - p1 =: D (model docstring), so the chord f points along D: heading
+    phi1 = atan2(D) - omega_L dt / 2, speed |D| / (dt sinc(omega_L dt / 2)). With 'euler' the
+    displacement of eq. (9) points along D, the straight line from p1 to the target.
+    """
+    x1 = propagate_state(x, 0.0, omega_l, dt, v_l, omega_l, kinematics)   # after rotating
+    if kinematics == EULER:
+        dx = target[..., 0] - x1[..., 0] - omega_l * x1[..., 1] * dt + v_l * dt
+        dy = target[..., 1] - x1[..., 1] + omega_l * x1[..., 0] * dt
+        turn = wrap_angle(elementwise(math.atan2, dy, dx) - x[..., 2])
+        return elementwise(math.hypot, dx, dy) / dt, turn / dt + omega_l
+    lx, ly, unit_x, unit_y = chord(v_l, omega_l, dt)[:4]        # unit_*: chord per m/s of v_F
+    ca, sa = math.cos(omega_l * dt), math.sin(omega_l * dt)
+    tx, ty = target[..., 0], target[..., 1]
+    dx = ca * tx - sa * ty + lx - x1[..., 0]
+    dy = sa * tx + ca * ty + ly - x1[..., 1]
+    turn = wrap_angle(elementwise(math.atan2, dy, dx) - 0.5 * omega_l * dt - x[..., 2])
+    return elementwise(math.hypot, dx, dy) / math.hypot(unit_x, unit_y), turn / dt + omega_l
 
 
 def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
-                    omega_l: float) -> MotionCommand:
+                    omega_l: float, kinematics: str = EXACT) -> MotionCommand:
     """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m).
 
     Sub-step 1 rotates in place (v = 0) to the heading of the remaining displacement; sub-step
-    2 translates (omega = omega_L, i.e. no turn relative to the leader) so that the
-    Euler-propagated pose (paper eq. 10) lands exactly on target while the leader moves at
-    (v_l m/s, omega_l rad/s).
+    2 translates (omega = omega_L, i.e. no turn relative to the leader) so that the propagated
+    pose (:func:`~formopt_ros.core.model.propagate_state`) lands exactly on target while the
+    leader moves at (v_l m/s, omega_l rad/s).
     """
-    speed, turn_rate = command_velocities(x, target, dt, v_l, omega_l)
+    speed, turn_rate = command_velocities(x, target, dt, v_l, omega_l, kinematics)
     return MotionCommand((0.0, float(speed)), (float(turn_rate), omega_l))
 
 
 def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,
                  leader: tuple[tuple[float, float], ...], dt: float, sigma_v: float,
-                 sigma_omega: float) -> tuple[np.ndarray, np.ndarray]:
+                 sigma_omega: float, kinematics: str = EXACT) -> tuple[np.ndarray, np.ndarray]:
     """The EKF's prediction after driving from pose x to position ``target`` with
     :func:`motion_commands` as odometry, under the leader velocities ``leader`` (one (v m/s,
     omega rad/s) per sub-step); the estimate lands on target. This is the exact,
@@ -122,13 +138,15 @@ def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,
         target: position (2,) m, or one per pose (T, 2).
         leader: expected (v_L, omega_L) per sub-step; dt: sub-step, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+        kinematics: 'exact' or 'euler' (model docstring).
 
     Returns:
         (x, P) before the update, shapes of the inputs.
     """
-    speed, turn_rate = command_velocities(x, target, dt, leader[0][0], leader[0][1])
+    speed, turn_rate = command_velocities(x, target, dt, leader[0][0], leader[0][1], kinematics)
     for j, (v, omega) in enumerate(((0.0, turn_rate), (speed, leader[0][1]))):
-        x, P = propagate(x, P, v, omega, dt, leader[j][0], leader[j][1], sigma_v, sigma_omega)
+        x, P = propagate(x, P, v, omega, dt, leader[j][0], leader[j][1], sigma_v, sigma_omega,
+                         kinematics=kinematics)
     return x, P
 
 

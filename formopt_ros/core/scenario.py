@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.core.cost import check_disc
-from formopt_ros.core.model import BEARING, MEASUREMENT_KINDS, RANGE
+from formopt_ros.core.model import BEARING, EULER, EXACT, KINEMATICS, MEASUREMENT_KINDS, RANGE
 from formopt_ros.core.strategies import make_strategy
 
 #: Shapes of leader path.
@@ -163,6 +163,10 @@ class Scenario:
         sigma_v, sigma_omega: follower velocity noise standard deviations, m/s and rad/s.
         initial_covariance: diagonal of P_1|1 (m^2, m^2, rad^2); the estimate starts at
             [p_o, 0] and the truth is drawn from N(estimate, P_1|1).
+        sigma_v_leader, sigma_omega_leader: noise standard deviations of the leader's odometry
+            as the estimator receives it, m/s and rad/s (0: known exactly, as in the paper).
+        kinematics: 'exact' (arcs of constant velocities) or 'euler' (the paper's eq. 9, as
+            its Sec. V simulates), for the truth and the EKF alike.
     """
 
     measurement: str
@@ -174,6 +178,9 @@ class Scenario:
     sigma_v: float = 0.2
     sigma_omega: float = 0.1
     initial_covariance: tuple[float, float, float] = (0.1, 0.1, 4e-4)
+    sigma_v_leader: float = 0.0
+    sigma_omega_leader: float = 0.0
+    kinematics: str = EXACT
 
     def __post_init__(self) -> None:
         if self.measurement not in MEASUREMENT_KINDS:
@@ -190,6 +197,10 @@ class Scenario:
         _positive('dt', self.dt, 's')
         _non_negative('sigma_v', self.sigma_v, 'm/s')
         _non_negative('sigma_omega', self.sigma_omega, 'rad/s')
+        _non_negative('sigma_v_leader', self.sigma_v_leader, 'm/s')
+        _non_negative('sigma_omega_leader', self.sigma_omega_leader, 'rad/s')
+        if self.kinematics not in KINEMATICS:
+            raise ValueError(f'kinematics must be one of {KINEMATICS}, got {self.kinematics!r}')
         covariance = tuple(_positive('initial_covariance', v, 'm^2 or rad^2')
                            for v in self.initial_covariance)
         if len(covariance) != 3:
@@ -198,13 +209,17 @@ class Scenario:
         leader = self.leader if isinstance(self.leader, LeaderPath) else \
             LeaderPath.from_dict(self.leader)
         object.__setattr__(self, 'p_o', p_o)
+        for name in ('r', 'sigma', 'dt', 'sigma_v', 'sigma_omega', 'sigma_v_leader',
+                     'sigma_omega_leader'):
+            object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, 'initial_covariance', covariance)
         object.__setattr__(self, 'leader', leader)
 
     @classmethod
     def paper(cls, measurement: str, **overrides: Any) -> 'Scenario':
         """The paper's Sec. V settings for 'range' (p_o = [-1, -2], sigma_d = 0.1 m) or
-        'bearing' (p_o = [-1, 2], sigma_beta = 0.02 rad); r = 0.1 |p_o| unless overridden."""
+        'bearing' (p_o = [-1, 2], sigma_beta = 0.02 rad); r = 0.1 |p_o|, and its eq. (9) as the
+        kinematics ('euler'), unless overridden."""
         if measurement not in MEASUREMENT_KINDS:
             raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
                              f'got {measurement!r}')
@@ -212,7 +227,8 @@ class Scenario:
                                   else (-1.0, 2.0)))
         values: dict[str, Any] = dict(measurement=measurement, p_o=p_o,
                                       r=0.1 * math.hypot(*p_o),
-                                      sigma=0.1 if measurement == RANGE else 0.02)
+                                      sigma=0.1 if measurement == RANGE else 0.02,
+                                      kinematics=EULER)
         values.update(overrides)
         return cls(**values)
 
@@ -343,9 +359,11 @@ class Formation:
                              f'followers {ids}')
         first = self.followers[0].scenario
         for follower in self.followers[1:]:
-            if (follower.scenario.leader, follower.scenario.dt) != (first.leader, first.dt):
+            shared = (follower.scenario.leader, follower.scenario.dt,
+                      follower.scenario.kinematics)
+            if shared != (first.leader, first.dt, first.kinematics):
                 raise ValueError(f'follower {follower.id}: every follower shares the leader '
-                                 'path and dt')
+                                 'path, dt and kinematics')
 
     @property
     def leader(self) -> LeaderPath:
@@ -369,11 +387,13 @@ class Formation:
     def from_dict(cls, data: dict[str, Any]) -> 'Formation':
         """A formation from its file layout (see config/formation_fig4.yaml); ValueError that
         names the key for anything unknown, missing or out of range."""
-        _check_keys('formation', data, {'leader', 'dt', 'seed', 'trial', 'followers'})
+        _check_keys('formation', data, {'leader', 'dt', 'kinematics', 'seed', 'trial',
+                                        'followers'})
         leader = dict(data.get('leader') or {})
         _check_keys('formation leader', leader, {'id', 'path'})
         path = LeaderPath.from_dict(dict(leader.get('path') or {}))
         dt = data.get('dt', 0.05)
+        kinematics = data.get('kinematics', EXACT)
         seed = data.get('seed', 0)
         followers = data.get('followers')
         if not isinstance(followers, list) or not followers:
@@ -383,28 +403,31 @@ class Formation:
             if not isinstance(item, dict):
                 raise ValueError(f'formation follower {index + 1} must be a mapping, '
                                  f'got {item!r}')
-            specs.append(_follower_from_dict(item, path, dt, seed + index))
+            specs.append(_follower_from_dict(item, path, dt, kinematics, seed + index))
         return cls(str(leader.get('id', 'leader')), tuple(specs), int(data.get('trial', 0)))
 
     def to_dict(self) -> dict[str, Any]:
         """The file layout (inverse of :meth:`from_dict`, every value explicit)."""
         return {
             'leader': {'id': self.leader_id, 'path': self.leader.to_dict()},
-            'dt': self.dt, 'trial': self.trial,
+            'dt': self.dt, 'kinematics': self.followers[0].scenario.kinematics,
+            'trial': self.trial,
             'followers': [{
                 'id': f.id, 'sensor': f.scenario.measurement, 'slot': list(f.scenario.p_o),
                 'deviation': f.scenario.r / f.scenario.d_o, 'noise': f.scenario.sigma,
                 'odometry_noise': [f.scenario.sigma_v, f.scenario.sigma_omega],
+                'leader_odometry_noise': [f.scenario.sigma_v_leader,
+                                          f.scenario.sigma_omega_leader],
                 'initial_covariance': list(f.scenario.initial_covariance),
                 'strategy': f.strategy, 'options': dict(f.options), 'seed': f.seed}
                 for f in self.followers]}
 
 
 _FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'odometry_noise',
-                  'initial_covariance', 'strategy', 'options', 'seed'}
+                  'leader_odometry_noise', 'initial_covariance', 'strategy', 'options', 'seed'}
 
 
-def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float,
+def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinematics: str,
                         default_seed: int) -> FollowerSpec:
     name = item.get('id', '?')
     _check_keys(f'formation follower {name}', item, _FOLLOWER_KEYS)
@@ -414,10 +437,13 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float,
     try:
         base = Scenario.paper(item['sensor'], p_o=tuple(item['slot']))
         sigma_v, sigma_omega = item.get('odometry_noise', (base.sigma_v, base.sigma_omega))
+        sigma_v_leader, sigma_omega_leader = item.get('leader_odometry_noise', (0.0, 0.0))
         scenario = Scenario.paper(
             item['sensor'], p_o=base.p_o, r=float(item.get('deviation', 0.1)) * base.d_o,
             sigma=float(item.get('noise', base.sigma)), leader=path, dt=float(dt),
             sigma_v=float(sigma_v), sigma_omega=float(sigma_omega),
+            sigma_v_leader=float(sigma_v_leader), sigma_omega_leader=float(sigma_omega_leader),
+            kinematics=kinematics,
             initial_covariance=tuple(item.get('initial_covariance',
                                               base.initial_covariance)))
         return FollowerSpec(str(name), scenario, str(item.get('strategy', 'ram')),

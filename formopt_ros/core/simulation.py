@@ -53,11 +53,11 @@ def initial_truth(scenario: Scenario, draw: np.ndarray) -> np.ndarray:
 
 def true_motion(scenario: Scenario, x: np.ndarray, v_cmd: Any, omega_cmd: Any, w: np.ndarray,
                 v_l: float, omega_l: float) -> np.ndarray:
-    """One sub-step of eq. (9) with true velocities = commands + sigma * w (standard normal w,
-    shape (2,), or (T, 2) for poses x of shape (T, 3))."""
+    """One sub-step (the scenario's kinematics) with true velocities = commands + sigma * w
+    (standard normal w, shape (2,), or (T, 2) for poses x of shape (T, 3))."""
     s = scenario
     return propagate_state(x, v_cmd + s.sigma_v * w[..., 0], omega_cmd + s.sigma_omega * w[..., 1],
-                           s.dt, v_l, omega_l)
+                           s.dt, v_l, omega_l, s.kinematics)
 
 
 def true_measurement(scenario: Scenario, x: np.ndarray, w: Any) -> Any:
@@ -78,14 +78,15 @@ class FollowerTruth:
         self.x = initial_truth(scenario, noise.normal(size=3))
 
     def execute(self, v_cmd: float, omega_cmd: float, v_l: float, omega_l: float) -> None:
-        """One sub-step of eq. (9) with true velocities = commands + N(0, sigma^2) noise."""
+        """One sub-step with true velocities = commands + N(0, sigma^2) noise."""
         self.x = true_motion(self.scenario, self.x, v_cmd, omega_cmd, self.noise.normal(size=2),
                              v_l, omega_l)
 
     def park(self, v_l: float, omega_l: float) -> None:
         """One sub-step standing still (the driver is down: no command, no noise) while the
         leader moves at (v_l m/s, omega_l rad/s)."""
-        self.x = propagate_state(self.x, 0.0, 0.0, self.scenario.dt, v_l, omega_l)
+        self.x = propagate_state(self.x, 0.0, 0.0, self.scenario.dt, v_l, omega_l,
+                                 self.scenario.kinematics)
 
     def measure(self) -> float:
         """Range (m) or bearing (rad, wrapped) of the true pose plus N(0, sigma^2) noise."""

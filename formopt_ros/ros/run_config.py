@@ -8,7 +8,8 @@ from typing import Any
 
 from rclpy.node import Node
 
-from formopt_ros.core.model import MEASUREMENT_KINDS
+from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS
+from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
 from formopt_ros.core.scenario import (
     PATH_KINDS, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
 from formopt_ros.core.strategies import STRATEGIES
@@ -35,6 +36,13 @@ TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)'
 SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', 0.0, 100.0)
 SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s', 0.0,
                     100.0)
+SIGMA_V_LEADER = Param('sigma_v_leader', 0.0, "noise std of the leader's odometry speed as the "
+                       'estimator receives it, m/s (0: exact, as in the paper)', 0.0, 100.0)
+SIGMA_OMEGA_LEADER = Param('sigma_omega_leader', 0.0, "noise std of the leader's odometry yaw "
+                           'rate, rad/s (0: exact)', 0.0, 100.0)
+KINEMATICS = Param('kinematics', EXACT, 'motion model of the truth and the EKF: exact (arcs of '
+                   "constant velocities) or euler (the paper's eq. 9, as its Sec. V simulates)",
+                   choices=MOTION_MODELS)
 RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', 1e-6, 1e3)
 BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', 1e-6, 3.2)
 SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
@@ -79,8 +87,9 @@ PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATION
 INITIAL_COVARIANCE = Param(
     'initial_covariance', [0.1, 0.1, 4e-4], 'diagonal of P_1|1 [x m^2, y m^2, phi rad^2]; the '
     'truth starts at N([p_o, 0], P_1|1)', 1e-12, 1e6)
-SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, RANGE_SIGMA, BEARING_SIGMA, SLOT,
-                   DEVIATION, INITIAL_COVARIANCE] + PATH_PARAMS
+SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER,
+                   KINEMATICS, RANGE_SIGMA, BEARING_SIGMA, SLOT, DEVIATION,
+                   INITIAL_COVARIANCE] + PATH_PARAMS
 
 
 def strategy_params() -> list[Param]:
@@ -140,7 +149,8 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
             kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
             sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
             leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
-            sigma_omega=values['sigma_omega'],
+            sigma_omega=values['sigma_omega'], sigma_v_leader=values['sigma_v_leader'],
+            sigma_omega_leader=values['sigma_omega_leader'], kinematics=values['kinematics'],
             initial_covariance=tuple(values['initial_covariance']))
     except ValueError as error:
         raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None

@@ -6,6 +6,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from formopt_ros.core.model import EULER
 from formopt_ros.core.scenario import LeaderPath, Scenario
 
 #: Version tags of the JSON layouts.
@@ -70,7 +71,8 @@ class RunDescription:
         data = _load(text, FORMAT)
         try:
             return cls(follower_id=str(data['follower_id']),
-                       scenario=Scenario.from_dict(data['scenario']),
+                       scenario=Scenario.from_dict(
+                           {'kinematics': EULER, **data['scenario']}),  # older runs: Euler
                        strategy=str(data['strategy']), options=dict(data.get('options', {})),
                        seed=int(data['seed']), trial=int(data['trial']), mode=str(data['mode']),
                        steps=int(data['steps']), run_id=str(data.get('run_id', '')),
@@ -132,7 +134,9 @@ def scenario_parameters(scenario: Scenario) -> dict[str, Any]:
     bearing_sigma, r as deviation_fraction of |p_o|)."""
     return {'measurement': scenario.measurement, 'dt': scenario.dt,
             f'{scenario.measurement}_sigma': scenario.sigma, 'sigma_v': scenario.sigma_v,
-            'sigma_omega': scenario.sigma_omega, 'formation_slot': list(scenario.p_o),
+            'sigma_omega': scenario.sigma_omega, 'sigma_v_leader': scenario.sigma_v_leader,
+            'sigma_omega_leader': scenario.sigma_omega_leader, 'kinematics': scenario.kinematics,
+            'formation_slot': list(scenario.p_o),
             'deviation_fraction': scenario.r / scenario.d_o,
             'initial_covariance': list(scenario.initial_covariance),
             **path_parameters(scenario.leader)}

@@ -35,31 +35,53 @@ def state_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def numerical_jacobians(x: np.ndarray, v_f: float, omega_f: float, dt: float, v_l: float,
                         omega_l: float, step: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Central finite differences of propagate_state w.r.t. the state and [v_f, omega_f]."""
-    Phi = np.zeros((3, 3))
+    """Central finite differences of propagate_state w.r.t. the state (Phi, 3 x 3) and the
+    velocities [v_f, omega_f, v_l, omega_l] (G, 3 x 4)."""
+    def moved(x: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        return propagate_state(x, velocities[0], velocities[1], dt, velocities[2], velocities[3])
+
+    u = np.array([v_f, omega_f, v_l, omega_l])
+    Phi, G = np.zeros((3, 3)), np.zeros((3, 4))
     for j in range(3):
         e = np.zeros(3)
         e[j] = step
-        Phi[:, j] = state_difference(propagate_state(x + e, v_f, omega_f, dt, v_l, omega_l),
-                                     propagate_state(x - e, v_f, omega_f, dt, v_l, omega_l)
-                                     ) / (2 * step)
-    G = np.zeros((3, 2))
-    G[:, 0] = state_difference(propagate_state(x, v_f + step, omega_f, dt, v_l, omega_l),
-                               propagate_state(x, v_f - step, omega_f, dt, v_l, omega_l)
-                               ) / (2 * step)
-    G[:, 1] = state_difference(propagate_state(x, v_f, omega_f + step, dt, v_l, omega_l),
-                               propagate_state(x, v_f, omega_f - step, dt, v_l, omega_l)
-                               ) / (2 * step)
+        Phi[:, j] = state_difference(moved(x + e, u), moved(x - e, u)) / (2 * step)
+    for j in range(4):
+        e = np.zeros(4)
+        e[j] = step
+        G[:, j] = state_difference(moved(x, u + e), moved(x, u - e)) / (2 * step)
     return Phi, G
 
 
-def test_propagate_state_matches_eq9() -> None:
-    """With omega_L = 0 the Euler step is exactly eq. (9); heading is wrapped to [-pi, pi)."""
+def world_arc(pose: tuple[float, float, float], v: float, omega: float,
+              dt: float) -> tuple[float, float, float]:
+    """A unicycle's pose after dt at constant (v, omega) in a fixed frame, by the textbook
+    centre-of-rotation formula (written independently of the package's chord)."""
+    x, y, yaw = pose
+    if omega == 0.0:
+        return x + v * dt * math.cos(yaw), y + v * dt * math.sin(yaw), yaw
+    radius = v / omega
+    return (x + radius * (math.sin(yaw + omega * dt) - math.sin(yaw)),
+            y - radius * (math.cos(yaw + omega * dt) - math.cos(yaw)), yaw + omega * dt)
+
+
+def relative_pose(leader: tuple[float, float, float],
+                  follower: tuple[float, float, float]) -> np.ndarray:
+    """The follower's pose in the leader's frame from both world poses (eq. 5)."""
+    c, s = math.cos(leader[2]), math.sin(leader[2])
+    dx, dy = follower[0] - leader[0], follower[1] - leader[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(follower[2] - leader[2])])
+
+
+def test_propagate_state_matches_eq9_where_euler_is_exact() -> None:
+    """With omega_L = 0 and a step that only drives (omega_F = 0) or only turns (v_F = 0), the
+    protocol's two sub-steps, the step is exactly eq. (9); heading is wrapped to [-pi, pi)."""
     rng = np.random.default_rng(SEED)
-    for _ in range(200):
+    for i in range(200):
         x = random_pose(rng)
         v_f, omega_f, dt, v_l = rng.uniform(0, 2), rng.uniform(-1, 1), rng.uniform(0.01, 0.5), \
             rng.uniform(0, 2)
+        v_f, omega_f = (v_f, 0.0) if i % 2 else (0.0, omega_f)
         expected = np.array([x[0] + math.cos(x[2]) * v_f * dt - v_l * dt,
                              x[1] + math.sin(x[2]) * v_f * dt,
                              wrap_angle(x[2] + omega_f * dt)])
@@ -71,42 +93,53 @@ def test_propagate_state_matches_eq9() -> None:
     assert wrapped[2] == pytest.approx(3.2 - 2 * math.pi, abs=1e-12)
 
 
-def test_propagate_state_turning_leader() -> None:
-    """With omega_L != 0 the step follows the documented general kinematics."""
+def test_relative_motion_equals_both_robots_in_the_world_frame() -> None:
+    """Both robots turning at about 1 rad/s for 60 s at dt 0.1 s, 5 m apart: the relative
+    propagation equals the two world-frame arcs composed (1e-9 m), where Euler drifts by
+    metres (it scales |p| by sqrt(1 + (omega_L dt)^2) per step)."""
     rng = np.random.default_rng(SEED + 1)
-    for _ in range(100):
-        x = random_pose(rng)
-        v_f, omega_f, dt, v_l, omega_l = rng.uniform(0, 2), rng.uniform(-1, 1), 0.1, \
-            rng.uniform(0, 2), rng.uniform(-1, 1)
-        expected = np.array([x[0] + (omega_l * x[1] + math.cos(x[2]) * v_f - v_l) * dt,
-                             x[1] + (-omega_l * x[0] + math.sin(x[2]) * v_f) * dt,
-                             wrap_angle(x[2] + (omega_f - omega_l) * dt)])
-        # 1e-12 absolute: identical formula up to operation order.
-        np.testing.assert_allclose(propagate_state(x, v_f, omega_f, dt, v_l, omega_l), expected,
-                                   rtol=0, atol=1e-12)
+    dt, steps = 0.1, 600
+    leader, follower = (0.0, 0.0, 0.0), (-3.0, -4.0, 0.0)
+    x = relative_pose(leader, follower)
+    euler = x.copy()
+    for _ in range(steps):
+        v_l, omega_l = 1.0 + 0.1 * rng.normal(), 1.0 + 0.1 * rng.normal()
+        v_f, omega_f = 1.0 + 0.5 * rng.normal(), 1.0 + 0.5 * rng.normal()
+        leader = world_arc(leader, v_l, omega_l, dt)
+        follower = world_arc(follower, v_f, omega_f, dt)
+        x = propagate_state(x, v_f, omega_f, dt, v_l, omega_l)
+        euler = np.array([euler[0] + (omega_l * euler[1] + math.cos(euler[2]) * v_f - v_l) * dt,
+                          euler[1] + (-omega_l * euler[0] + math.sin(euler[2]) * v_f) * dt,
+                          wrap_angle(euler[2] + (omega_f - omega_l) * dt)])
+    truth = relative_pose(leader, follower)
+    # 1e-9 m: 600 compositions of rotations and chords, each exact to rounding.
+    np.testing.assert_allclose(state_difference(x, truth), 0.0, atol=1e-9)
+    assert np.hypot(*(euler - truth)[:2]) > 1.0
 
 
 @pytest.mark.parametrize('omega_l', [0.0, 0.4])
 def test_propagate_covariance_matches_finite_difference_jacobians(omega_l: float) -> None:
-    """P_next = Phi P Phi' + G Q G' (eq. 12) with Phi, G from finite differences (eq. 11)."""
+    """P_next = Phi P Phi' + G Q G' (eq. 12) with Phi and G (follower and leader velocities)
+    from finite differences of the exact step."""
     rng = np.random.default_rng(SEED + 2)
-    for _ in range(100):
+    for i in range(100):
         x = random_pose(rng)
         P = random_spd(rng, 0.01)
         v_f, omega_f, dt, v_l = rng.uniform(0.1, 2), rng.uniform(-1, 1), rng.uniform(0.01, 0.5), \
             rng.uniform(0, 2)
-        sigma_v, sigma_omega = rng.uniform(0.01, 0.2), rng.uniform(0.01, 0.2)
-        x_next, P_next = propagate(x, P, v_f, omega_f, dt, v_l, omega_l, sigma_v, sigma_omega)
+        omega_f = (omega_f, 0.0, 1e-5)[i % 3]           # the chord's series branch too
+        noise = rng.uniform(0.01, 0.2, size=4) * (1.0 if i % 2 else np.array([1, 1, 0, 0]))
+        x_next, P_next = propagate(x, P, v_f, omega_f, dt, v_l, omega_l, *noise)
         # 1e-12 absolute: the mean is propagate_state itself.
         np.testing.assert_allclose(x_next, propagate_state(x, v_f, omega_f, dt, v_l, omega_l),
                                    rtol=0, atol=1e-12)
         Phi, G = numerical_jacobians(x, v_f, omega_f, dt, v_l, omega_l)
-        Q = np.diag([sigma_v ** 2, sigma_omega ** 2])
+        Q = np.diag(noise ** 2)
         expected = Phi @ P @ Phi.T + G @ Q @ G.T
         # rtol 1e-6 (central differences, step 1e-6: truncation ~1e-12, rounding ~1e-10).
         np.testing.assert_allclose(P_next, expected, rtol=1e-6, atol=1e-6 * np.abs(P).max())
         assert np.array_equal(P_next, P_next.T)
-        Phi_m, GQG = transition_matrices(x, v_f, dt, omega_l, sigma_v, sigma_omega)
+        Phi_m, GQG = transition_matrices(x, v_f, omega_f, dt, v_l, omega_l, *noise)
         # 1e-7 absolute on Phi (central differences); the matrix form reproduces propagate to
         # 1e-12 relative to max |P| (same products, different summation order).
         np.testing.assert_allclose(Phi_m, Phi, rtol=0, atol=1e-7)
@@ -115,17 +148,19 @@ def test_propagate_covariance_matches_finite_difference_jacobians(omega_l: float
                                    atol=1e-12 * np.abs(P).max())
 
 
-def test_propagate_covariance_matches_printed_eq11() -> None:
-    """With omega_L = 0, Phi and G are exactly the matrices printed in eq. (11)."""
+def test_propagate_covariance_matches_printed_eq11_for_a_straight_drive() -> None:
+    """With omega_L = omega_F = 0, Phi and the v_F column of G are the matrices printed in eq.
+    (11); the omega_F column adds the exact arc's v_F dt^2 / 2 sideways (printed: 0)."""
     rng = np.random.default_rng(SEED + 3)
     for _ in range(50):
         x = random_pose(rng)
         P = random_spd(rng, 0.01)
-        v_f, omega_f, dt, v_l = 1.3, 0.2, 0.1, 1.0
-        _, P_next = propagate(x, P, v_f, omega_f, dt, v_l, 0.0, 0.05, 0.02)
+        v_f, dt, v_l = 1.3, 0.1, 1.0
+        _, P_next = propagate(x, P, v_f, 0.0, dt, v_l, 0.0, 0.05, 0.02)
         c, s = math.cos(x[2]), math.sin(x[2])
         Phi = np.array([[1, 0, -s * v_f * dt], [0, 1, c * v_f * dt], [0, 0, 1]])
-        G = np.array([[c * dt, 0], [s * dt, 0], [0, dt]])
+        arc = v_f * dt * dt / 2
+        G = np.array([[c * dt, -s * arc], [s * dt, c * arc], [0, dt]])
         expected = Phi @ P @ Phi.T + G @ np.diag([0.05 ** 2, 0.02 ** 2]) @ G.T
         # 1e-12 relative to max |P|: same products, different summation order.
         np.testing.assert_allclose(P_next, expected, rtol=0, atol=1e-12 * np.abs(P).max())

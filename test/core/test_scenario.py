@@ -15,12 +15,16 @@ def test_paper_scenarios() -> None:
     assert (rng.p_o, rng.sigma, brg.p_o, brg.sigma) == ((-1.0, -2.0), 0.1, (-1.0, 2.0), 0.02)
     assert rng.r == pytest.approx(0.1 * math.sqrt(5), rel=1e-15)
     assert rng.leader.velocity(123, rng.dt) == (1.0, 0.0) and rng.leader.is_straight()
+    assert rng.kinematics == 'euler'          # the paper simulates with its eq. (9)
+    assert Scenario('range', (-1.0, -2.0), 0.2, 0.1).kinematics == 'exact'
+    assert Scenario('range', (-1.0, -2.0), 0.2, True).sigma == 1.0      # stored as a float
 
 
 @pytest.mark.parametrize('overrides,field', [
     ({'measurement': 'sonar'}, 'measurement'), ({'r': 0.0}, 'r'), ({'r': 3.0}, 'r'),
     ({'sigma': -1.0}, 'sigma'), ({'sigma': math.nan}, 'sigma'), ({'dt': 0.0}, 'dt'),
     ({'sigma_v': -0.1}, 'sigma_v'), ({'p_o': (0.0, 0.0)}, 'p_o'),
+    ({'sigma_omega_leader': -1.0}, 'sigma_omega_leader'), ({'kinematics': 'rk4'}, 'kinematics'),
     ({'p_o': (math.inf, 1.0)}, 'p_o'), ({'initial_covariance': (0.1, 0.1, 0.0)},
                                         'initial_covariance')])
 def test_bad_scenarios_name_the_field(overrides: dict, field: str) -> None:

@@ -24,6 +24,7 @@ from formopt_interfaces.msg import PlannerStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import qos
 from formopt_ros.ros.conversions import message_class
 from formopt_ros.wire.messages import estimate_values
@@ -39,6 +40,12 @@ PREFIX = f'/t{os.getpid()}'
 WITH_PROBE = {'recorders': 1}
 #: Robot namespace of each node class (the default ids).
 ROBOT = {'leader_sim': 'leader', 'follower_sim': 'follower', 'estimator_planner': 'follower'}
+
+
+def node_scenario(kind: str, **overrides: Any) -> Scenario:
+    """The scenario of nodes started with default parameters: the paper's Sec. V settings
+    with the nodes' default 'exact' kinematics (Scenario.paper keeps the paper's 'euler')."""
+    return Scenario.paper(kind, **{'kinematics': 'exact', **overrides})
 
 
 def namespace(robot: str) -> str:

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 from formopt_interfaces.msg import Measurement
-from harness.ros import topic
+from harness.ros import node_scenario, topic
 from nav_msgs.msg import Odometry
 
 from formopt_ros.core.protocol import SUBSTEPS, seconds_to_ns
@@ -90,7 +90,7 @@ def test_bad_inputs_are_rejected_and_counted(formation) -> None:
     assert run.follower.counters['rejected_odometry'] == 2
     assert run.follower.counters['rejected_waypoints'] == 0
     # never corrupted: every published estimate equals the clean pure simulation
-    ref = run_trial(Scenario.paper('range'), 'crm', SEED, 0, STEPS)
+    ref = run_trial(node_scenario('range'), 'crm', SEED, 0, STEPS)
     assert len(run.probe.estimates) == STEPS
     for k, (x, P) in enumerate(run.probe.estimates):
         np.testing.assert_allclose(x, ref.estimate[k], rtol=0, atol=TOL, err_msg=f'step {k + 1}')

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from formopt_interfaces.msg import Measurement, Waypoint
-from harness.ros import namespace, topic
+from harness.ros import namespace, node_scenario, topic
 
 from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.protocol import SUBSTEPS, seconds_to_ns
@@ -144,7 +144,7 @@ def test_messages_of_another_run_are_refused_and_counted(formation) -> None:
     assert run.follower.counters['foreign_waypoints'] == 1
     assert run.leader.foreign_waypoints == 1
     assert run.probe.statuses[-1].foreign_messages == 1
-    ref = run_trial(Scenario.paper('range'), 'ram', SEED, 0, steps)
+    ref = run_trial(node_scenario('range'), 'ram', SEED, 0, steps)
     x, P = run.probe.estimates[-1]
     np.testing.assert_allclose(x, ref.estimate[-1], rtol=0, atol=TOL)
 
@@ -206,7 +206,7 @@ def test_lockstep_restarts_resume_exactly(formation, tmp_path: Path) -> None:
         assert run.spin_until(lambda: run.estimator.session.step >= at, 30.0)
         run.restart(kind, 'leader' if kind == 'leader_sim' else 'follower', down=0.2)
     assert run.run(timeout=60.0), f'stalled at {run.estimator.session.step}'
-    ref = run_trial(Scenario.paper('bearing'), 'crm', SEED, 0, steps)
+    ref = run_trial(node_scenario('bearing'), 'crm', SEED, 0, steps)
     x, P = run.probe.estimates[-1]
     np.testing.assert_allclose(x, ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(P, ref.covariance[-1], rtol=0, atol=TOL)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formopt_ros.core.scenario import Scenario
+from harness.ros import node_scenario
 from formopt_ros.core.simulation import run_trial
 
 STEPS = 60
@@ -19,7 +19,7 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
     run = formation({'measurement': kind, 'strategy': strategy, 'seed': SEED, 'steps': STEPS,
                      'resend_timeout': 60.0})
     assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
-    ref = run_trial(Scenario.paper(kind), strategy, SEED, 0, STEPS)
+    ref = run_trial(node_scenario(kind), strategy, SEED, 0, STEPS)
     summary = run.estimator.summary()
     assert summary['steps'] == STEPS
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)

@@ -10,10 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from harness.ros import REPO
+from harness.ros import REPO, node_scenario
 
 from formopt_ros.bag import read_bag
-from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import run_formation, run_trial
 from formopt_ros.wire.formation import load_formation
 
@@ -35,7 +34,7 @@ def test_single_follower_flags(tmp_path: Path, ros_domain: int) -> None:
                  '--no-record', '--timeout', '120')
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads((out / 'summary.json').read_text())
-    ref = run_trial(Scenario.paper('bearing'), 'crm', 5, 0, STEPS)
+    ref = run_trial(node_scenario('bearing'), 'crm', 5, 0, STEPS)
     assert summary['ok'] and summary['steps'] == STEPS and summary['recording'] is None
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(summary['final_covariance'], ref.covariance[-1], rtol=0,
@@ -63,7 +62,7 @@ def test_p_values_shape_the_run_and_its_summary(tmp_path: Path, ros_domain: int)
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads((out / 'summary.json').read_text())
     leader = LeaderPath('segments', segments=(Segment(1.0, 1.0, 0.0), Segment(2.0, 2.0, 0.1)))
-    scenario = Scenario.paper('range', dt=0.02, leader=leader)
+    scenario = node_scenario('range', dt=0.02, leader=leader)
     assert summary['formation']['dt'] == 0.02
     assert summary['formation']['leader']['path']['segments'][1] == {
         'duration': 2.0, 'speed': 2.0, 'yaw_rate': 0.1}
@@ -204,7 +203,7 @@ def test_prefixed_runs_share_a_domain_without_mixing(tmp_path: Path, ros_domain:
         [str(SCRIPT), '--prefix', f'/{prefix}', '--steps', str(steps), '--seed', '6',
          '--out', str(tmp_path / prefix), '--domain-id', str(ros_domain), '--timeout', '150'],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for prefix in ('pa', 'pb')}
-    ref = run_trial(Scenario.paper('range'), 'ram', 6, 0, steps)
+    ref = run_trial(node_scenario('range'), 'ram', 6, 0, steps)
     for prefix, process in processes.items():
         stdout, stderr = process.communicate(timeout=180)
         assert process.returncode == 0, stdout + stderr
@@ -294,7 +293,7 @@ def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['ok'] and summary['steps'] == steps
     assert summary['restarts'] == {f'follower.{n}': [-9] for n in killed}
-    ref = run_trial(Scenario.paper('bearing'), 'rq', 4, 0, steps)
+    ref = run_trial(node_scenario('bearing'), 'rq', 4, 0, steps)
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(summary['final_truth'], ref.truth[-1], rtol=0, atol=TOL)
     assert summary['resumed']['from_step'] > 0

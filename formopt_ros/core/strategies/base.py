@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from formopt_ros.core.model import EXACT
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.strategies.certificate import exact_cost
 
@@ -139,6 +140,7 @@ class PlanContext:
         estimator: the estimator's state, or None for a one-off problem.
         dt: sub-step length, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+        kinematics: the motion model, 'exact' or 'euler' (core/model.py).
     """
 
     step: int = 1
@@ -148,6 +150,7 @@ class PlanContext:
     dt: float = 0.05
     sigma_v: float = 0.2
     sigma_omega: float = 0.1
+    kinematics: str = EXACT
 
     @property
     def leader_straight(self) -> bool:
@@ -167,6 +170,7 @@ class BatchContext:
             would, trial by trial).
         dt: sub-step length, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+        kinematics: the motion model, 'exact' or 'euler' (core/model.py).
     """
 
     step: int
@@ -175,11 +179,12 @@ class BatchContext:
     dt: float = 0.05
     sigma_v: float = 0.2
     sigma_omega: float = 0.1
+    kinematics: str = EXACT
 
     def trial(self, t: int, estimator: 'EstimatorView | None' = None) -> PlanContext:
         """The :class:`PlanContext` of trial t."""
         return PlanContext(self.step, self.leader_velocities, self.rngs[t], estimator,
-                           self.dt, self.sigma_v, self.sigma_omega)
+                           self.dt, self.sigma_v, self.sigma_omega, self.kinematics)
 
 
 @dataclass(frozen=True)

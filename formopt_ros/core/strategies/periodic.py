@@ -54,7 +54,7 @@ def steady_conditions(problem: Problem, context: PlanContext) -> SteadyCondition
         return None
     return SteadyConditions(problem.measurement, (float(problem.p_o[0]), float(problem.p_o[1])),
                             float(problem.r), float(problem.sigma), float(speeds.pop()), 0.0,
-                            context.dt, context.sigma_v, context.sigma_omega)
+                            context.dt, context.sigma_v, context.sigma_omega, context.kinematics)
 
 
 class PeriodicPattern(Strategy):

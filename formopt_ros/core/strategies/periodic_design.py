@@ -34,7 +34,8 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem, weight_vector, weighted_trace
 from formopt_ros.core.model import (
-    ekf_update, measurement_jacobian, predict_measurement, propagate_state, transition_matrices)
+    EXACT, ekf_update, measurement_jacobian, predict_measurement, propagate_state,
+    transition_matrices)
 from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move
 from formopt_ros.core.strategies.rq import rq_optimum
 
@@ -71,6 +72,7 @@ class SteadyConditions:
         v_l, omega_l: the leader's constant velocity, m/s and rad/s.
         dt: sub-step length, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
+        kinematics: the motion model, 'exact' or 'euler' (core/model.py).
     """
 
     measurement: str
@@ -82,6 +84,7 @@ class SteadyConditions:
     dt: float
     sigma_v: float
     sigma_omega: float
+    kinematics: str = EXACT
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
@@ -90,7 +93,7 @@ class SteadyConditions:
         if omega_l != 0.0:
             return None
         return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, 0.0,
-                   scenario.dt, scenario.sigma_v, scenario.sigma_omega)
+                   scenario.dt, scenario.sigma_v, scenario.sigma_omega, scenario.kinematics)
 
     @property
     def slot(self) -> np.ndarray:
@@ -105,7 +108,8 @@ class SteadyConditions:
     def close_to(self, other: SteadyConditions, tolerance: float) -> bool:
         """True when ``other`` has the same sensor, slot and disc (exactly: a cycle must stay
         in the disc) and noise levels, leader velocity and dt within ``tolerance`` (relative)."""
-        if (self.measurement, self.p_o, self.r) != (other.measurement, other.p_o, other.r):
+        if (self.measurement, self.p_o, self.r, self.kinematics) != \
+                (other.measurement, other.p_o, other.r, other.kinematics):
             return False
         mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega)
         theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
@@ -130,7 +134,7 @@ def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
     estimate lands on target, the noise-free recursion of the planners.
     """
     c = conditions
-    x, P = predict_move(x, P, target, c.leader, c.dt, c.sigma_v, c.sigma_omega)
+    x, P = predict_move(x, P, target, c.leader, c.dt, c.sigma_v, c.sigma_omega, c.kinematics)
     x, P, _, _ = ekf_update(x, P, predict_measurement(c.measurement, x), c.measurement,
                             c.sigma * c.sigma)
     return x, P
@@ -139,7 +143,8 @@ def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
 def greedy_target(x: np.ndarray, P: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
     """RQ's choice from posterior (x, P): the exact optimum with the paper's planning prior."""
     c = conditions
-    prior = predict_move(x, P, c.slot, c.leader, c.dt, c.sigma_v, c.sigma_omega)[1]
+    prior = predict_move(x, P, c.slot, c.leader, c.dt, c.sigma_v, c.sigma_omega,
+                         c.kinematics)[1]
     return rq_optimum(c.problem(prior)).p
 
 
@@ -155,13 +160,15 @@ def move_map(x: np.ndarray, target: np.ndarray,
     """The 6 x 6 symplectic map of one step (drive from pose x (3,) to target (2,), measure)
     and the pose (3,) at the target; see the module docstring."""
     c = conditions
-    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l)
+    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l, c.kinematics)
     Phi, GQG = np.eye(3), np.zeros((3, 3))       # the sub-steps composed: P -> Phi P Phi' + GQG
     for j in range(SUBSTEPS):
-        Phi_j, GQG_j = transition_matrices(x, command.linear[j], c.dt, c.omega_l, c.sigma_v,
-                                           c.sigma_omega)
+        Phi_j, GQG_j = transition_matrices(x, command.linear[j], command.angular[j], c.dt,
+                                           c.v_l, c.omega_l, c.sigma_v, c.sigma_omega,
+                                           kinematics=c.kinematics)
         Phi, GQG = Phi_j @ Phi, Phi_j @ GQG @ Phi_j.T + GQG_j
-        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l)
+        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l,
+                            c.kinematics)
     Phi_inv_t = np.linalg.inv(Phi).T
     h = measurement_jacobian(c.measurement, x)
     M = np.zeros((6, 6))
@@ -292,9 +299,10 @@ def _weighted_ratio_trace(X: np.ndarray, Y: np.ndarray, w: np.ndarray) -> np.nda
 def arrival_pose(x: np.ndarray, target: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
     """The pose (3,) at target (2,) after the protocol's move from pose x (3,)."""
     c = conditions
-    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l)
+    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l, c.kinematics)
     for j in range(SUBSTEPS):
-        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l)
+        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l,
+                            c.kinematics)
     return x
 
 
