@@ -1,0 +1,264 @@
+"""The estimator of a follower on real robots: odometry of both robots at any rates, each
+interval integrated exactly, each measurement applied at its own stamp through a reorder buffer.
+
+Odometry: a message stamped t carries the twist (v m/s, omega rad/s) the robot held over the
+interval since its previous message, (t_prev, t] (what a base that differentiates its encoders
+reports; the simulators stamp each sub-step's odometry at its end). The first message of a robot
+covers the time since the estimator started. The estimator's state lives at one time; to reach a
+measurement stamp it splits the interval at every odometry stamp of either robot, so over each
+piece both twists are constant and the exact propagation of :mod:`formopt_ros.core.model`
+applies.
+
+Messages of one topic arrive in stamp order (as over one DDS topic); topics interleave in any
+order. Measurements wait in a reorder buffer and are applied in stamp order. One is applied
+as soon as both robots' odometry reaches its stamp, or once the caller's clock is
+``reorder_lag`` past it: then a robot whose odometry has not arrived is carried on its last
+twist (``bridged``). A measurement or odometry stamped at or before the time the state has
+reached is late: dropped and counted. An odometry interval longer than ``max_gap`` (messages
+lost) is integrated with the twist of the message that ends it and counted as a gap. A
+message's velocity noise is held over its whole interval; a piece of it carries its share
+(EstimatorPlanner.propagate, ``spans``). Fed the lockstep stream (odometry on the sub-step
+grid, a measurement after its step's odometry) it performs lockstep's arithmetic.
+"""
+from __future__ import annotations
+
+import bisect
+import copy
+import heapq
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from formopt_ros.core.estimator import EstimatorPlanner, StepPlan, UpdateResult
+from formopt_ros.core.protocol import NS_PER_S, held_leader_motion
+
+#: The two odometry streams.
+ROBOTS = ('follower', 'leader')
+
+
+@dataclass(frozen=True)
+class AsyncSettings:
+    """Timing rules of the asynchronous estimator (module docstring).
+
+    Attributes:
+        reorder_lag_ns: how long a measurement waits for odometry and earlier measurements,
+            ns (the largest delay between a stamp and its arrival the estimator accepts).
+        max_gap_ns: odometry intervals longer than this are counted as gaps, ns.
+    """
+
+    reorder_lag_ns: int = 100_000_000
+    max_gap_ns: int = 500_000_000
+
+    def __post_init__(self) -> None:
+        if self.reorder_lag_ns < 0 or self.max_gap_ns <= 0:
+            raise ValueError(f'reorder_lag_ns must be >= 0 and max_gap_ns > 0, got '
+                             f'{self.reorder_lag_ns} and {self.max_gap_ns}')
+
+
+@dataclass
+class AsyncCounters:
+    """What the asynchronous estimator did with its inputs."""
+
+    odometry: int = 0                  # odometry messages accepted (both robots)
+    measurements: int = 0              # measurements applied (used or gated)
+    late_odometry: int = 0             # stamped at or before the state's time: dropped
+    late_measurements: int = 0         # stamped at or before the state's time: dropped
+    duplicates: int = 0                # a second message with the same stamp: dropped
+    bridged: int = 0                   # propagations past a robot's last odometry
+    gaps: int = 0                      # odometry intervals longer than max_gap
+    gated_measurements: int = 0        # refused by the innovation gate
+    downweighted_measurements: int = 0  # used with Huber weight < 1
+    covariance_inflations: int = 0     # the filter re-opened after gated measurements
+
+    def as_dict(self) -> dict[str, int]:
+        """Plain dict (for JSON and status messages)."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class TwistTimeline:
+    """The odometry of one robot not yet integrated: (stamp ns, v m/s, omega rad/s), sorted.
+
+    Attributes:
+        last: the twist of the newest message integrated or received, used to carry the robot
+            past its last message.
+    """
+
+    samples: list[tuple[int, float, float]] = field(default_factory=list)
+    last: tuple[float, float] | None = None
+
+    def add(self, stamp_ns: int, v: float, omega: float) -> bool:
+        """Insert one message; False when its stamp is already there."""
+        index = bisect.bisect_left(self.samples, (stamp_ns,))
+        if index < len(self.samples) and self.samples[index][0] == stamp_ns:
+            return False
+        self.samples.insert(index, (stamp_ns, v, omega))
+        if index == len(self.samples) - 1:
+            self.last = (v, omega)
+        return True
+
+    @property
+    def newest_ns(self) -> int | None:
+        """Stamp of the newest message not yet integrated (None: none waits)."""
+        return self.samples[-1][0] if self.samples else None
+
+    def twist_until(self, end_ns: int) -> tuple[float, float, int | None]:
+        """The twist held just before ``end_ns``: that of the first message stamped at or after
+        it (its stamp), else the last known one (stamp None: carried)."""
+        index = bisect.bisect_left(self.samples, (end_ns,))
+        if index < len(self.samples):
+            _, v, omega = self.samples[index]
+            return v, omega, self.samples[index][0]
+        v, omega = self.last if self.last is not None else (0.0, 0.0)
+        return v, omega, None
+
+    def drop_through(self, stamp_ns: int) -> None:
+        """Forget the messages stamped at or before ``stamp_ns`` (integrated)."""
+        index = bisect.bisect_right(self.samples, (stamp_ns, np.inf, np.inf))
+        if index:
+            self.last = self.samples[index - 1][1:]
+            del self.samples[:index]
+
+
+@dataclass(frozen=True)
+class AppliedMeasurement:
+    """One measurement applied at its stamp: the posterior and what the update did."""
+
+    stamp_ns: int
+    x: np.ndarray          # (3,) pose in {L}
+    P: np.ndarray          # (3, 3)
+    update: UpdateResult
+    bridged: bool          # a robot's odometry was carried past its last message
+
+
+class AsyncEstimator:
+    """An :class:`EstimatorPlanner` fed timestamped inputs of any rate (module docstring).
+
+    Args:
+        estimator: the EKF and strategy (its scenario's dt is the planner's sub-step).
+        start_ns: the time of the initial estimate, ns.
+        settings: the timing rules.
+    """
+
+    def __init__(self, estimator: EstimatorPlanner, start_ns: int,
+                 settings: AsyncSettings = AsyncSettings()) -> None:
+        self.estimator = estimator
+        self.time_ns = start_ns
+        self.settings = settings
+        self.counters = AsyncCounters()
+        self.timelines = {robot: TwistTimeline() for robot in ROBOTS}
+        self._previous = {robot: start_ns for robot in ROBOTS}   # end of the last interval
+        self._waiting: list[tuple[int, float, float]] = []      # heap of measurements
+        self.applied = 0
+
+    # --- inputs ------------------------------------------------------------------------------
+    def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float) -> str | None:
+        """The twist ``robot`` ('follower' or 'leader') held up to ``stamp_ns``; the reason
+        when refused (late, duplicate), else None."""
+        if stamp_ns <= self.time_ns:
+            self.counters.late_odometry += 1
+            return f'{robot} odometry stamped {stamp_ns} ns is not after the estimate ' \
+                   f'({self.time_ns} ns)'
+        if not self.timelines[robot].add(stamp_ns, v, omega):
+            self.counters.duplicates += 1
+            return f'duplicate {robot} odometry stamped {stamp_ns} ns'
+        self.counters.odometry += 1
+        return None
+
+    def add_measurement(self, stamp_ns: int, value: float, variance: float) -> str | None:
+        """A range (m) or bearing (rad) with its variance, taken at ``stamp_ns``; the reason
+        when refused (late), else None. It is applied by :meth:`advance`."""
+        if stamp_ns <= self.time_ns or any(t == stamp_ns for t, _, _ in self._waiting):
+            self.counters.late_measurements += 1
+            return f'measurement stamped {stamp_ns} ns is not after the estimate ' \
+                   f'({self.time_ns} ns) or repeats one'
+        heapq.heappush(self._waiting, (stamp_ns, value, variance))
+        return None
+
+    # --- processing --------------------------------------------------------------------------
+    def _covered(self, stamp_ns: int) -> bool:
+        return all(t.newest_ns is not None and t.newest_ns >= stamp_ns
+                   for t in self.timelines.values())
+
+    def advance(self, now_ns: int | None = None) -> list[AppliedMeasurement]:
+        """Apply every measurement whose odometry is in, and (with the clock ``now_ns``) every
+        one older than the reorder lag; in stamp order."""
+        out = []
+        while self._waiting:
+            stamp = self._waiting[0][0]
+            due = now_ns is not None and stamp <= now_ns - self.settings.reorder_lag_ns
+            if not (self._covered(stamp) or due):
+                break
+            stamp, value, variance = heapq.heappop(self._waiting)
+            bridged = self.propagate_to(stamp)
+            update = self.estimator.update(self.applied + 1, value, variance)
+            self.applied += 1
+            self._count(update)
+            out.append(AppliedMeasurement(stamp, self.estimator.x.copy(),
+                                          self.estimator.P.copy(), update, bridged))
+        return out
+
+    def _count(self, update: UpdateResult) -> None:
+        c = self.counters
+        c.measurements += 1
+        c.gated_measurements += not update.used
+        c.downweighted_measurements += update.used and update.weight < 1.0
+        c.covariance_inflations += update.used and update.inflation > 1.0
+
+    def propagate_to(self, stamp_ns: int) -> bool:
+        """Integrate both robots' odometry from the state's time to ``stamp_ns``; True when a
+        robot was carried past its last message (counted as bridged)."""
+        bridged = False
+        while self.time_ns < stamp_ns:
+            pieces = {robot: t.twist_until(self.time_ns + 1)
+                      for robot, t in self.timelines.items()}
+            ends = [s for _, _, s in pieces.values() if s is not None and s < stamp_ns]
+            end = min(ends, default=stamp_ns)
+            (v_f, omega_f, _), (v_l, omega_l, _) = pieces['follower'], pieces['leader']
+            follower_span, leader_span = (
+                1.0 if s is None else (s - self._previous[robot]) / (end - self.time_ns)
+                for robot, (_, _, s) in pieces.items())
+            self.estimator.propagate(v_f, omega_f, v_l, omega_l,
+                                     (end - self.time_ns) / NS_PER_S,
+                                     (follower_span, leader_span))
+            self.time_ns = end
+            for robot, timeline in self.timelines.items():
+                ends_here = pieces[robot][2]
+                bridged = bridged or ends_here is None
+                if ends_here == end:
+                    self.counters.gaps += end - self._previous[robot] > \
+                        self.settings.max_gap_ns
+                    self._previous[robot] = end
+                timeline.drop_through(end)
+        self.counters.bridged += bridged
+        return bridged
+
+    # --- outputs -----------------------------------------------------------------------------
+    def estimate_at(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """The pose (3,) and covariance (3, 3) propagated to ``stamp_ns`` on the odometry in
+        (the state itself stays where it is)."""
+        if stamp_ns <= self.time_ns:
+            return self.estimator.x.copy(), self.estimator.P.copy()
+        probe = copy.copy(self)
+        probe.estimator = copy.copy(self.estimator)
+        probe.counters = AsyncCounters()
+        probe.timelines = {r: copy.deepcopy(t) for r, t in self.timelines.items()}
+        probe._previous = dict(self._previous)
+        probe.propagate_to(stamp_ns)
+        return probe.estimator.x.copy(), probe.estimator.P.copy()
+
+    def plan(self, step: int) -> StepPlan:
+        """The strategy's next decision from the current estimate, the leader expected to hold
+        its last reported twist."""
+        last = self.timelines['leader'].last
+        return self.estimator.plan(step, held_leader_motion(last if last else (0.0, 0.0)))
+
+    def pending(self) -> dict[str, int]:
+        """Inputs waiting, per stream."""
+        return {'follower_odometry': len(self.timelines['follower'].samples),
+                'leader_odometry': len(self.timelines['leader'].samples),
+                'measurements': len(self._waiting)}
+
+
+__all__ = ['AppliedMeasurement', 'AsyncCounters', 'AsyncEstimator', 'AsyncSettings',
+           'ROBOTS', 'TwistTimeline']

@@ -1,0 +1,142 @@
+"""A simulated pair of real robots: bases that report odometry at their own rates and a UWB
+radio with bias, timing jitter, heavy-tailed outliers and dropouts; the truth in a fixed frame.
+
+The true motion is exact (each robot drives arcs of its true twist, held over each of its
+odometry periods); the follower's true twist is its command plus Gaussian noise (sigma_v,
+sigma_omega) drawn per period, and its odometry reports the command; the leader's true twist is
+its path's, reported with its own noise. So the estimator's model (odometry = true twist - noise,
+held over the interval the message ends) is the simulated one, while nothing else is shared.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from formopt_ros.core.model import integrate_unicycle, wrap_angle
+from formopt_ros.core.protocol import NS_PER_S
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Base:
+    """One robot's odometry: a message every 1/rate s (first at offset + 1/rate) reporting the
+    twist held since the last one, the true twist differing by N(0, sigma^2) per period."""
+
+    rate_hz: float = 50.0
+    offset_s: float = 0.0
+    sigma_v: float = 0.0
+    sigma_omega: float = 0.0
+
+
+@dataclass(frozen=True)
+class Radio:
+    """A UWB radio: ranges at ``rate_hz`` with uniform timing jitter (stamped when taken), a
+    constant bias, Gaussian noise, a share of outliers (+U(low, high) m, one-sided like
+    non-line-of-sight ranges) and of dropouts."""
+
+    rate_hz: float = 30.0
+    jitter_s: float = 0.005
+    sigma: float = 0.1
+    bias: float = 0.1
+    outlier_rate: float = 0.02
+    outlier_low: float = 1.0
+    outlier_high: float = 3.0
+    dropout_rate: float = 0.01
+
+
+@dataclass
+class FieldRun:
+    """What the robots sent, and the truth.
+
+    Attributes:
+        follower_odometry, leader_odometry: (stamp ns, v m/s, omega rad/s) per message.
+        ranges: (stamp ns, range m) per range sent.
+        truth: stamp ns -> true pose [x, y, phi] of the follower in the leader's frame, at
+            each range stamp (sent or dropped).
+        outliers: ranges sent with an outlier; dropouts: ranges not sent.
+    """
+
+    follower_odometry: list[tuple[int, float, float]] = field(default_factory=list)
+    leader_odometry: list[tuple[int, float, float]] = field(default_factory=list)
+    ranges: list[tuple[int, float]] = field(default_factory=list)
+    truth: dict[int, np.ndarray] = field(default_factory=dict)
+    outliers: int = 0
+    dropouts: int = 0
+
+
+def relative_pose(leader: Pose, follower: Pose) -> np.ndarray:
+    """The follower's pose [x, y, phi] in the leader's frame, from both fixed-frame poses."""
+    c, s = math.cos(leader[2]), math.sin(leader[2])
+    dx, dy = follower[0] - leader[0], follower[1] - leader[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy,
+                     float(wrap_angle(follower[2] - leader[2]))])
+
+
+def simulate_field(duration_s: float, start: np.ndarray,
+                   leader_twist: Callable[[float], tuple[float, float]],
+                   follower_command: Callable[[float, np.ndarray], tuple[float, float]],
+                   rng: np.random.Generator, follower_base: Base = Base(),
+                   leader_base: Base = Base(), radio: Radio = Radio()) -> FieldRun:
+    """Simulate ``duration_s`` seconds.
+
+    Args:
+        start: the follower's true start pose [x, y, phi] in the leader's frame (the leader
+            starts at the origin of the fixed frame, heading +x).
+        leader_twist: t (s) -> the leader's true (v, omega) over its odometry period from t.
+        follower_command: (t s, true relative pose) -> the follower's commanded (v, omega) for
+            its odometry period from t.
+        rng: all random draws.
+    """
+    leader: Pose = (0.0, 0.0, 0.0)
+    follower: Pose = (float(start[0]), float(start[1]), float(start[2]))
+    out = FieldRun()
+    ranges = [(k / radio.rate_hz + rng.uniform(-radio.jitter_s, radio.jitter_s), 'range')
+              for k in range(1, int(duration_s * radio.rate_hz))]
+    events = sorted(
+        [(follower_base.offset_s + k / follower_base.rate_hz, 'follower')
+         for k in range(1, int(duration_s * follower_base.rate_hz))]
+        + [(leader_base.offset_s + k / leader_base.rate_hz, 'leader')
+           for k in range(1, int(duration_s * leader_base.rate_hz))] + ranges)
+    t = 0.0
+    command = follower_command(0.0, relative_pose(leader, follower))
+    true_f = _noisy(command, follower_base, rng)
+    reported_l = leader_twist(0.0)
+    true_l = _noisy(reported_l, leader_base, rng)
+    for when, what in events:
+        follower = integrate_unicycle(follower, *true_f, when - t)
+        leader = integrate_unicycle(leader, *true_l, when - t)
+        t = when
+        stamp = int(round(when * NS_PER_S))
+        if what == 'follower':
+            out.follower_odometry.append((stamp, *command))
+            command = follower_command(t, relative_pose(leader, follower))
+            true_f = _noisy(command, follower_base, rng)
+        elif what == 'leader':
+            out.leader_odometry.append((stamp, *reported_l))
+            reported_l = leader_twist(t)
+            true_l = _noisy(reported_l, leader_base, rng)
+        else:
+            pose = relative_pose(leader, follower)
+            out.truth[stamp] = pose
+            if rng.uniform() < radio.dropout_rate:
+                out.dropouts += 1
+                continue
+            value = math.hypot(pose[0], pose[1]) + radio.bias + radio.sigma * rng.normal()
+            if rng.uniform() < radio.outlier_rate:
+                out.outliers += 1
+                value += rng.uniform(radio.outlier_low, radio.outlier_high)
+            out.ranges.append((stamp, value))
+    return out
+
+
+def _noisy(twist: tuple[float, float], base: Base,
+           rng: np.random.Generator) -> tuple[float, float]:
+    """The true twist behind a reported one: plus N(0, sigma^2) per component."""
+    return (twist[0] + base.sigma_v * rng.normal(), twist[1] + base.sigma_omega * rng.normal())
+
+
+__all__ = ['Base', 'FieldRun', 'Radio', 'relative_pose', 'simulate_field']
