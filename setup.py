@@ -33,6 +33,8 @@ setup(
             'leader_sim = formopt_ros.ros.nodes.leader_sim:main',
             'follower_sim = formopt_ros.ros.nodes.follower_sim:main',
             'estimator_planner = formopt_ros.ros.nodes.estimator_planner:main',
+            'follower_estimator = formopt_ros.ros.nodes.follower_estimator:main',
+            'field_sim = formopt_ros.ros.nodes.field_sim:main',
             'recorder = formopt_ros.ros.nodes.recorder:main',
             'replay = formopt_ros.cli.replay:main',
             'formopt-montecarlo = formopt_ros.cli.montecarlo:main',

@@ -181,7 +181,7 @@ fi
 # the ament index marker; link the console scripts there (cheap, so always refreshed).
 mkdir -p "$venv/lib/formopt_ros" "$venv/share/ament_index/resource_index/packages" \
          "$venv/share/formopt_ros"
-for exe in leader_sim follower_sim estimator_planner recorder replay; do
+for exe in leader_sim follower_sim estimator_planner follower_estimator field_sim recorder replay; do
   [[ -x "$venv/bin/$exe" ]] && ln -sf "../../bin/$exe" "$venv/lib/formopt_ros/$exe"
 done
 touch "$venv/share/ament_index/resource_index/packages/formopt_ros"

@@ -62,16 +62,19 @@ def twist_toward(x: np.ndarray, target: np.ndarray, leader: tuple[float, float],
     uy = (float(target[1]) - py) / horizon + omega_l * px
     error = float(wrap_angle(math.atan2(uy, ux) - phi)) if (ux or uy) else 0.0
     speed = max(0.0, ux * math.cos(phi) + uy * math.sin(phi))
-    omega = omega_l + heading_gain * error
-    speed = _clip(speed, 0.0, limits.speed, previous[0], limits.acceleration * period)
-    omega = _clip(omega, -limits.yaw_rate, limits.yaw_rate, previous[1],
-                  limits.yaw_acceleration * period)
-    return speed, omega
+    return limited((speed, omega_l + heading_gain * error), previous, limits, period)
 
 
-def _clip(value: float, low: float, high: float, previous: float, step: float) -> float:
-    """value within [low, high] and within step of previous."""
-    return min(max(value, low, previous - step), high, previous + step)
+def limited(twist: tuple[float, float], previous: tuple[float, float], limits: Limits,
+            period: float) -> tuple[float, float]:
+    """``twist`` (v m/s, omega rad/s) clipped to the limits (no reversing) and to what the
+    accelerations allow from ``previous`` within ``period`` s: what the base executes."""
+    def clip(value: float, low: float, high: float, last: float, step: float) -> float:
+        return min(max(value, low, last - step), high, last + step)
+
+    return (clip(twist[0], 0.0, limits.speed, previous[0], limits.acceleration * period),
+            clip(twist[1], -limits.yaw_rate, limits.yaw_rate, previous[1],
+                 limits.yaw_acceleration * period))
 
 
-__all__ = ['Limits', 'twist_toward']
+__all__ = ['Limits', 'limited', 'twist_toward']

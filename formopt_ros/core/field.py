@@ -76,60 +76,101 @@ def relative_pose(leader: Pose, follower: Pose) -> np.ndarray:
                      float(wrap_angle(follower[2] - leader[2]))])
 
 
-def simulate_field(duration_s: float, start: np.ndarray,
-                   leader_twist: Callable[[float], tuple[float, float]],
-                   follower_command: Callable[[float, np.ndarray], tuple[float, float]],
-                   rng: np.random.Generator, follower_base: Base = Base(),
-                   leader_base: Base = Base(), radio: Radio = Radio()) -> FieldRun:
-    """Simulate ``duration_s`` seconds.
+class FieldWorld:
+    """Two robots in a fixed frame, advanced event by event (odometry periods of either base,
+    range times); the caller sets the follower's command before each of its periods.
 
     Args:
         start: the follower's true start pose [x, y, phi] in the leader's frame (the leader
             starts at the origin of the fixed frame, heading +x).
         leader_twist: t (s) -> the leader's true (v, omega) over its odometry period from t.
-        follower_command: (t s, true relative pose) -> the follower's commanded (v, omega) for
-            its odometry period from t.
         rng: all random draws.
+        duration_s: the events are scheduled up to this time, s.
     """
-    leader: Pose = (0.0, 0.0, 0.0)
-    follower: Pose = (float(start[0]), float(start[1]), float(start[2]))
-    out = FieldRun()
-    ranges = [(k / radio.rate_hz + rng.uniform(-radio.jitter_s, radio.jitter_s), 'range')
-              for k in range(1, int(duration_s * radio.rate_hz))]
-    events = sorted(
-        [(follower_base.offset_s + k / follower_base.rate_hz, 'follower')
-         for k in range(1, int(duration_s * follower_base.rate_hz))]
-        + [(leader_base.offset_s + k / leader_base.rate_hz, 'leader')
-           for k in range(1, int(duration_s * leader_base.rate_hz))] + ranges)
-    t = 0.0
-    command = follower_command(0.0, relative_pose(leader, follower))
-    true_f = _noisy(command, follower_base, rng)
-    reported_l = leader_twist(0.0)
-    true_l = _noisy(reported_l, leader_base, rng)
-    for when, what in events:
-        follower = integrate_unicycle(follower, *true_f, when - t)
-        leader = integrate_unicycle(leader, *true_l, when - t)
-        t = when
+
+    def __init__(self, start: np.ndarray, leader_twist: Callable[[float], tuple[float, float]],
+                 rng: np.random.Generator, duration_s: float, follower_base: Base = Base(),
+                 leader_base: Base = Base(), radio: Radio = Radio()) -> None:
+        self.leader: Pose = (0.0, 0.0, 0.0)
+        self.follower: Pose = (float(start[0]), float(start[1]), float(start[2]))
+        self.leader_twist, self.rng = leader_twist, rng
+        self.follower_base, self.leader_base, self.radio = follower_base, leader_base, radio
+        self.time = 0.0
+        self.command = (0.0, 0.0)          # the follower's command over its current period
+        self._noise_f = _noisy((0.0, 0.0), follower_base, rng)   # true twist - command
+        self._reported_l = leader_twist(0.0)
+        self._true_l = _noisy(self._reported_l, leader_base, rng)
+        self.outliers = self.dropouts = 0
+        self._events = sorted(
+            [(follower_base.offset_s + k / follower_base.rate_hz, 'follower')
+             for k in range(1, int(duration_s * follower_base.rate_hz))]
+            + [(leader_base.offset_s + k / leader_base.rate_hz, 'leader')
+               for k in range(1, int(duration_s * leader_base.rate_hz))]
+            + [(k / radio.rate_hz + rng.uniform(-radio.jitter_s, radio.jitter_s), 'range')
+               for k in range(1, int(duration_s * radio.rate_hz))], reverse=True)
+
+    def relative(self) -> np.ndarray:
+        """The follower's true pose [x, y, phi] in the leader's frame now."""
+        return relative_pose(self.leader, self.follower)
+
+    def next_time(self) -> float | None:
+        """When the next event happens, s (None: none left)."""
+        return self._events[-1][0] if self._events else None
+
+    def step(self) -> tuple[str, int, tuple[float, ...]] | None:
+        """Advance to the next event and return what it sends: ('follower' or 'leader', stamp
+        ns, (v, omega)) odometry, ('range', stamp ns, (range m,)), or ('dropout', stamp, ());
+        None when no event is left. A follower odometry event ends the period of the current
+        command: set ``command`` for the next one after it."""
+        if not self._events:
+            return None
+        when, what = self._events.pop()
+        true_f = (self.command[0] + self._noise_f[0], self.command[1] + self._noise_f[1])
+        self.follower = integrate_unicycle(self.follower, *true_f, when - self.time)
+        self.leader = integrate_unicycle(self.leader, *self._true_l, when - self.time)
+        self.time = when
         stamp = int(round(when * NS_PER_S))
         if what == 'follower':
-            out.follower_odometry.append((stamp, *command))
-            command = follower_command(t, relative_pose(leader, follower))
-            true_f = _noisy(command, follower_base, rng)
+            self._noise_f = _noisy((0.0, 0.0), self.follower_base, self.rng)
+            return what, stamp, self.command
+        if what == 'leader':
+            sent = self._reported_l
+            self._reported_l = self.leader_twist(when)
+            self._true_l = _noisy(self._reported_l, self.leader_base, self.rng)
+            return what, stamp, sent
+        radio, pose = self.radio, self.relative()
+        if self.rng.uniform() < radio.dropout_rate:
+            self.dropouts += 1
+            return 'dropout', stamp, ()
+        value = math.hypot(pose[0], pose[1]) + radio.bias + radio.sigma * self.rng.normal()
+        if self.rng.uniform() < radio.outlier_rate:
+            self.outliers += 1
+            value += self.rng.uniform(radio.outlier_low, radio.outlier_high)
+        return 'range', stamp, (value,)
+
+
+def simulate_field(duration_s: float, start: np.ndarray,
+                   leader_twist: Callable[[float], tuple[float, float]],
+                   follower_command: Callable[[float, np.ndarray], tuple[float, float]],
+                   rng: np.random.Generator, follower_base: Base = Base(),
+                   leader_base: Base = Base(), radio: Radio = Radio()) -> FieldRun:
+    """Simulate ``duration_s`` seconds of :class:`FieldWorld`; ``follower_command``: (t s, true
+    relative pose) -> the follower's command for its odometry period from t."""
+    world = FieldWorld(start, leader_twist, rng, duration_s, follower_base, leader_base, radio)
+    world.command = follower_command(0.0, world.relative())
+    out = FieldRun()
+    while (event := world.step()) is not None:
+        what, stamp, values = event
+        if what == 'follower':
+            out.follower_odometry.append((stamp, values[0], values[1]))
+            world.command = follower_command(world.time, world.relative())
         elif what == 'leader':
-            out.leader_odometry.append((stamp, *reported_l))
-            reported_l = leader_twist(t)
-            true_l = _noisy(reported_l, leader_base, rng)
+            out.leader_odometry.append((stamp, values[0], values[1]))
         else:
-            pose = relative_pose(leader, follower)
-            out.truth[stamp] = pose
-            if rng.uniform() < radio.dropout_rate:
-                out.dropouts += 1
-                continue
-            value = math.hypot(pose[0], pose[1]) + radio.bias + radio.sigma * rng.normal()
-            if rng.uniform() < radio.outlier_rate:
-                out.outliers += 1
-                value += rng.uniform(radio.outlier_low, radio.outlier_high)
-            out.ranges.append((stamp, value))
+            out.truth[stamp] = world.relative()
+            if what == 'range':
+                out.ranges.append((stamp, values[0]))
+    out.outliers, out.dropouts = world.outliers, world.dropouts
     return out
 
 
@@ -139,4 +180,4 @@ def _noisy(twist: tuple[float, float], base: Base,
     return (twist[0] + base.sigma_v * rng.normal(), twist[1] + base.sigma_omega * rng.normal())
 
 
-__all__ = ['Base', 'FieldRun', 'Radio', 'relative_pose', 'simulate_field']
+__all__ = ['Base', 'FieldRun', 'FieldWorld', 'Radio', 'relative_pose', 'simulate_field']

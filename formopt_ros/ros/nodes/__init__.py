@@ -1,4 +1,5 @@
-"""The nodes: leader_sim, follower_sim, estimator_planner, recorder, replay.
+"""The nodes: leader_sim, follower_sim, estimator_planner, follower_estimator (real robots),
+field_sim (simulated real robots), recorder, replay.
 
 ``python -m formopt_ros.ros.nodes --write-configs DIR`` writes every node's documented
 parameters file, ``--readme`` prints README's node reference (topics, frames, parameters); the
@@ -13,7 +14,8 @@ from pathlib import Path
 
 #: Node executable name -> module.
 NODES = {name: f'formopt_ros.ros.nodes.{name}' for name in
-         ('leader_sim', 'follower_sim', 'estimator_planner', 'recorder', 'replay')}
+         ('leader_sim', 'follower_sim', 'estimator_planner', 'follower_estimator', 'field_sim',
+          'recorder', 'replay')}
 
 
 def config_text(node: str) -> str:

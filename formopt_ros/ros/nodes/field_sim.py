@@ -1,0 +1,169 @@
+"""field_sim: a simulated pair of real robots for follower_estimator: a differential-drive
+follower driven by cmd_vel, a leader on its path, their odometry and a UWB radio, in real time."""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, Twist
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Range
+
+from formopt_ros.core.controller import Limits, limited
+from formopt_ros.core.field import Base, FieldWorld, Radio
+from formopt_ros.core.protocol import NS_PER_S
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.ros import conversions
+from formopt_ros.ros.params import Param, ParameterError, declare
+from formopt_ros.ros.run_config import PATH_PARAMS, SLOT, leader_path_from
+from formopt_ros.ros.runtime import node_main
+
+#: Limits of the UWB radio's Range messages, m.
+RANGE_LIMITS = (0.05, 50.0)
+
+PARAMS = [
+    SLOT, *PATH_PARAMS,
+    Param('leader_odom_topic', '/leader/odom', "where the leader's odometry is published"),
+    Param('odom_rate', 50.0, "follower odometry rate, Hz", 1.0, 1000.0),
+    Param('leader_odom_rate', 50.0, "leader odometry rate, Hz", 1.0, 1000.0),
+    Param('leader_odom_offset', 0.007, "phase of the leader's odometry clock, s", 0.0, 1.0),
+    Param('sigma_v', 0.1, "follower speed noise (true minus commanded) per odometry period, m/s",
+          0.0, 10.0),
+    Param('sigma_omega', 0.05, 'follower yaw-rate noise per odometry period, rad/s', 0.0, 10.0),
+    Param('range_rate', 30.0, 'UWB range rate, Hz', 0.1, 1000.0),
+    Param('range_jitter', 0.005, 'uniform timing jitter of the ranges, s', 0.0, 0.1),
+    Param('range_sigma', 0.1, 'range noise std, m', 0.0, 10.0),
+    Param('range_bias', 0.1, 'range bias, m', -10.0, 10.0),
+    Param('outlier_rate', 0.02, 'share of ranges with +U(1, 3) m added (non-line-of-sight)',
+          0.0, 1.0),
+    Param('dropout_rate', 0.01, 'share of ranges not sent', 0.0, 1.0),
+    Param('latency', 0.02, 'delay between a cmd_vel message and the base executing it, s', 0.0,
+          1.0),
+    Param('max_speed', 2.5, 'largest forward speed of the base, m/s', 1e-3, 100.0),
+    Param('max_yaw_rate', 4.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
+    Param('max_acceleration', 4.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
+    Param('max_yaw_acceleration', 20.0, 'largest yaw acceleration, rad/s^2', 1e-3, 1e4),
+    Param('leader_clock_offset', 0.0, "added to the leader's stamps: a leader clock out of sync, "
+          's', -100.0, 100.0),
+    Param('leader_outage', [0.0, 0.0], "[start, end] s of the run in which no leader odometry "
+          'is sent (a link outage; [0, 0]: none)', 0.0, 1e6),
+    Param('seed', 0, 'seed of the random streams', 0, 2**31 - 1),
+    Param('duration', 60.0, 'run this long, s, then exit', 0.1, 1e6),
+]
+SUMMARY = ('Two simulated real robots in real time: the follower base executes cmd_vel (limits, '
+           'latency, noise) and publishes nav_msgs/Odometry (odom) at its rate, the leader its '
+           'odometry on leader_odom_topic, a UWB radio sensor_msgs/Range (range: bias, jitter, '
+           'outliers, dropouts); truth (PoseStamped in the leader frame) at each range time.')
+
+
+class FieldSimNode(Node):
+    """Advances a :class:`~formopt_ros.core.field.FieldWorld` to the node clock every 2 ms
+    and publishes what each event sends."""
+
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """The node; ``cli_args`` are node-local ROS arguments (several in one process)."""
+        super().__init__('field_sim', cli_args=cli_args)
+        self.params = p = declare(self, PARAMS)
+        slot = Scenario.paper('range').p_o if p['formation_slot'] == [0.0] else \
+            tuple(p['formation_slot'])
+        if len(slot) != 2 or len(p['leader_outage']) != 2:
+            raise ParameterError("parameters 'formation_slot' and 'leader_outage' take two "
+                                 'numbers')
+        path = leader_path_from(p)
+        step = 1.0 / p['leader_odom_rate']
+        self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
+                             p['max_yaw_acceleration'])
+        self.period = 1.0 / p['odom_rate']
+        self.world = FieldWorld(
+            np.array([slot[0], slot[1], 0.0]),
+            lambda t: path.velocity(int(round(t / step)), step), np.random.default_rng(p['seed']),
+            p['duration'], Base(p['odom_rate'], 0.0, p['sigma_v'], p['sigma_omega']),
+            Base(p['leader_odom_rate'], p['leader_odom_offset']),
+            Radio(p['range_rate'], p['range_jitter'], p['range_sigma'], p['range_bias'],
+                  p['outlier_rate'], dropout_rate=p['dropout_rate']))
+        self.commands: list[tuple[int, float, float]] = []     # (received ns, v, omega)
+        self.executed = (0.0, 0.0)
+        self.start_ns = int(self.get_clock().now().nanoseconds)
+        self.odom_pub = self.create_publisher(Odometry, 'odom', 10)
+        self.leader_pub = self.create_publisher(Odometry, p['leader_odom_topic'], 10)
+        self.range_pub = self.create_publisher(Range, 'range', 10)
+        self.truth_pub = self.create_publisher(PoseStamped, 'truth', 10)
+        self.create_subscription(Twist, 'cmd_vel', self.on_cmd_vel, 10)
+        self.create_timer(0.002, self.tick)
+        self.finished = False
+        self.sent = {'odom': 0, 'leader_odom': 0, 'range': 0, 'dropouts': 0}
+
+    def on_cmd_vel(self, message: Twist) -> None:
+        """Keep the command with its arrival time (executed after the latency)."""
+        self.commands.append((int(self.get_clock().now().nanoseconds), message.linear.x,
+                              message.angular.z))
+
+    def _due_command(self, at_ns: int) -> tuple[float, float]:
+        """The newest command received at least ``latency`` before ``at_ns`` (else the last
+        executed one), within the base's limits."""
+        latency = int(self.params['latency'] * NS_PER_S)
+        due = [c for c in self.commands if c[0] <= at_ns - latency]
+        if due:
+            self.commands = self.commands[len(due) - 1:]
+            wanted = due[-1][1:]
+        else:
+            wanted = self.executed
+        self.executed = limited(wanted, self.executed, self.limits, self.period)
+        return self.executed
+
+    def tick(self) -> None:
+        """Play every event up to now."""
+        now = int(self.get_clock().now().nanoseconds) - self.start_ns
+        while (when := self.world.next_time()) is not None and when * NS_PER_S <= now:
+            what, stamp, values = self.world.step()       # type: ignore[misc]
+            self._publish(what, stamp, values)
+        if self.world.next_time() is None:
+            self.finished = True
+
+    def _publish(self, what: str, stamp: int, values: tuple[float, ...]) -> None:
+        p = self.params
+        time = conversions.stamp(self.start_ns + stamp)
+        if what == 'follower':
+            self.odom_pub.publish(conversions.odometry(time, 'odom', 'base_link',
+                                                       self.world.follower, values[0],
+                                                       values[1]))
+            self.sent['odom'] += 1
+            self.world.command = self._due_command(self.start_ns + stamp)
+        elif what == 'leader':
+            start, end = p['leader_outage']
+            if not start <= stamp / NS_PER_S < end:
+                shifted = conversions.stamp(self.start_ns + stamp +
+                                            int(p['leader_clock_offset'] * NS_PER_S))
+                self.leader_pub.publish(conversions.odometry(
+                    shifted, 'odom', 'leader', self.world.leader, values[0], values[1]))
+                self.sent['leader_odom'] += 1
+        else:
+            self.truth_pub.publish(conversions.pose_stamped(time, 'leader',
+                                                            self.world.relative()))
+            if what == 'range':
+                # sensor_msgs/Range knows no radio: INFRARED is the closest of its two types
+                message = Range(header=conversions.header(time, 'uwb'),
+                                radiation_type=Range.INFRARED, field_of_view=6.28,
+                                min_range=RANGE_LIMITS[0], max_range=RANGE_LIMITS[1],
+                                range=float(values[0]))
+                self.range_pub.publish(message)
+                self.sent['range'] += 1
+            else:
+                self.sent['dropouts'] += 1
+
+    def close(self) -> None:
+        """Stop the base at the end."""
+        self.executed = (0.0, 0.0)
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console entry point (ros2 run formopt_ros field_sim)."""
+    sys.exit(node_main(FieldSimNode, 'field_sim', SUMMARY, PARAMS, args))
+
+
+if __name__ == '__main__':
+    main()
+
+
+__all__ = ['FieldSimNode', 'PARAMS', 'main']

@@ -1,0 +1,338 @@
+"""follower_estimator: a follower's estimator, planner and velocity controller on real robots:
+standard odometry and range messages in; estimate, target, cmd_vel and diagnostics out."""
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, Twist
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Range
+
+from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
+from formopt_ros.core.controller import Limits, twist_toward
+from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
+from formopt_ros.core.protocol import NS_PER_S
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.strategies import make_strategy
+from formopt_ros.ros import conversions, qos
+from formopt_ros.ros.params import Param, ParameterError, declare
+from formopt_ros.ros.run_config import (
+    DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V,
+    SIGMA_V_LEADER, SLOT, SUMMARY_PATH, strategy_options, strategy_params)
+from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
+
+#: The streams this node watches for staleness.
+STREAMS = ('odom', 'leader_odom', 'range')
+
+PARAMS = [
+    Param('leader_frame', 'leader', "frame id of the published estimate and target (the "
+          "leader's body frame)"),
+    Param('follower_child_frame', '', "child_frame_id the follower's odometry must carry "
+          "('': any)"),
+    Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
+    SLOT, DEVIATION, RANGE_SIGMA,
+    Param('range_variance', 0.0, 'variance of a range message, m^2 (0: range_sigma^2)', 0.0,
+          1e6),
+    SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER, INITIAL_COVARIANCE,
+    Param('initial_pose', [0.0], "initial estimate [x m, y m, phi rad] in the leader frame "
+          "([0.0]: [slot, 0])", -1e4, 1e4),
+    DT,
+    Param('bias_sigma', 0.0, 'initial std of a range-bias state, m (0: none; UWB: about 0.3)',
+          0.0, 100.0),
+    Param('bias_walk', 0.0, 'random walk of the range bias, m/sqrt(s)', 0.0, 10.0),
+    Param('huber', 0.0, 'Huber threshold in innovation standard deviations (0: off; typical '
+          '2-3)', 0.0, 100.0),
+    Param('reorder_lag', 0.1, 'longest wait of a range for odometry and earlier ranges, s',
+          0.0, 10.0),
+    Param('max_gap', 0.5, 'odometry intervals longer than this count as gaps, s', 1e-3, 60.0),
+    Param('future_tolerance', 0.5, 'messages stamped further ahead of this clock are refused '
+          '(clocks out of sync), s', 0.0, 60.0),
+    Param('stale_timeout', 1.0, 'a stream silent (or stamped behind this clock) this long is an '
+          'ERROR (half as long: WARN), and the base stops, s', 0.05, 60.0),
+    Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
+    Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
+    Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
+    Param('max_yaw_rate', 3.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
+    Param('max_acceleration', 2.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
+    Param('max_yaw_acceleration', 10.0, 'largest yaw acceleration of the base, rad/s^2', 1e-3,
+          1e4),
+    *strategy_params(),
+    Param('status_period', 1.0, 'publish /diagnostics this often, s', 0.05, 60.0),
+    Param('duration', 0.0, 'run this long (node clock, s), then exit (0: until stopped)', 0.0,
+          1e9),
+    SUMMARY_PATH]
+SUMMARY = ("A follower on real robots: its nav_msgs/Odometry (odom), the leader's "
+           "(leader_odom, over the network) and sensor_msgs/Range (range) at any rates in; the "
+           'asynchronous EKF (exact integration of each odometry interval, ranges at their '
+           'stamps), the strategy re-planned every 2 dt, and geometry_msgs/Twist on cmd_vel '
+           'within the base limits; estimate, target and /diagnostics out.')
+
+
+def stamp_ns(message: Any) -> int:
+    """A message header's stamp in integer nanoseconds."""
+    return int(message.header.stamp.sec) * NS_PER_S + int(message.header.stamp.nanosec)
+
+
+class FollowerEstimatorNode(Node):
+    """Feeds standard messages to an :class:`~formopt_ros.core.asynchronous.AsyncEstimator`,
+    plans on a timer and drives the base (see SUMMARY and the module docstring of
+    formopt_ros.core.asynchronous)."""
+
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """The node; ``cli_args`` are node-local ROS arguments (several in one process)."""
+        super().__init__('follower_estimator', cli_args=cli_args)
+        self.params = p = declare(self, PARAMS)
+        check_output_path('summary_path', p['summary_path'], may_exist=False)
+        self.scenario = scenario = self._scenario(p)
+        try:
+            noise = RealNoise(p['bias_sigma'], p['bias_walk'], p['huber'])
+        except ValueError as error:
+            raise ParameterError(str(error)) from None
+        strategy = make_strategy(p['strategy'], **strategy_options(p['strategy'], p))
+        strategy.prepare(scenario)
+        self.estimator = EstimatorPlanner(scenario, strategy, np.random.default_rng(0), noise)
+        if p['initial_pose'] != [0.0]:
+            if len(p['initial_pose']) != 3:
+                raise ParameterError("parameter 'initial_pose' must be [x, y, phi] or [0.0], "
+                                     f"got {p['initial_pose']!r}")
+            self.estimator.state[:3] = p['initial_pose']
+        self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
+                             p['max_yaw_acceleration'])
+        self.settings = AsyncSettings(int(p['reorder_lag'] * NS_PER_S),
+                                      int(p['max_gap'] * NS_PER_S))
+        self.tracker: AsyncEstimator | None = None         # starts with the first message
+        self.variance = p['range_variance'] or scenario.sigma ** 2
+        self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0}
+        self.newest: dict[str, int | None] = {s: None for s in STREAMS}   # stamps, ns
+        self._reported = {'future': 0, 'bridged': 0}     # counts at the last diagnostics
+        self.target: np.ndarray | None = None
+        self.command = (0.0, 0.0)
+        self.stops = 0
+        self.worst = 'OK'
+        self.errors: list[str] = []
+        self.step = 0
+        self.throttle = Throttle(self)
+        self.started_ns = self.now_ns()
+        self.finished = False
+        frame = p['leader_frame']
+        self.estimate_pub = self.create_publisher(PoseWithCovarianceStamped, 'estimate', 10)
+        self.target_pub = self.create_publisher(PointStamped, 'target', 10)
+        self.cmd_pub = self.create_publisher(Twist, 'cmd_vel', 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                                     qos.profile('diagnostics'))
+        self.create_subscription(Odometry, 'odom', lambda m: self.on_odometry('odom', m),
+                                 qos_profile_sensor_data)
+        self.create_subscription(Odometry, 'leader_odom',
+                                 lambda m: self.on_odometry('leader_odom', m),
+                                 qos_profile_sensor_data)
+        self.create_subscription(Range, 'range', self.on_range, qos_profile_sensor_data)
+        self.create_timer(2.0 * scenario.dt, self.plan)
+        self.create_timer(1.0 / p['control_rate'], self.control)
+        self.create_timer(p['status_period'], self.publish_diagnostics)
+        self.frame = frame
+        self.get_logger().info(f'follower_estimator ready (range, strategy {strategy.name}, '
+                               f'slot {list(scenario.p_o)} m in {frame!r})')
+
+    @staticmethod
+    def _scenario(p: dict[str, Any]) -> Scenario:
+        slot = p['formation_slot']
+        p_o = Scenario.paper('range').p_o if slot == [0.0] else tuple(slot)
+        if len(p_o) != 2:
+            raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
+                                 f'{slot!r}')
+        if len(p['initial_covariance']) != 3:
+            raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] "
+                                 f"variances, got {p['initial_covariance']!r}")
+        try:
+            return Scenario('range', p_o, p['deviation_fraction'] * math.hypot(*p_o),
+                            p['range_sigma'], dt=p['dt'], sigma_v=p['sigma_v'],
+                            sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
+                            sigma_omega_leader=p['sigma_omega_leader'],
+                            initial_covariance=tuple(p['initial_covariance']))
+        except ValueError as error:
+            raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
+
+    def now_ns(self) -> int:
+        """The node clock, ns."""
+        return int(self.get_clock().now().nanoseconds)
+
+    # --- inputs ------------------------------------------------------------------------------
+    def _accept(self, stream: str, stamp: int) -> bool:
+        """Stamp rules shared by every input; counts and warns on refusal."""
+        now = self.now_ns()
+        if stamp > now + int(self.params['future_tolerance'] * NS_PER_S):
+            self._refuse('future', stream, f'{stream} stamped {(stamp - now) / NS_PER_S:.3f} s '
+                         'ahead of this clock: are the clocks synchronised?')
+            return False
+        self.newest[stream] = max(stamp, self.newest[stream] or stamp)
+        if self.tracker is None:
+            self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
+        return True
+
+    def _refuse(self, counter: str, stream: str, text: str) -> None:
+        self.refused[counter] += 1
+        self.throttle.warn(f'{counter}:{stream}', text)
+
+    def on_odometry(self, stream: str, message: Odometry) -> None:
+        """Follower ('odom') or leader ('leader_odom') odometry: its twist over the interval
+        since the previous message."""
+        expected = self.params['follower_child_frame' if stream == 'odom'
+                               else 'leader_child_frame']
+        if expected and message.child_frame_id != expected:
+            self._refuse('frame', stream, f'{stream}: child_frame_id '
+                         f'{message.child_frame_id!r} is not {expected!r}')
+            return
+        v, omega = message.twist.twist.linear.x, message.twist.twist.angular.z
+        if not (math.isfinite(v) and math.isfinite(omega)):
+            self._refuse('not_finite', stream, f'{stream}: twist is not finite')
+            return
+        stamp = stamp_ns(message)
+        if not self._accept(stream, stamp):
+            return
+        assert self.tracker is not None
+        self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega)
+        self._advance()
+
+    def on_range(self, message: Range) -> None:
+        """A range: dropped (counted) outside [min_range, max_range] or not finite."""
+        value = float(message.range)
+        if not math.isfinite(value):
+            self._refuse('not_finite', 'range', 'range: not finite')
+            return
+        if not message.min_range <= value <= message.max_range:
+            self._refuse('out_of_range', 'range', f'range {value:.3f} m outside '
+                         f'[{message.min_range:.3f}, {message.max_range:.3f}] m')
+            return
+        stamp = stamp_ns(message)
+        if not self._accept('range', stamp):
+            return
+        assert self.tracker is not None
+        self.tracker.add_measurement(stamp, value, self.variance)
+        self._advance()
+
+    def _advance(self) -> None:
+        assert self.tracker is not None
+        for applied in self.tracker.advance(self.now_ns()):
+            self.estimate_pub.publish(conversions.estimate(
+                conversions.stamp(applied.stamp_ns), self.frame, applied.x, applied.P))
+
+    # --- planning and control ------------------------------------------------------------------
+    def plan(self) -> None:
+        """Re-plan the target from the current estimate (timer, every 2 dt)."""
+        self._check_duration()
+        if self.tracker is None or self.tracker.applied == 0:
+            return
+        self.step += 1
+        self.target = self.tracker.plan(self.step).solution.p
+        point = PointStamped(header=conversions.header(self.get_clock().now().to_msg(),
+                                                       self.frame))
+        point.point.x, point.point.y = float(self.target[0]), float(self.target[1])
+        self.target_pub.publish(point)
+
+    def stale(self) -> list[str]:
+        """The streams silent, or stamped behind this clock, longer than stale_timeout."""
+        return [s for s, age in self.ages().items()
+                if age is None or age > self.params['stale_timeout']]
+
+    def ages(self) -> dict[str, float | None]:
+        """Per stream, seconds since its newest stamp (None: nothing yet)."""
+        now = self.now_ns()
+        return {s: None if t is None else (now - t) / NS_PER_S for s, t in self.newest.items()}
+
+    def control(self) -> None:
+        """cmd_vel toward the target within the limits; a stop while the target or an input
+        stream is stale (counted)."""
+        if self.tracker is None or self.target is None or self.stale():
+            self.stops += self.command != (0.0, 0.0)       # a moving base stopped
+            self.command = (0.0, 0.0)
+        else:
+            x, _ = self.tracker.estimate_at(self.now_ns())
+            leader = self.tracker.timelines['leader'].last or (0.0, 0.0)
+            self.command = twist_toward(x, self.target, leader, self.params['horizon'],
+                                        self.limits, self.command,
+                                        1.0 / self.params['control_rate'])
+        twist = Twist()
+        twist.linear.x, twist.angular.z = self.command
+        self.cmd_pub.publish(twist)
+
+    # --- health --------------------------------------------------------------------------------
+    def diagnostic_level(self) -> tuple[str, str]:
+        """ERROR: a stream stale beyond stale_timeout, or stamps ahead of this clock since the
+        last report; WARN: a stream older than half of it, or inputs refused or bridged."""
+        ages = self.ages()
+        limit = self.params['stale_timeout']
+        if self.refused['future'] > self._reported['future']:
+            return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
+        old = [f'{s} ({"never" if a is None else f"{a:.1f} s"})' for s, a in ages.items()
+               if a is None or a > limit]
+        waiting = (self.now_ns() - self.started_ns) / NS_PER_S <= limit
+        if old and not waiting:
+            return 'ERROR', 'stale: ' + ', '.join(old)
+        late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
+        if late:
+            return 'WARN', 'late: ' + ', '.join(late)
+        counters = self.tracker.counters if self.tracker else None
+        if counters and counters.bridged > self._reported['bridged']:
+            return 'WARN', 'odometry carried past its last message (bridged)'
+        return 'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input'
+
+    def publish_diagnostics(self) -> None:
+        """/diagnostics every status_period; an ERROR is kept for the summary."""
+        level, message = self.diagnostic_level()
+        counters = self.tracker.counters.as_dict() if self.tracker else {}
+        self._reported = {'future': self.refused['future'], 'bridged': counters.get('bridged', 0)}
+        if level == 'ERROR':
+            self.worst = 'ERROR'
+            if message not in self.errors:
+                self.errors.append(message)
+                self.get_logger().error(message)
+        elif level == 'WARN' and self.worst == 'OK':
+            self.worst = 'WARN'
+        values: dict[str, object] = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()},
+                  'stops': self.stops, 'weighted_trace_m2': self.estimator.weighted_trace(),
+                  **{f'age_{s}_s': 'never' if a is None else round(a, 3)
+                     for s, a in self.ages().items()}}
+        self.diagnostics_pub.publish(DiagnosticArray(
+            header=conversions.header(self.get_clock().now().to_msg(), ''),
+            status=[conversions.diagnostic(self.get_fully_qualified_name(), self.frame, level,
+                                           message, values)]))
+
+    def _check_duration(self) -> None:
+        duration = self.params['duration']
+        if duration and (self.now_ns() - self.started_ns) / NS_PER_S >= duration:
+            self.finished = True
+
+    def summary(self) -> dict[str, Any]:
+        """Final estimate, counters and health: ok only if no ERROR was raised."""
+        estimator = self.estimator
+        return {
+            'ok': self.worst != 'ERROR', 'worst_diagnostic': self.worst,
+            'errors': list(self.errors),
+            'final_estimate': estimator.x.tolist(), 'final_covariance': estimator.P.tolist(),
+            'range_bias': float(estimator.state[3]) if estimator.state.size == 4 else None,
+            'final_weighted_trace': estimator.weighted_trace(),
+            'counters': self.tracker.counters.as_dict() if self.tracker else {},
+            'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step}
+
+    def close(self) -> None:
+        """Stop the base and write the summary (also on SIGINT/SIGTERM)."""
+        self.cmd_pub.publish(Twist())
+        write_summary(self.params['summary_path'], self.summary())
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console entry point (ros2 run formopt_ros follower_estimator)."""
+    sys.exit(node_main(FollowerEstimatorNode, 'follower_estimator', SUMMARY, PARAMS, args))
+
+
+if __name__ == '__main__':
+    main()
+
+
+__all__ = ['FollowerEstimatorNode', 'PARAMS', 'main']
