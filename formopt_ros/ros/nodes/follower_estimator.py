@@ -294,10 +294,11 @@ class FollowerEstimatorNode(Node):
                 self.get_logger().error(message)
         elif level == 'WARN' and self.worst == 'OK':
             self.worst = 'WARN'
-        values: dict[str, object] = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()},
-                  'stops': self.stops, 'weighted_trace_m2': self.estimator.weighted_trace(),
-                  **{f'age_{s}_s': 'never' if a is None else round(a, 3)
-                     for s, a in self.ages().items()}}
+        values: dict[str, object] = {
+            **counters, **{f'refused_{k}': v for k, v in self.refused.items()},
+            'stops': self.stops, 'weighted_trace_m2': self.estimator.weighted_trace(),
+            **{f'age_{s}_s': 'never' if a is None else round(a, 3)
+               for s, a in self.ages().items()}}
         self.diagnostics_pub.publish(DiagnosticArray(
             header=conversions.header(self.get_clock().now().to_msg(), ''),
             status=[conversions.diagnostic(self.get_fully_qualified_name(), self.frame, level,
