@@ -23,7 +23,7 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
                                              'builtin_interfaces', 'std_msgs', 'geometry_msgs',
                                              'nav_msgs', 'formopt_interfaces', 'tf2_msgs',
                                              'rosgraph_msgs', 'visualization_msgs',
-                                             'diagnostic_msgs'}),
+                                             'diagnostic_msgs', 'sensor_msgs'}),
     'cli': ({'core', 'wire', 'bag', 'analysis', 'ros', 'cli'},
             {'numpy', 'tqdm', 'rclpy', 'formopt_interfaces'}),
 }

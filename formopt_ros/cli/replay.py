@@ -76,7 +76,46 @@ def build_parser() -> ArgumentParser:
     flags.add_argument('--tolerance', type=number(0.0), default=1e-9,
                        help='largest admissible difference (default 1e-9)')
     flags.add_argument('--json', type=new_file, help='also write the result here (a new file)')
+    flags.add_argument('--topic-map', type=existing_file, metavar='MAP',
+                       help='a bag of standard types (another robot, a data set): which topic is '
+                       'which input and the filter settings (YAML, see '
+                       'formopt_ros/analysis/foreign.py); re-estimates it with the planner off '
+                       'and reports NEES and RMS error against its ground truth')
+    flags.add_argument('--skip', type=integer(0, 10**9), default=30,
+                       help='--topic-map: ranges left out of the evaluation at the start '
+                       '(default 30)')
     return out
+
+
+def foreign_main(args: Any) -> int:
+    """``replay BAG --offline --topic-map MAP``: print the evaluation; exit 2 on errors."""
+    from formopt_ros.analysis.foreign import estimate_foreign, read_foreign
+    from formopt_ros.wire.topic_map import TopicMap
+    try:
+        topics = TopicMap.load(args.topic_map)
+        data = read_foreign(read_bag(args.bag), topics)
+        if not data.ranges:
+            fail(PROG, f'{args.bag}: no valid message on {topics.range}')
+        summary = estimate_foreign(data, topics.estimator).summary(args.skip)
+    except (BagError, ValueError) as error:
+        fail(PROG, str(error))
+    counters = summary['counters']
+    print(f"offline estimate of {args.bag} through {args.topic_map}: {summary['ranges']} "
+          f"ranges, {counters['odometry']} odometry messages (bridged {counters['bridged']}, "
+          f"gaps {counters['gaps']}, gated {counters['gated_measurements']}, down-weighted "
+          f"{counters['downweighted_measurements']})")
+    if summary['mean_nees'] is None:
+        print('no ground truth in the topic map: no evaluation')
+    else:
+        bias = summary['final_bias_m']
+        print(f"after {args.skip} ranges: mean NEES {summary['mean_nees']:.3f} (3 is "
+              f"consistent), RMS position error {summary['rmse_m']:.3f} m over "
+              f"{summary['evaluated']} ranges" +
+              ('' if bias is None else f'; range bias {bias:.3f} m'))
+    if args.json:
+        write_json(args.json, {'bag': str(args.bag), 'topic_map': str(args.topic_map),
+                               **summary})
+    return 0
 
 
 def offline_main(args: Any) -> int:
@@ -123,7 +162,7 @@ def main(args: list[str] | None = None) -> None:
     if options.offline:
         if options.bag is None:
             fail(PROG, '--offline needs BAG')
-        sys.exit(offline_main(options))
+        sys.exit(foreign_main(options) if options.topic_map else offline_main(options))
     from formopt_ros.ros.nodes.replay import PARAMS, SUMMARY, Replay, select_topics
     from formopt_ros.ros.runtime import node_main
     preloaded = None

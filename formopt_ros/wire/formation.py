@@ -3,22 +3,29 @@ deviation, noise and strategy; see config/formation_fig4.yaml for every key docu
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import yaml
 
 from formopt_ros.core.scenario import Formation
 
 
+def read_yaml(path: str | Path, what: str) -> Any:
+    """The content of a YAML file; ValueError in one line naming the file and ``what`` it
+    should hold when it is missing or not YAML."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f'{path}: no such {what} file') from None
+    except (OSError, yaml.YAMLError) as error:
+        where = ' '.join(str(error).split())           # YAML's message spans lines
+        raise ValueError(f'{path}: cannot read the {what}: {where}') from None
+
+
 def load_formation(path: str | Path) -> Formation:
     """The formation of a YAML file; ValueError with the file name and what is wrong."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f'{path}: no such formation file') from None
-    except (OSError, yaml.YAMLError) as error:
-        where = ' '.join(str(error).split())           # YAML's message spans lines
-        raise ValueError(f'{path}: cannot read the formation: {where}') from None
+    data = read_yaml(path, 'formation')
     if not isinstance(data, dict) or 'formation' not in data:
         raise ValueError(f"{path}: a formation file has one top-level key 'formation'")
     try:

@@ -1,0 +1,169 @@
+"""Re-estimate a bag of standard message types (another team's robots, a real data set) through a
+topic map: the asynchronous estimator over its odometry and ranges, the planner off, evaluated
+against ground-truth poses when the bag has them.
+
+A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
+
+    leader_odometry: /leader/odom        # nav_msgs/Odometry of the leader (twist used)
+    follower_odometry: /follower/odom    # nav_msgs/Odometry of the follower
+    range: /uwb/range                    # sensor_msgs/Range between them
+    leader_truth: /leader/mocap          # optional geometry_msgs/PoseStamped, a fixed frame
+    follower_truth: /follower/mocap      # optional, the same fixed frame
+    estimator:                           # optional: the filter's settings (defaults below)
+      sigma_v: 0.05                      # both robots' odometry speed noise, m/s
+      sigma_omega: 0.05                  # both robots' odometry yaw-rate noise, rad/s
+      range_sigma: 0.1                   # range noise, m
+      bias_sigma: 0.0                    # range-bias state (0: none), m
+      bias_walk: 0.0                     # m / sqrt(s)
+      huber: 0.0                         # Huber threshold, standard deviations (0: off)
+      initial_covariance: [0.1, 0.1, 0.01]
+
+The initial estimate is the truth at the first range (with ``initial_covariance``) when the bag
+has truth, else [|p| = the first range along -x, 0].
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.bag import BagError
+from formopt_ros.bag.reader import Bag
+from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
+from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
+from formopt_ros.core.field import relative_pose
+from formopt_ros.core.model import normalized_estimation_error, state_difference
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.strategies import make_strategy
+from formopt_ros.wire.messages import pose_values
+from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap
+
+
+@dataclass
+class ForeignData:
+    """The inputs and the truth of a bag, decoded: stamps in ns.
+
+    Attributes:
+        odometry: per robot ('follower', 'leader'), (stamp, v m/s, omega rad/s).
+        ranges: (stamp, range m).
+        truth: per robot, (stamp, x m, y m, yaw rad) in a fixed frame (empty without truth).
+    """
+
+    odometry: dict[str, list[tuple[int, float, float]]]
+    ranges: list[tuple[int, float]]
+    truth: dict[str, np.ndarray]
+
+    def relative_truth(self, stamp: int) -> np.ndarray | None:
+        """The follower's true pose in the leader's frame at ``stamp`` (poses interpolated
+        linearly, yaw unwrapped), or None outside the truth's time span."""
+        poses: list[tuple[float, float, float]] = []
+        for robot in ('leader', 'follower'):
+            samples = self.truth.get(robot)
+            if samples is None or not len(samples) or not \
+                    samples[0, 0] <= stamp <= samples[-1, 0]:
+                return None
+            x, y, yaw = (float(np.interp(stamp, samples[:, 0], samples[:, i])) for i in (1, 2, 3))
+            poses.append((x, y, yaw))
+        return relative_pose(poses[0], poses[1])
+
+
+def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
+    """Decode the mapped topics of ``bag``; BagError naming a topic the bag lacks."""
+    def stamp(message: Any) -> int:
+        return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
+
+    def decoded(topic: str, type_name: str) -> list[Any]:
+        if bag.find(topic, required=False) is None:
+            raise BagError(f'the topic map names {topic!r}, which the bag does not have '
+                           f'(it has: {", ".join(sorted(bag.counts()))})')
+        return [m for _, m in bag.decode(topic, type_name)]
+
+    odometry = {robot: [(stamp(m), float(m.twist.twist.linear.x),
+                         float(m.twist.twist.angular.z))
+                        for m in decoded(getattr(topics, f'{robot}_odometry'),
+                                         'nav_msgs/msg/Odometry')]
+                for robot in ('follower', 'leader')}
+    ranges = [(stamp(m), float(m.range)) for m in decoded(topics.range, 'sensor_msgs/msg/Range')
+              if m.min_range <= m.range <= m.max_range and math.isfinite(m.range)]
+    truth = {}
+    if topics.leader_truth and topics.follower_truth:
+        for robot in ('leader', 'follower'):
+            rows = [(stamp(m), *pose_values(m.pose)) for m in decoded(
+                getattr(topics, f'{robot}_truth'), 'geometry_msgs/msg/PoseStamped')]
+            samples = np.array(sorted(rows), dtype=float)
+            samples[:, 3] = np.unwrap(samples[:, 3])
+            truth[robot] = samples
+    return ForeignData(odometry, sorted(ranges), truth)
+
+
+@dataclass
+class ForeignResult:
+    """What the estimator made of a foreign bag.
+
+    Attributes:
+        stamps, estimates, covariances: per applied range (ns, (3,), (3, 3)).
+        nees, errors: per range with truth: NEES of [x, y, phi], position error (m).
+        counters: the asynchronous estimator's counters.
+        bias: the final range-bias estimate (m), None without a bias state.
+    """
+
+    stamps: list[int]
+    estimates: list[np.ndarray]
+    covariances: list[np.ndarray]
+    nees: list[float]
+    errors: list[float]
+    counters: dict[str, int]
+    bias: float | None
+
+    def summary(self, skip: int = 0) -> dict[str, Any]:
+        """Mean NEES and RMS error over the ranges after the first ``skip``."""
+        nees, errors = self.nees[skip:], self.errors[skip:]
+        return {'ranges': len(self.stamps), 'evaluated': len(nees),
+                'mean_nees': float(np.mean(nees)) if nees else None,
+                'rmse_m': float(np.sqrt(np.mean(np.square(errors)))) if errors else None,
+                'final_bias_m': self.bias, 'counters': self.counters}
+
+
+def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResult:
+    """Run the asynchronous estimator (planner off) over ``data`` in stamp order."""
+    s = {**ESTIMATOR_DEFAULTS, **settings}
+    first = data.ranges[0][0]
+    initial = data.relative_truth(first)
+    if initial is None:
+        initial = np.array([-data.ranges[0][1], 0.0, 0.0])
+    slot = (float(initial[0]), float(initial[1]))
+    scenario = Scenario('range', slot, 0.1 * math.hypot(*slot), s['range_sigma'],
+                        sigma_v=s['sigma_v'], sigma_omega=s['sigma_omega'],
+                        sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
+                        initial_covariance=tuple(s['initial_covariance']))
+    filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None,
+                               RealNoise(s['bias_sigma'], s['bias_walk'], s['huber']))
+    filter_.state[:3] = initial
+    tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
+    inputs = sorted([(t, 0, robot, (v, w)) for robot, stream in data.odometry.items()
+                     for t, v, w in stream if t > first - 1] +
+                    [(t, 1, 'range', (z,)) for t, z in data.ranges])
+    result = ForeignResult([], [], [], [], [], {}, None)
+    for t, _, kind, values in inputs:
+        if kind == 'range':
+            tracker.add_measurement(t, values[0], s['range_sigma'] ** 2)
+        else:
+            tracker.add_odometry(kind, t, *values)
+        for applied in tracker.advance(t):
+            result.stamps.append(applied.stamp_ns)
+            result.estimates.append(applied.x)
+            result.covariances.append(applied.P)
+            truth = data.relative_truth(applied.stamp_ns)
+            if truth is not None:
+                result.nees.append(normalized_estimation_error(truth, applied.x, applied.P))
+                result.errors.append(float(np.hypot(*state_difference(truth, applied.x)[:2])))
+    for applied in tracker.advance(inputs[-1][0] + 10**10):     # the last ones, lag passed
+        result.stamps.append(applied.stamp_ns)
+    result.counters = tracker.counters.as_dict()
+    result.bias = float(filter_.state[3]) if filter_.state.size == 4 else None
+    return result
+
+
+__all__ = ['ForeignData', 'ForeignResult', 'estimate_foreign', 'read_foreign']

@@ -1,0 +1,55 @@
+"""Topic maps: which topic of a bag of standard message types is which estimator input, and the
+filter's settings for it (the keys are documented in formopt_ros/analysis/foreign.py)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from formopt_ros.wire.formation import read_yaml
+
+TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
+              'follower_truth')
+ESTIMATOR_DEFAULTS: dict[str, Any] = {
+    'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'bias_sigma': 0.0,
+    'bias_walk': 0.0, 'huber': 0.0, 'initial_covariance': [0.1, 0.1, 0.01]}
+
+
+@dataclass(frozen=True)
+class TopicMap:
+    """Which topic of a bag is which input (module docstring), and the filter's settings."""
+
+    leader_odometry: str
+    follower_odometry: str
+    range: str
+    leader_truth: str = ''
+    follower_truth: str = ''
+    estimator: dict[str, Any] = field(default_factory=lambda: dict(ESTIMATOR_DEFAULTS))
+
+    @classmethod
+    def load(cls, path: str | Path) -> 'TopicMap':
+        """Read a topic map; ValueError naming the file and the key for anything wrong."""
+        data = read_yaml(path, 'topic map')
+        if not isinstance(data, dict):
+            raise ValueError(f'{path}: a topic map is a mapping of {TOPIC_KEYS}')
+        unknown = sorted(set(data) - set(TOPIC_KEYS) - {'estimator'})
+        missing = [k for k in TOPIC_KEYS[:3] if not data.get(k)]
+        if unknown or missing:
+            raise ValueError(f'{path}: unknown keys {unknown}, missing keys {missing}'
+                             if unknown and missing else
+                             f'{path}: unknown keys {unknown}' if unknown else
+                             f'{path}: missing keys {missing}')
+        settings = dict(ESTIMATOR_DEFAULTS)
+        given = data.get('estimator') or {}
+        bad = sorted(set(given) - set(ESTIMATOR_DEFAULTS)) if isinstance(given, dict) else given
+        if bad:
+            raise ValueError(f'{path}: estimator: unknown keys {bad} (known: '
+                             f'{sorted(ESTIMATOR_DEFAULTS)})')
+        settings.update(given)
+        for key in TOPIC_KEYS:
+            if not isinstance(data.get(key, ''), str):
+                raise ValueError(f'{path}: {key} must be a topic name, got {data[key]!r}')
+        return cls(**{key: data.get(key, '') for key in TOPIC_KEYS}, estimator=settings)
+
+
+__all__ = ['ESTIMATOR_DEFAULTS', 'TOPIC_KEYS', 'TopicMap']
