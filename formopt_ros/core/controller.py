@@ -56,13 +56,23 @@ def twist_toward(x: np.ndarray, target: np.ndarray, leader: tuple[float, float],
         period: control period, s.
         heading_gain: 1/s.
     """
-    px, py, phi = (float(v) for v in x[:3])
-    v_l, omega_l = leader
-    ux = (float(target[0]) - px) / horizon + v_l - omega_l * py
-    uy = (float(target[1]) - py) / horizon + omega_l * px
+    phi, omega_l = float(x[2]), leader[1]
+    ux, uy = required_velocity(x, target, leader, horizon)
     error = float(wrap_angle(math.atan2(uy, ux) - phi)) if (ux or uy) else 0.0
     speed = max(0.0, ux * math.cos(phi) + uy * math.sin(phi))
     return limited((speed, omega_l + heading_gain * error), previous, limits, period)
+
+
+def required_velocity(x: np.ndarray, target: np.ndarray, leader: tuple[float, float],
+                      horizon: float) -> tuple[float, float]:
+    """The follower's velocity in {L} (m/s, 2 components) that moves its relative position
+    from x[:2] to ``target`` in ``horizon`` s while the leader drives at (v_L, omega_L):
+    (target - p) / horizon + [v_L - omega_L y, omega_L x] (the relative kinematics,
+    core/model.py). Its norm above the base's speed limit means the target is out of reach."""
+    px, py = float(x[0]), float(x[1])
+    v_l, omega_l = leader
+    return ((float(target[0]) - px) / horizon + v_l - omega_l * py,
+            (float(target[1]) - py) / horizon + omega_l * px)
 
 
 def limited(twist: tuple[float, float], previous: tuple[float, float], limits: Limits,
@@ -77,4 +87,4 @@ def limited(twist: tuple[float, float], previous: tuple[float, float], limits: L
                  limits.yaw_acceleration * period))
 
 
-__all__ = ['Limits', 'limited', 'twist_toward']
+__all__ = ['Limits', 'limited', 'required_velocity', 'twist_toward']

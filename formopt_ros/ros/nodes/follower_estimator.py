@@ -15,7 +15,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Range
 
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
-from formopt_ros.core.controller import Limits, twist_toward
+from formopt_ros.core.controller import Limits, required_velocity, twist_toward
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
 from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
@@ -114,6 +114,7 @@ class FollowerEstimatorNode(Node):
         self.target: np.ndarray | None = None
         self.command = (0.0, 0.0)
         self.stops = 0
+        self.unreachable = 0
         self.worst = 'OK'
         self.errors: list[str] = []
         self.step = 0
@@ -230,6 +231,11 @@ class FollowerEstimatorNode(Node):
             return
         self.step += 1
         self.target = self.tracker.plan(self.step).solution.p
+        x, _ = self.tracker.estimate_at(self.now_ns())
+        leader = self.tracker.timelines['leader'].last or (0.0, 0.0)
+        if math.hypot(*required_velocity(x, self.target, leader, self.params['horizon'])) > \
+                self.limits.speed:
+            self.unreachable += 1          # the base cannot get there within the horizon
         point = PointStamped(header=conversions.header(self.get_clock().now().to_msg(),
                                                        self.frame))
         point.point.x, point.point.y = float(self.target[0]), float(self.target[1])
@@ -296,7 +302,8 @@ class FollowerEstimatorNode(Node):
             self.worst = 'WARN'
         values: dict[str, object] = {
             **counters, **{f'refused_{k}': v for k, v in self.refused.items()},
-            'stops': self.stops, 'weighted_trace_m2': self.estimator.weighted_trace(),
+            'stops': self.stops, 'unreachable_targets': self.unreachable,
+            'weighted_trace_m2': self.estimator.weighted_trace(),
             **{f'age_{s}_s': 'never' if a is None else round(a, 3)
                for s, a in self.ages().items()}}
         self.diagnostics_pub.publish(DiagnosticArray(
@@ -319,7 +326,8 @@ class FollowerEstimatorNode(Node):
             'range_bias': float(estimator.state[3]) if estimator.state.size == 4 else None,
             'final_weighted_trace': estimator.weighted_trace(),
             'counters': self.tracker.counters.as_dict() if self.tracker else {},
-            'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step}
+            'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step,
+            'unreachable_targets': self.unreachable}
 
     def close(self) -> None:
         """Stop the base and write the summary (also on SIGINT/SIGTERM)."""
