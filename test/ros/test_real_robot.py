@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
-from collections.abc import Callable
+import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist
@@ -144,3 +147,66 @@ def test_a_link_outage_is_an_error_and_the_estimate_recovers(
     assert summary['stops'] >= 1
     nees, rms, count = consistency(probe, start + 11 * 10**9)
     assert count > 50 and nees < 10.0 and rms < 0.4, (nees, rms, count)
+
+
+def netns_unavailable() -> str:
+    """Why this machine cannot run robots in network namespaces ('' when it can)."""
+    if os.geteuid() != 0 or shutil.which('ip') is None:
+        return 'network namespaces need root and iproute2 (ip)'
+    probe = subprocess.run(['ip', 'netns', 'add', 'formopt_probe'], capture_output=True)
+    subprocess.run(['ip', 'netns', 'del', 'formopt_probe'], capture_output=True)
+    return '' if probe.returncode == 0 else f'ip netns add failed: {probe.stderr.decode()}'
+
+
+@pytest.fixture
+def two_hosts() -> Iterator[tuple[str, str]]:
+    """Two network namespaces joined by a veth pair (10.213.7.1 and .2/24): two computers."""
+    why = netns_unavailable()
+    if why:
+        pytest.skip(why)
+    tag = f'fo{os.getpid() % 100000}'
+    names = (f'{tag}a', f'{tag}b')
+    commands = [['ip', 'netns', 'add', names[0]], ['ip', 'netns', 'add', names[1]],
+                ['ip', 'link', 'add', f'{tag}va', 'type', 'veth', 'peer', 'name', f'{tag}vb']]
+    for host, end, address in zip(names, ('va', 'vb'), ('10.213.7.1/24', '10.213.7.2/24')):
+        commands += [['ip', 'link', 'set', f'{tag}{end}', 'netns', host],
+                     ['ip', '-n', host, 'addr', 'add', address, 'dev', f'{tag}{end}'],
+                     ['ip', '-n', host, 'link', 'set', f'{tag}{end}', 'up'],
+                     ['ip', '-n', host, 'link', 'set', 'lo', 'up']]
+    try:
+        for command in commands:
+            subprocess.run(command, check=True, capture_output=True)
+        yield names
+    finally:
+        for host in names:
+            subprocess.run(['ip', 'netns', 'del', host], capture_output=True)
+
+
+def test_one_robot_per_network_namespace(tmp_path: Path, two_hosts: tuple[str, str]) -> None:
+    """field_sim (the leader and the follower's base and radio) on one host, the follower's
+    robot.sh on the other, discovery over the subnet: the estimator gets every stream, the
+    summary is ok."""
+    scripts = Path(__file__).resolve().parents[2] / 'scripts'
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
+    summary = tmp_path / 'summary.json'
+    world = subprocess.Popen(['ip', 'netns', 'exec', two_hosts[0], str(scripts / 'field_sim.sh'),
+                              '-r', '__ns:=/f1', '-p', 'duration:=8.0'], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             start_new_session=True)
+    robot = subprocess.Popen(['ip', 'netns', 'exec', two_hosts[1], str(scripts / 'robot.sh'),
+                              '--robot', 'f1', '--', '-p', f'summary_path:={summary}',
+                              '-p', 'bias_sigma:=0.3', '-p', 'stale_timeout:=3.0'], env=env,
+                             stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        world_output, _ = world.communicate(timeout=60)
+        assert world.returncode == 0, world_output
+        os.killpg(robot.pid, signal.SIGINT)
+        robot_output, _ = robot.communicate(timeout=30)
+    finally:
+        for process in (world, robot):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+    result = json.loads(summary.read_text())
+    assert result['ok'] and result['counters']['measurements'] > 150, (result, robot_output)
+    assert result['counters']['odometry'] > 500

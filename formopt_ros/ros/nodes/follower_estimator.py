@@ -275,11 +275,11 @@ class FollowerEstimatorNode(Node):
         limit = self.params['stale_timeout']
         if self.refused['future'] > self._reported['future']:
             return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
-        old = [f'{s} ({"never" if a is None else f"{a:.1f} s"})' for s, a in ages.items()
-               if a is None or a > limit]
+        old = [s for s, a in ages.items() if a is None or a > limit]
         waiting = (self.now_ns() - self.started_ns) / NS_PER_S <= limit
         if old and not waiting:
-            return 'ERROR', 'stale: ' + ', '.join(old)
+            return 'ERROR', f"stale (silent or behind this clock for over {limit:g} s): " + \
+                ', '.join(old)
         late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
         if late:
             return 'WARN', 'late: ' + ', '.join(late)

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# robot.sh - start one follower's nodes on this computer (one robot per computer).
+set -euo pipefail
+
+usage() {
+  cat <<'EOF'
+Usage: scripts/robot.sh --robot ID [--leader ID] [--sim] [-- NODE ARGS...]
+
+Start the nodes of follower ID on this computer, in the namespace /ID:
+  follower_estimator  reads /ID/odom (nav_msgs/Odometry of this base), /ID/range
+                      (sensor_msgs/Range of its UWB radio) and the leader's odometry
+                      /LEADER/odom over the network; publishes /ID/cmd_vel, /ID/estimate,
+                      /ID/target and /diagnostics.
+  field_sim (--sim)   a simulated base and radio for ID (and the leader, publishing
+                      /LEADER/odom), to try the set-up without robots.
+NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom).
+
+Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
+(ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
+ROS_STATIC_PEERS to the other computers' addresses). The clocks must agree to well under
+future_tolerance (0.5 s) and stale_timeout (1 s): run chrony or NTP against one server on
+every robot; an offset shows as an ERROR on /diagnostics and ends the run not ok.
+EOF
+}
+
+robot='' leader='leader' sim=0
+while [[ $# -gt 0 ]]; do
+  case "$1" in
+    --robot) robot="${2:-}"; shift 2 ;;
+    --leader) leader="${2:-}"; shift 2 ;;
+    --sim) sim=1; shift ;;
+    -h|--help) usage; exit 0 ;;
+    --) shift; break ;;
+    *) echo "robot.sh: error: unknown argument: $1 (see --help)" >&2; exit 2 ;;
+  esac
+done
+for name in robot leader; do
+  if [[ ! "${!name}" =~ ^[A-Za-z][A-Za-z0-9_]*$ ]]; then
+    echo "robot.sh: error: --$name must be letters, digits and underscores starting with a" \
+         "letter (it becomes a ROS namespace), got '${!name}'" >&2
+    exit 2
+  fi
+done
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-SUBNET}"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+pids=()
+stop() { [[ ${#pids[@]} -gt 0 ]] && kill -INT "${pids[@]}" 2>/dev/null; wait; }
+trap stop INT TERM HUP
+if [[ $sim -eq 1 ]]; then
+  "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" &
+  pids+=($!)
+fi
+"$here/follower_estimator.sh" -r "__ns:=/$robot" -r "leader_odom:=/$leader/odom" \
+  -p "leader_frame:=$leader" "$@" &
+pids+=($!)
+wait -n "${pids[@]}" || true
+code=$?
+stop
+exit $code
