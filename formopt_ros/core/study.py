@@ -314,7 +314,7 @@ def steady_window(steps: int) -> int:
 
 
 def summarize(result: StudyResult) -> dict[str, Any]:
-    """The summary.json content (see README): per strategy steady trace, NEES, timing and the
+    """The summary.json content (docs/results.md): per strategy steady trace, NEES, timing and the
     number of (trial, step) decisions on which the strategy fell back (RAM to RQ)."""
     config = result.config
     lo, hi = nees_band(config.trials)

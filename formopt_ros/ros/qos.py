@@ -99,7 +99,7 @@ def replay_profile(offers: list[bag_qos.Qos]) -> QoSProfile:
 
 
 def describe(profile: QoSProfile) -> str:
-    """'reliable, volatile, keep last 100' (for README tables and --help)."""
+    """'reliable, volatile, keep last 100' (for the docs' tables and --help)."""
     return (f'{profile.reliability.name.lower().replace("_", " ")}, '
             f'{profile.durability.name.lower().replace("_", " ")}, '
             f'keep last {profile.depth}')

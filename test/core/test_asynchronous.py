@@ -156,6 +156,7 @@ def field_trial(seed: int, leader: LeaderPath, noise: RealNoise,
     return np.array(nees), float(np.sqrt(np.mean(np.square(errors[100:])))), counters
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('leader', [LeaderPath(), LeaderPath('s-curve', 1.0, amplitude=0.6,
                                                              period=8.0)],
                          ids=['straight', 's-curve'])

@@ -141,7 +141,7 @@ def test_ekf_consistent_for_observable_strategies(short_study: dict) -> None:
 
     CRM is left out of this 200-step run on purpose: with its weak excitation the EKF's
     linearisation gains spurious information during the transient (NEES ~4 over the first
-    300 steps, ~2.9 afterwards; README, "EKF consistency"); the full study covers it.
+    300 steps, ~2.9 afterwards; docs/results.md); the full study covers it.
     """
     for name in ('ram', 'rq', 'gbs', 'mme'):
         row = short_study['strategies'][name]
@@ -278,7 +278,7 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
 
 def test_report_shows_a_last_bit_difference_as_plus_zero() -> None:
     """RQ's and RAM's study values may differ in the last bit (a reviewer saw '-0.0 %' in the
-    bearing report where README says 0): the report rounds first and shows '+0.0 %'."""
+    bearing report where docs/results.md says 0): the report rounds first and shows '+0.0 %'."""
     from formopt_ros.cli.montecarlo import report_markdown
     summary = summarize(run_study(StudyConfig(RANGE, trials=2, steps=20, seed=3,
                                               strategies=('ram', 'rq')), jobs=1))

@@ -25,7 +25,7 @@ from formopt_ros.ros.nodes.follower_estimator import stamp_ns
 from formopt_ros.wire.messages import estimate_values
 
 LEADER_TOPIC = f'{PREFIX}/leader/odom'
-#: The estimator's defaults for a UWB radio (README, "On real robots").
+#: Settings for a UWB radio (docs/real_robots.md).
 ESTIMATOR = {'bias_sigma': 0.3, 'bias_walk': 0.002, 'huber': 2.5, 'strategy': 'rq',
              'stale_timeout': 1.0}
 

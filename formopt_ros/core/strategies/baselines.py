@@ -68,7 +68,7 @@ class ActiveSideSteps(Strategy):
     controller drives it to a point slightly off the slot. We read that as: while the leader
     drives straight, step sideways by ``amplitude`` r, perpendicular to the leader-follower line
     of sight, switching sides every ``period`` steps; otherwise go to p_o. The defaults (full
-    amplitude, switching every step) are the reading used in README's study.
+    amplitude, switching every step) are the reading used in the study (docs/results.md).
     """
 
     name = 'mme'

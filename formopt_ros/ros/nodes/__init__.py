@@ -2,8 +2,9 @@
 field_sim (simulated real robots), recorder, replay.
 
 ``python -m formopt_ros.ros.nodes --write-configs DIR`` writes every node's documented
-parameters file, ``--readme`` prints README's node reference (topics, frames, parameters); the
-repository's config/ and README are generated this way and checked by the tests.
+parameters file, ``--readme`` prints the node reference of docs/nodes.md (topics, frames,
+parameters); the repository's config/ and docs/nodes.md are generated this way and checked by
+the tests.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ FRAMES = (
 
 
 def readme_text() -> str:
-    """README's node reference: every topic of a formation (name, type, who publishes and
+    """docs/nodes.md's node reference: every topic of a formation (name, type, who publishes and
     reads it, QoS, meaning), the frames, and per node its parameters (default, admissible
     values, whether ``ros2 param set`` may change it)."""
     from formopt_ros.ros import qos
@@ -71,7 +72,7 @@ def readme_text() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write the nodes' parameter files, or print README's node reference."""
+    """Write the nodes' parameter files, or print the node reference of docs/nodes.md."""
     parser = argparse.ArgumentParser(prog='python -m formopt_ros.ros.nodes',
                                      description='Write the documented parameters file of '
                                                  'every node, or print the node reference.')
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument('--write-configs', type=Path, metavar='DIR',
                        help='folder to write <node>.yaml into (existing files are replaced)')
     group.add_argument('--readme', action='store_true',
-                       help="print README's node reference (Markdown)")
+                       help='print the node reference of docs/nodes.md (Markdown)')
     args = parser.parse_args(argv)
     if args.readme:
         print(readme_text(), end='')
