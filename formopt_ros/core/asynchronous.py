@@ -16,9 +16,12 @@ as soon as both robots' odometry reaches its stamp, or once the caller's clock i
 twist (``bridged``). A measurement or odometry stamped at or before the time the state has
 reached is late: dropped and counted. An odometry interval longer than ``max_gap`` (messages
 lost) is integrated with the twist of the message that ends it and counted as a gap. A
-message's velocity noise is held over its whole interval; a piece of it carries its share
-(EstimatorPlanner.propagate, ``spans``). Fed the lockstep stream (odometry on the sub-step
-grid, a measurement after its step's odometry) it performs lockstep's arithmetic.
+message's velocity noise (its twist covariance when given, else the scenario's sigmas) is held
+over its whole interval, so a piece of duration tau of a message's interval T carries the share
+tau / T of its displacement variance: the noise standard deviation is scaled by sqrt(T / tau),
+and the pieces of one message add up to the whole message's noise. Fed the lockstep stream
+(odometry on the sub-step grid, a measurement after its step's odometry) it performs
+lockstep's arithmetic.
 """
 from __future__ import annotations
 
@@ -86,13 +89,19 @@ class TwistTimeline:
 
     samples: list[tuple[int, float, float]] = field(default_factory=list)
     last: tuple[float, float] | None = None
+    #: stamp -> the message's own (sigma_v m/s, sigma_omega rad/s), where it gave them
+    noise: dict[int, tuple[float, float]] = field(default_factory=dict)
 
-    def add(self, stamp_ns: int, v: float, omega: float) -> bool:
-        """Insert one message; False when its stamp is already there."""
+    def add(self, stamp_ns: int, v: float, omega: float,
+            noise: tuple[float, float] | None = None) -> bool:
+        """Insert one message (with its own velocity noise, if known); False when its stamp is
+        already there."""
         index = bisect.bisect_left(self.samples, (stamp_ns,))
         if index < len(self.samples) and self.samples[index][0] == stamp_ns:
             return False
         self.samples.insert(index, (stamp_ns, v, omega))
+        if noise is not None:
+            self.noise[stamp_ns] = noise
         if index == len(self.samples) - 1:
             self.last = (v, omega)
         return True
@@ -117,6 +126,8 @@ class TwistTimeline:
         index = bisect.bisect_right(self.samples, (stamp_ns, np.inf, np.inf))
         if index:
             self.last = self.samples[index - 1][1:]
+            for stamp, _, _ in self.samples[:index]:
+                self.noise.pop(stamp, None)
             del self.samples[:index]
 
 
@@ -152,14 +163,16 @@ class AsyncEstimator:
         self.applied = 0
 
     # --- inputs ------------------------------------------------------------------------------
-    def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float) -> str | None:
-        """The twist ``robot`` ('follower' or 'leader') held up to ``stamp_ns``; the reason
-        when refused (late, duplicate), else None."""
+    def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
+                     noise: tuple[float, float] | None = None) -> str | None:
+        """The twist ``robot`` ('follower' or 'leader') held up to ``stamp_ns``, with its own
+        noise standard deviations (m/s, rad/s; None: the scenario's); the reason when refused
+        (late, duplicate), else None."""
         if stamp_ns <= self.time_ns:
             self.counters.late_odometry += 1
             return f'{robot} odometry stamped {stamp_ns} ns is not after the estimate ' \
                    f'({self.time_ns} ns)'
-        if not self.timelines[robot].add(stamp_ns, v, omega):
+        if not self.timelines[robot].add(stamp_ns, v, omega, noise):
             self.counters.duplicates += 1
             return f'duplicate {robot} odometry stamped {stamp_ns} ns'
         self.counters.odometry += 1
@@ -215,12 +228,8 @@ class AsyncEstimator:
             ends = [s for _, _, s in pieces.values() if s is not None and s < stamp_ns]
             end = min(ends, default=stamp_ns)
             (v_f, omega_f, _), (v_l, omega_l, _) = pieces['follower'], pieces['leader']
-            follower_span, leader_span = (
-                1.0 if s is None else (s - self._previous[robot]) / (end - self.time_ns)
-                for robot, (_, _, s) in pieces.items())
             self.estimator.propagate(v_f, omega_f, v_l, omega_l,
-                                     (end - self.time_ns) / NS_PER_S,
-                                     (follower_span, leader_span))
+                                     (end - self.time_ns) / NS_PER_S, self._noise(pieces, end))
             self.time_ns = end
             for robot, timeline in self.timelines.items():
                 ends_here = pieces[robot][2]
@@ -232,6 +241,24 @@ class AsyncEstimator:
                 timeline.drop_through(end)
         self.counters.bridged += bridged
         return bridged
+
+    def _noise(self, pieces: dict[str, tuple[float, float, int | None]],
+               end: int) -> tuple[float, float, float, float] | None:
+        """The noise standard deviations of the piece (time_ns, end]: each robot's message's
+        own or the scenario's, scaled by sqrt(T / tau) (module docstring); None when the piece
+        is a whole message of each robot with the scenario's noise (the lockstep case)."""
+        s = self.estimator.scenario
+        defaults = {'follower': (s.sigma_v, s.sigma_omega),
+                    'leader': (s.sigma_v_leader, s.sigma_omega_leader)}
+        out: list[float] = []
+        plain = True
+        for robot, (_, _, ends) in pieces.items():
+            sigmas = defaults[robot] if ends is None else \
+                self.timelines[robot].noise.get(ends, defaults[robot])
+            span = 1.0 if ends is None else (ends - self._previous[robot]) / (end - self.time_ns)
+            plain = plain and span == 1.0 and sigmas == defaults[robot]
+            out += [sigmas[0] * float(np.sqrt(span)), sigmas[1] * float(np.sqrt(span))]
+        return None if plain else (out[0], out[1], out[2], out[3])
 
     # --- outputs -----------------------------------------------------------------------------
     def estimate_at(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:

@@ -271,22 +271,18 @@ class EstimatorPlanner:
         return StepPlan(step, solution, command)
 
     def propagate(self, v_f: float, omega_f: float, v_l: float, omega_l: float,
-                  dt: float | None = None, spans: tuple[float, float] = (1.0, 1.0)) -> None:
+                  dt: float | None = None,
+                  noise: tuple[float, float, float, float] | None = None) -> None:
         """EKF propagation over one interval (default: the scenario's sub-step dt, s) with
         follower odometry (v_f m/s, omega_f rad/s) and leader velocity held over it.
 
-        ``spans``: for the follower and the leader, the interval of the odometry message whose
-        twist is held, as a multiple of this one (>= 1 when a message's interval is split,
-        e.g. at a measurement stamp). A message's velocity noise is held over its whole
-        interval, so the piece carries the share tau / T of its displacement variance: the
-        noise standard deviation is scaled by sqrt(T / tau), and the pieces of one message
-        add up to the whole message's noise.
+        ``noise``: the velocity noise standard deviations of this interval (follower v, omega,
+        leader v, omega; m/s and rad/s); default the scenario's.
         """
         s = self.scenario
         dt = s.dt if dt is None else dt
-        follower, leader = (float(np.sqrt(span)) for span in spans)
-        noise = (s.sigma_v * follower, s.sigma_omega * follower, s.sigma_v_leader * leader,
-                 s.sigma_omega_leader * leader)
+        if noise is None:
+            noise = (s.sigma_v, s.sigma_omega, s.sigma_v_leader, s.sigma_omega_leader)
         if self.state.size == 3:
             self.state, self.covariance = propagate(self.state, self.covariance, v_f, omega_f,
                                                     dt, v_l, omega_l, *noise, s.kinematics)

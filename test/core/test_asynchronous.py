@@ -92,6 +92,31 @@ def test_late_duplicate_and_missing_inputs_are_counted() -> None:
     assert c.measurements == 2 and c.odometry == 20
 
 
+def test_odometry_may_carry_its_own_noise() -> None:
+    """A message's own noise equal to the scenario's changes nothing (bit for bit); a larger
+    one, on either robot, gives a larger covariance; a split interval's pieces add up to the
+    whole message's noise (1e-6 relative: the pieces' linearisation points differ)."""
+    scenario = Scenario('range', (-1.0, -2.0), 0.2, 0.1, sigma_v_leader=0.05,
+                        sigma_omega_leader=0.02)
+
+    def run(follower_noise: tuple | None, leader_noise: tuple | None,
+            stamps: tuple[int, ...] = (50 * MS,)) -> np.ndarray:
+        tracker = AsyncEstimator(EstimatorPlanner(scenario, make_strategy('mtf')), 0)
+        tracker.add_odometry('follower', 100 * MS, 1.0, 0.0, follower_noise)
+        tracker.add_odometry('leader', 100 * MS, 1.0, 0.0, leader_noise)
+        for stamp in stamps:
+            tracker.propagate_to(stamp)
+        tracker.propagate_to(100 * MS)
+        return tracker.estimator.P
+
+    plain = run(None, None)
+    assert np.array_equal(run((0.2, 0.1), (0.05, 0.02)), plain)
+    assert np.trace(run((0.4, 0.1), None)) > np.trace(plain)
+    assert np.trace(run(None, (0.5, 0.2))) > np.trace(plain)
+    np.testing.assert_allclose(run(None, None, (10 * MS, 30 * MS, 70 * MS)), run(None, None, ()),
+                               rtol=1e-6)
+
+
 def test_estimate_at_leaves_the_state_alone() -> None:
     """The estimate propagated to a later stamp equals what propagation would give, and the
     state stays at its time."""

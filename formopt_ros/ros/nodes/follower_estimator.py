@@ -197,7 +197,11 @@ class FollowerEstimatorNode(Node):
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
-        self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega)
+        covariance = message.twist.covariance
+        noise = (math.sqrt(covariance[0]), math.sqrt(covariance[35])) \
+            if 0.0 < covariance[0] < math.inf and 0.0 < covariance[35] < math.inf else None
+        self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega,
+                                  noise)
         self._advance()
 
     def on_range(self, message: Range) -> None:
