@@ -17,9 +17,10 @@ NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odo
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
-ROS_STATIC_PEERS to the other computers' addresses). The clocks must agree to well under
-future_tolerance (0.5 s) and stale_timeout (1 s): run chrony or NTP against one server on
-every robot; an offset shows as an ERROR on /diagnostics and ends the run not ok.
+ROS_STATIC_PEERS to the other computers' addresses). The clocks must agree to a few milliseconds
+(chrony or NTP against one server on every robot): a message stamped ahead of this clock by
+more than future_tolerance (0.05 s), or arriving more than reorder_lag (0.1 s) after its stamp,
+is an ERROR on /diagnostics and ends the run not ok.
 EOF
 }
 
@@ -44,7 +45,7 @@ done
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-SUBNET}"
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 pids=()
-stop() { [[ ${#pids[@]} -gt 0 ]] && kill -INT "${pids[@]}" 2>/dev/null; wait; }
+stop() { kill -INT "${pids[@]}" 2>/dev/null; wait; }
 trap stop INT TERM HUP
 if [[ $sim -eq 1 ]]; then
   "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" &
@@ -53,7 +54,8 @@ fi
 "$here/follower_estimator.sh" -r "__ns:=/$robot" -r "leader_odom:=/$leader/odom" \
   -p "leader_frame:=$leader" "$@" &
 pids+=($!)
-wait -n "${pids[@]}" || true
+set +e                                   # the first node to end decides the exit code
+wait -n "${pids[@]}"
 code=$?
 stop
 exit $code

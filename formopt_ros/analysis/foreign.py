@@ -24,7 +24,7 @@ has truth, else [|p| = the first range along -x, 0].
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,7 @@ from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
-from formopt_ros.wire.messages import pose_values
+from formopt_ros.wire.messages import pose_values, twist_noise
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap
 
 
@@ -46,14 +46,19 @@ class ForeignData:
     """The inputs and the truth of a bag, decoded: stamps in ns.
 
     Attributes:
-        odometry: per robot ('follower', 'leader'), (stamp, v m/s, omega rad/s).
+        odometry: per robot ('follower', 'leader'), (stamp, v m/s, omega rad/s, its own noise
+            (sigma_v, sigma_omega) from the twist covariance, or None).
         ranges: (stamp, range m).
         truth: per robot, (stamp, x m, y m, yaw rad) in a fixed frame (empty without truth).
+        refused: messages dropped as the live node drops them: {'not_finite': n,
+            'out_of_range': n}.
     """
 
-    odometry: dict[str, list[tuple[int, float, float]]]
+    odometry: dict[str, list[tuple[int, float, float, tuple[float, float] | None]]]
     ranges: list[tuple[int, float]]
     truth: dict[str, np.ndarray]
+    refused: dict[str, int] = field(default_factory=lambda: {'not_finite': 0,
+                                                             'out_of_range': 0})
 
     def relative_truth(self, stamp: int) -> np.ndarray | None:
         """The follower's true pose in the leader's frame at ``stamp`` (poses interpolated
@@ -80,13 +85,24 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
                            f'(it has: {", ".join(sorted(bag.counts()))})')
         return [m for _, m in bag.decode(topic, type_name)]
 
-    odometry = {robot: [(stamp(m), float(m.twist.twist.linear.x),
-                         float(m.twist.twist.angular.z))
-                        for m in decoded(getattr(topics, f'{robot}_odometry'),
-                                         'nav_msgs/msg/Odometry')]
-                for robot in ('follower', 'leader')}
-    ranges = [(stamp(m), float(m.range)) for m in decoded(topics.range, 'sensor_msgs/msg/Range')
-              if m.min_range <= m.range <= m.max_range and math.isfinite(m.range)]
+    refused = {'not_finite': 0, 'out_of_range': 0}
+    odometry: dict[str, list[tuple[int, float, float, tuple[float, float] | None]]] = {}
+    for robot in ('follower', 'leader'):
+        odometry[robot] = []
+        for m in decoded(getattr(topics, f'{robot}_odometry'), 'nav_msgs/msg/Odometry'):
+            v, omega = float(m.twist.twist.linear.x), float(m.twist.twist.angular.z)
+            if not (math.isfinite(v) and math.isfinite(omega)):
+                refused['not_finite'] += 1
+                continue
+            odometry[robot].append((stamp(m), v, omega, twist_noise(m)))
+    ranges = []
+    for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
+        if not math.isfinite(m.range):
+            refused['not_finite'] += 1
+        elif not m.min_range <= m.range < m.max_range:      # max_range: 'no reading'
+            refused['out_of_range'] += 1
+        else:
+            ranges.append((stamp(m), float(m.range)))
     truth = {}
     if topics.leader_truth and topics.follower_truth:
         for robot in ('leader', 'follower'):
@@ -95,7 +111,7 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
             samples = np.array(sorted(rows), dtype=float)
             samples[:, 3] = np.unwrap(samples[:, 3])
             truth[robot] = samples
-    return ForeignData(odometry, sorted(ranges), truth)
+    return ForeignData(odometry, sorted(ranges), truth, refused)
 
 
 @dataclass
@@ -142,9 +158,10 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
                                RealNoise(s['bias_sigma'], s['bias_walk'], s['huber']))
     filter_.state[:3] = initial
     tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
-    inputs = sorted([(t, 0, robot, (v, w)) for robot, stream in data.odometry.items()
-                     for t, v, w in stream if t > first - 1] +
-                    [(t, 1, 'range', (z,)) for t, z in data.ranges])
+    inputs = sorted([(t, 0, robot, (v, w, noise)) for robot, stream in data.odometry.items()
+                     for t, v, w, noise in stream if t > first - 1] +
+                    [(t, 1, 'range', (z, None, None)) for t, z in data.ranges],
+                    key=lambda item: item[:2])
     result = ForeignResult([], [], [], [], [], {}, None)
     for t, _, kind, values in inputs:
         if kind == 'range':
@@ -161,7 +178,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
                 result.errors.append(float(np.hypot(*state_difference(truth, applied.x)[:2])))
     for applied in tracker.advance(inputs[-1][0] + 10**10):     # the last ones, lag passed
         result.stamps.append(applied.stamp_ns)
-    result.counters = tracker.counters.as_dict()
+    result.counters = {**tracker.counters.as_dict(),
+                       **{f'refused_{k}': v for k, v in data.refused.items()}}
     result.bias = float(filter_.state[3]) if filter_.state.size == 4 else None
     return result
 

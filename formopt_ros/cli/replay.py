@@ -100,12 +100,20 @@ def foreign_main(args: Any) -> int:
     except (BagError, ValueError) as error:
         fail(PROG, str(error))
     counters = summary['counters']
+    dropped = {k: v for k, v in counters.items() if v and k in (
+        'late_odometry', 'late_measurements', 'duplicates', 'refused_not_finite',
+        'refused_out_of_range')}
     print(f"offline estimate of {args.bag} through {args.topic_map}: {summary['ranges']} "
           f"ranges, {counters['odometry']} odometry messages (bridged {counters['bridged']}, "
           f"gaps {counters['gaps']}, gated {counters['gated_measurements']}, down-weighted "
-          f"{counters['downweighted_measurements']})")
+          f"{counters['downweighted_measurements']}"
+          + ''.join(f', {k.replace("_", " ")} {v}' for k, v in dropped.items()) + ')')
     if summary['mean_nees'] is None:
-        print('no ground truth in the topic map: no evaluation')
+        if topics.leader_truth and topics.follower_truth:
+            print(f'no applied range lies within the ground truth\'s time span (after the '
+                  f'first {args.skip}): nothing evaluated', file=sys.stderr)
+            return 1
+        print('the topic map names no ground truth of both robots: no evaluation')
     else:
         bias = summary['final_bias_m']
         print(f"after {args.skip} ranges: mean NEES {summary['mean_nees']:.3f} (3 is "

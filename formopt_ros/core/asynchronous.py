@@ -170,6 +170,9 @@ class AsyncEstimator:
         (late, duplicate), else None."""
         if stamp_ns <= self.time_ns:
             self.counters.late_odometry += 1
+            timeline = self.timelines[robot]
+            if not timeline.samples:          # the freshest twist known, to carry the robot on
+                timeline.last = (v, omega)
             return f'{robot} odometry stamped {stamp_ns} ns is not after the estimate ' \
                    f'({self.time_ns} ns)'
         if not self.timelines[robot].add(stamp_ns, v, omega, noise):
@@ -181,10 +184,13 @@ class AsyncEstimator:
     def add_measurement(self, stamp_ns: int, value: float, variance: float) -> str | None:
         """A range (m) or bearing (rad) with its variance, taken at ``stamp_ns``; the reason
         when refused (late), else None. It is applied by :meth:`advance`."""
-        if stamp_ns <= self.time_ns or any(t == stamp_ns for t, _, _ in self._waiting):
+        if any(t == stamp_ns for t, _, _ in self._waiting):
+            self.counters.duplicates += 1
+            return f'duplicate measurement stamped {stamp_ns} ns'
+        if stamp_ns <= self.time_ns:
             self.counters.late_measurements += 1
             return f'measurement stamped {stamp_ns} ns is not after the estimate ' \
-                   f'({self.time_ns} ns) or repeats one'
+                   f'({self.time_ns} ns)'
         heapq.heappush(self._waiting, (stamp_ns, value, variance))
         return None
 

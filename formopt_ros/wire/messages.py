@@ -50,6 +50,21 @@ def pose_values(pose: Any) -> np.ndarray:
     return np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)])
 
 
+#: Largest twist variance taken from a message, (m/s)^2 or (rad/s)^2: drivers write 1e3 to 1e6
+#: (or -1) for 'unknown', which would be read as sigma = 30-1000 m/s.
+TWIST_VARIANCE_BOUND = 100.0
+
+
+def twist_noise(msg: Any) -> tuple[float, float] | None:
+    """(sigma_v m/s, sigma_omega rad/s) of an Odometry's twist covariance (entries 0 and 35)
+    when both are in (0, TWIST_VARIANCE_BOUND]; None (use the configured noise) otherwise."""
+    covariance = msg.twist.covariance
+    v, omega = float(covariance[0]), float(covariance[35])
+    if 0.0 < v <= TWIST_VARIANCE_BOUND and 0.0 < omega <= TWIST_VARIANCE_BOUND:
+        return math.sqrt(v), math.sqrt(omega)
+    return None
+
+
 def odometry_values(msg: Any) -> tuple[float, float, float, float]:
     """(v m/s, omega rad/s, var_v, var_omega) of an odometry message."""
     return (float(msg.twist.twist.linear.x), float(msg.twist.twist.angular.z),

@@ -35,7 +35,7 @@ def reference_rmse(data: ForeignData, sigma: float = 0.05, range_sigma: float = 
     P = np.diag([0.1, 0.1, 0.01, bias_sigma ** 2])
     twist = {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}
     events = sorted([(t, robot, (v, w)) for robot, stream in data.odometry.items()
-                     for t, v, w in stream if t > start] +
+                     for t, v, w, _ in stream if t > start] +
                     [(t, 'range', (z,)) for t, z in data.ranges])
 
     def step(x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
@@ -66,7 +66,7 @@ def decimated(data: ForeignData, k: int) -> ForeignData:
     """The odometry of a base k times slower: each k messages averaged into one."""
     def slow(stream: list) -> list:
         return [(stream[i][0], float(np.mean([s[1] for s in stream[i - k + 1:i + 1]])),
-                 float(np.mean([s[2] for s in stream[i - k + 1:i + 1]])))
+                 float(np.mean([s[2] for s in stream[i - k + 1:i + 1]])), None)
                 for i in range(k - 1, len(stream), k)]
     return ForeignData({r: slow(s) for r, s in data.odometry.items()}, data.ranges, data.truth)
 

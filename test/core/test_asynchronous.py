@@ -90,6 +90,12 @@ def test_late_duplicate_and_missing_inputs_are_counted() -> None:
     c = tracker.counters
     assert (c.duplicates, c.late_measurements, c.late_odometry, c.bridged) == (1, 1, 1, 1)
     assert c.measurements == 2 and c.odometry == 20
+    assert tracker.add_measurement(600 * MS, 2.2, 0.01) is None
+    assert 'duplicate' in tracker.add_measurement(600 * MS, 2.2, 0.01)
+    assert tracker.counters.duplicates == 2
+    # a late leader message still tells its current twist, on which the leader is carried on
+    tracker.add_odometry('leader', 450 * MS, 0.7, 0.1)
+    assert tracker.timelines['leader'].last == (0.7, 0.1)
 
 
 def test_odometry_may_carry_its_own_noise() -> None:

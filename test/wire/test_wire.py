@@ -15,7 +15,7 @@ from formopt_ros.wire.description import (
     LeaderDescription, RunDescription, follower_differences, leader_differences)
 from formopt_ros.wire.messages import (
     estimate_values, foreign_run, header_ns, measurement_problem, odometry_problem,
-    odometry_values, pose_values, waypoint_mismatch, waypoint_problem, yaw_of)
+    odometry_values, pose_values, twist_noise, waypoint_mismatch, waypoint_problem, yaw_of)
 
 
 def test_topic_table_names() -> None:
@@ -154,3 +154,16 @@ def test_run_id_empty_accepts_any_run() -> None:
     assert follower_differences(mine, recorded) == []
     assert leader_differences(mine, recorded.leader_view()) == []
     assert follower_differences(recorded, mine) == [('run_id', 'run_b40', '')]
+
+
+@pytest.mark.parametrize('variances, expected', [
+    ((0.04, 0.01), (0.2, 0.1)), ((0.0, 0.01), None), ((1e6, 1e6), None), ((-1.0, 0.01), None),
+    ((math.nan, 0.01), None), ((100.0, 100.0), (10.0, 10.0))])
+def test_twist_noise_takes_plausible_covariances_only(variances: tuple, expected: tuple | None
+                                                      ) -> None:
+    """An odometry's own twist variances are used in (0, 100]; 0, -1, NaN and the 1e6 drivers
+    write for 'unknown' fall back to the configured noise (None)."""
+    covariance = [0.0] * 36
+    covariance[0], covariance[35] = variances
+    noise = twist_noise(Msg(twist=Msg(covariance=covariance)))
+    assert noise == (pytest.approx(expected) if expected else None)

@@ -2,6 +2,7 @@
 standard odometry and range messages in; estimate, target, cmd_vel and diagnostics out."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from typing import Any
@@ -26,6 +27,7 @@ from formopt_ros.ros.run_config import (
     DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V,
     SIGMA_V_LEADER, SLOT, SUMMARY_PATH, strategy_options, strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
+from formopt_ros.wire.messages import twist_noise
 
 #: The streams this node watches for staleness.
 STREAMS = ('odom', 'leader_odom', 'range')
@@ -39,20 +41,23 @@ PARAMS = [
     SLOT, DEVIATION, RANGE_SIGMA,
     Param('range_variance', 0.0, 'variance of a range message, m^2 (0: range_sigma^2)', 0.0,
           1e6),
-    SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER, INITIAL_COVARIANCE,
+    SIGMA_V, SIGMA_OMEGA,
+    # a leader's odometry reaches a follower with noise (the simulated leader's is exact)
+    dataclasses.replace(SIGMA_V_LEADER, default=0.05),
+    dataclasses.replace(SIGMA_OMEGA_LEADER, default=0.05), INITIAL_COVARIANCE,
     Param('initial_pose', [0.0], "initial estimate [x m, y m, phi rad] in the leader frame "
           "([0.0]: [slot, 0])", -1e4, 1e4),
     DT,
-    Param('bias_sigma', 0.0, 'initial std of a range-bias state, m (0: none; UWB: about 0.3)',
-          0.0, 100.0),
-    Param('bias_walk', 0.0, 'random walk of the range bias, m/sqrt(s)', 0.0, 10.0),
-    Param('huber', 0.0, 'Huber threshold in innovation standard deviations (0: off; typical '
-          '2-3)', 0.0, 100.0),
+    Param('bias_sigma', 0.3, 'initial std of a range-bias state, m (0: none; UWB radios carry '
+          'biases of 0.1-0.4 m)', 0.0, 100.0),
+    Param('bias_walk', 0.002, 'random walk of the range bias, m/sqrt(s)', 0.0, 10.0),
+    Param('huber', 2.5, 'Huber threshold in innovation standard deviations (0: off)', 0.0,
+          100.0),
     Param('reorder_lag', 0.1, 'longest wait of a range for odometry and earlier ranges, s',
           0.0, 10.0),
     Param('max_gap', 0.5, 'odometry intervals longer than this count as gaps, s', 1e-3, 60.0),
-    Param('future_tolerance', 0.5, 'messages stamped further ahead of this clock are refused '
-          '(clocks out of sync), s', 0.0, 60.0),
+    Param('future_tolerance', 0.05, 'messages stamped further ahead of this clock are refused '
+          '(clocks out of sync: a message cannot arrive before it was stamped), s', 0.0, 60.0),
     Param('stale_timeout', 1.0, 'a stream silent (or stamped behind this clock) this long is an '
           'ERROR (half as long: WARN), and the base stops, s', 0.05, 60.0),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
@@ -62,7 +67,8 @@ PARAMS = [
     Param('max_acceleration', 2.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
     Param('max_yaw_acceleration', 10.0, 'largest yaw acceleration of the base, rad/s^2', 1e-3,
           1e4),
-    *strategy_params(),
+    # the strategy is built once at start: its parameters are read-only here
+    *(dataclasses.replace(spec, read_only=True) for spec in strategy_params()),
     Param('status_period', 1.0, 'publish /diagnostics this often, s', 0.05, 60.0),
     Param('duration', 0.0, 'run this long (node clock, s), then exit (0: until stopped)', 0.0,
           1e9),
@@ -110,7 +116,10 @@ class FollowerEstimatorNode(Node):
         self.variance = p['range_variance'] or scenario.sigma ** 2
         self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0}
         self.newest: dict[str, int | None] = {s: None for s in STREAMS}   # stamps, ns
-        self._reported = {'future': 0, 'bridged': 0}     # counts at the last diagnostics
+        self.delay = {s: 0.0 for s in STREAMS}       # largest arrival - stamp this period, s
+        self.refusal: dict[str, str] = {}            # the last refusal per stream
+        self.first_input_ns: int | None = None
+        self._reported: dict[str, int] = {}          # counts at the last diagnostics
         self.target: np.ndarray | None = None
         self.command = (0.0, 0.0)
         self.stops = 0
@@ -171,6 +180,8 @@ class FollowerEstimatorNode(Node):
             self._refuse('future', stream, f'{stream} stamped {(stamp - now) / NS_PER_S:.3f} s '
                          'ahead of this clock: are the clocks synchronised?')
             return False
+        self.first_input_ns = self.first_input_ns or now
+        self.delay[stream] = max(self.delay[stream], (now - stamp) / NS_PER_S)
         self.newest[stream] = max(stamp, self.newest[stream] or stamp)
         if self.tracker is None:
             self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
@@ -178,6 +189,7 @@ class FollowerEstimatorNode(Node):
 
     def _refuse(self, counter: str, stream: str, text: str) -> None:
         self.refused[counter] += 1
+        self.refusal[stream] = text
         self.throttle.warn(f'{counter}:{stream}', text)
 
     def on_odometry(self, stream: str, message: Odometry) -> None:
@@ -197,22 +209,20 @@ class FollowerEstimatorNode(Node):
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
-        covariance = message.twist.covariance
-        noise = (math.sqrt(covariance[0]), math.sqrt(covariance[35])) \
-            if 0.0 < covariance[0] < math.inf and 0.0 < covariance[35] < math.inf else None
         self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega,
-                                  noise)
+                                  twist_noise(message))
         self._advance()
 
     def on_range(self, message: Range) -> None:
-        """A range: dropped (counted) outside [min_range, max_range] or not finite."""
+        """A range: dropped (counted) outside [min_range, max_range) (drivers report max_range
+        for 'no reading') or not finite."""
         value = float(message.range)
         if not math.isfinite(value):
             self._refuse('not_finite', 'range', 'range: not finite')
             return
-        if not message.min_range <= value <= message.max_range:
+        if not message.min_range <= value < message.max_range:
             self._refuse('out_of_range', 'range', f'range {value:.3f} m outside '
-                         f'[{message.min_range:.3f}, {message.max_range:.3f}] m')
+                         f'[{message.min_range:.3f}, {message.max_range:.3f}) m')
             return
         stamp = stamp_ns(message)
         if not self._accept('range', stamp):
@@ -273,40 +283,57 @@ class FollowerEstimatorNode(Node):
 
     # --- health --------------------------------------------------------------------------------
     def diagnostic_level(self) -> tuple[str, str]:
-        """ERROR: a stream stale beyond stale_timeout, or stamps ahead of this clock since the
-        last report; WARN: a stream older than half of it, or inputs refused or bridged."""
-        ages = self.ages()
-        limit = self.params['stale_timeout']
-        if self.refused['future'] > self._reported['future']:
+        """ERROR: stamps ahead of this clock; inputs arriving later than reorder_lag after
+        their stamps (a clock behind this one, or a slow link: they are dropped as late);
+        a stream silent, or stamped behind this clock, for stale_timeout since input began.
+        WARN: waiting for the first input, a stream older than half the timeout, odometry
+        carried past its last message, gaps, gated ranges."""
+        counters = self.tracker.counters.as_dict() if self.tracker else {}
+        counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
+        new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
+        if new.get('refused_future'):
             return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
+        lag = self.params['reorder_lag']
+        slow = [f'{s} {d:.2f} s' for s, d in self.delay.items() if d > lag]
+        if slow or new.get('late_odometry') or new.get('late_measurements'):
+            return 'ERROR', (f'inputs arrive later than reorder_lag ({lag:g} s) after their '
+                             'stamps and are dropped: a clock behind this one or a slow link'
+                             + (f" ({', '.join(slow)})" if slow else ''))
+        ages, limit = self.ages(), self.params['stale_timeout']
+        if self.first_input_ns is None:
+            return 'WARN', 'waiting for input: ' + ', '.join(STREAMS)
         old = [s for s, a in ages.items() if a is None or a > limit]
-        waiting = (self.now_ns() - self.started_ns) / NS_PER_S <= limit
-        if old and not waiting:
-            return 'ERROR', f"stale (silent or behind this clock for over {limit:g} s): " + \
-                ', '.join(old)
+        started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
+        if old and started:
+            return 'ERROR', f'stale (silent or behind this clock for over {limit:g} s): ' + \
+                ', '.join(s + (f' (its messages are refused: {self.refusal[s]})'
+                               if s in self.refusal else '') for s in old)
         late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
         if late:
             return 'WARN', 'late: ' + ', '.join(late)
-        counters = self.tracker.counters if self.tracker else None
-        if counters and counters.bridged > self._reported['bridged']:
-            return 'WARN', 'odometry carried past its last message (bridged)'
+        for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
+                          ('gaps', f"odometry intervals longer than {self.params['max_gap']:g} "
+                                   's (messages lost)'),
+                          ('gated_measurements', 'ranges refused by the innovation gate')):
+            if new.get(key):
+                return 'WARN', text
         return 'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input'
 
     def publish_diagnostics(self) -> None:
         """/diagnostics every status_period; an ERROR is kept for the summary."""
         level, message = self.diagnostic_level()
         counters = self.tracker.counters.as_dict() if self.tracker else {}
-        self._reported = {'future': self.refused['future'], 'bridged': counters.get('bridged', 0)}
+        self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
+        self.delay = {s: 0.0 for s in STREAMS}
         if level == 'ERROR':
             self.worst = 'ERROR'
-            if message not in self.errors:
+            if message.split(' (')[0] not in [e.split(' (')[0] for e in self.errors]:
                 self.errors.append(message)
                 self.get_logger().error(message)
         elif level == 'WARN' and self.worst == 'OK':
             self.worst = 'WARN'
         values: dict[str, object] = {
-            **counters, **{f'refused_{k}': v for k, v in self.refused.items()},
-            'stops': self.stops, 'unreachable_targets': self.unreachable,
+            **self._reported, 'stops': self.stops, 'unreachable_targets': self.unreachable,
             'weighted_trace_m2': self.estimator.weighted_trace(),
             **{f'age_{s}_s': 'never' if a is None else round(a, 3)
                for s, a in self.ages().items()}}
