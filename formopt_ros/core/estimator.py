@@ -200,6 +200,9 @@ class EstimatorPlanner:
         strategy: a strategy object (``make_strategy(name, **options)``); it may keep state.
         rng: random stream of randomised strategies (CRM).
         noise: range bias state and robust update (:class:`RealNoise`; default: off).
+        sensor_offset: where the range or bearing sensor sits on the follower, [m_x, m_y] (m,
+            body frame; None: at its origin, as in the paper). The filter models it exactly
+            (:func:`~formopt_ros.core.model.sensor_pose`); the planner's problem does not.
 
     The filter's state is the pose [x, y, phi] in {L}, followed by the range bias b (m) when
     ``noise.bias_sigma`` > 0 (range only): ``state`` (n,) and ``covariance`` (n, n); ``x`` and
@@ -207,8 +210,10 @@ class EstimatorPlanner:
     """
 
     def __init__(self, scenario: Scenario, strategy: Strategy,
-                 rng: np.random.Generator | None = None, noise: RealNoise = RealNoise()) -> None:
+                 rng: np.random.Generator | None = None, noise: RealNoise = RealNoise(),
+                 sensor_offset: tuple[float, float] | None = None) -> None:
         self.scenario = scenario
+        self.sensor_offset = sensor_offset
         self.strategy = strategy
         self.rng = rng
         self.noise = noise
@@ -304,7 +309,7 @@ class EstimatorPlanner:
         s = self.scenario
         variance = s.sigma ** 2 if variance is None else variance
         x, P, innovation, S = ekf_update(self.state, self.covariance, z, s.measurement,
-                                         variance)
+                                         variance, self.sensor_offset)
         nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row)
         if not use:
             self.gated_in_a_row += 1
@@ -314,7 +319,8 @@ class EstimatorPlanner:
             weight = self.noise.huber / float(np.sqrt(nis))
         if inflation > 1.0 or weight < 1.0:
             x, P, innovation, S = ekf_update(self.state, inflation * self.covariance, z,
-                                             s.measurement, variance / weight)
+                                             s.measurement, variance / weight,
+                                             self.sensor_offset)
         self.gated_in_a_row = 0
         self.state, self.covariance = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))

@@ -1,5 +1,6 @@
 """A simulated pair of real robots: bases that report odometry at their own rates and a UWB
-radio with bias, timing jitter, heavy-tailed outliers and dropouts; the truth in a fixed frame.
+radio (bias, timing jitter, heavy-tailed outliers, dropouts) or a camera measuring the bearing
+to the leader from where it is mounted; the truth in a fixed frame.
 
 The true motion is exact (each robot drives arcs of its true twist, held over each of its
 odometry periods); the follower's true twist is its command plus Gaussian noise (sigma_v,
@@ -48,13 +49,30 @@ class Radio:
     dropout_rate: float = 0.01
 
 
+@dataclass(frozen=True)
+class Camera:
+    """A bearing sensor mounted at ``mount`` = (x m, y m, yaw rad) on the follower: the
+    leader's direction from there, in its own frame, at ``rate_hz`` with timing jitter,
+    Gaussian noise (rad), a share of false detections (a uniform bearing) and of dropouts."""
+
+    rate_hz: float = 15.0
+    jitter_s: float = 0.005
+    sigma: float = 0.02
+    mount: tuple[float, float, float] = (0.1, 0.0, 0.0)
+    outlier_rate: float = 0.0
+    dropout_rate: float = 0.01
+
+
+Sensor = Radio | Camera
+
+
 @dataclass
 class FieldRun:
     """What the robots sent, and the truth.
 
     Attributes:
         follower_odometry, leader_odometry: (stamp ns, v m/s, omega rad/s) per message.
-        ranges: (stamp ns, range m) per range sent.
+        ranges: (stamp ns, range m or bearing rad in the camera frame) per measurement sent.
         truth: stamp ns -> true pose [x, y, phi] of the follower in the leader's frame, at
             each range stamp (sent or dropped).
         outliers: ranges sent with an outlier; dropouts: ranges not sent.
@@ -90,11 +108,12 @@ class FieldWorld:
 
     def __init__(self, start: np.ndarray, leader_twist: Callable[[float], tuple[float, float]],
                  rng: np.random.Generator, duration_s: float, follower_base: Base = Base(),
-                 leader_base: Base = Base(), radio: Radio = Radio()) -> None:
+                 leader_base: Base = Base(), sensor: Sensor = Radio()) -> None:
         self.leader: Pose = (0.0, 0.0, 0.0)
         self.follower: Pose = (float(start[0]), float(start[1]), float(start[2]))
         self.leader_twist, self.rng = leader_twist, rng
-        self.follower_base, self.leader_base, self.radio = follower_base, leader_base, radio
+        self.follower_base, self.leader_base, self.sensor = follower_base, leader_base, sensor
+        self.kind = 'range' if isinstance(sensor, Radio) else 'bearing'
         self.time = 0.0
         self.command = (0.0, 0.0)          # the follower's command over its current period
         self._noise_f = _noisy((0.0, 0.0), follower_base, rng)   # true twist - command
@@ -106,8 +125,8 @@ class FieldWorld:
              for k in range(1, int(duration_s * follower_base.rate_hz))]
             + [(leader_base.offset_s + k / leader_base.rate_hz, 'leader')
                for k in range(1, int(duration_s * leader_base.rate_hz))]
-            + [(k / radio.rate_hz + rng.uniform(-radio.jitter_s, radio.jitter_s), 'range')
-               for k in range(1, int(duration_s * radio.rate_hz))], reverse=True)
+            + [(k / sensor.rate_hz + rng.uniform(-sensor.jitter_s, sensor.jitter_s), self.kind)
+               for k in range(1, int(duration_s * sensor.rate_hz))], reverse=True)
 
     def relative(self) -> np.ndarray:
         """The follower's true pose [x, y, phi] in the leader's frame now."""
@@ -119,7 +138,8 @@ class FieldWorld:
 
     def step(self) -> tuple[str, int, tuple[float, ...]] | None:
         """Advance to the next event and return what it sends: ('follower' or 'leader', stamp
-        ns, (v, omega)) odometry, ('range', stamp ns, (range m,)), or ('dropout', stamp, ());
+        ns, (v, omega)) odometry, ('range', stamp ns, (range m,)), ('bearing', stamp ns,
+        (bearing rad in the camera frame,)), or ('dropout', stamp, ());
         None when no event is left. A follower odometry event ends the period of the current
         command: set ``command`` for the next one after it."""
         if not self._events:
@@ -138,14 +158,24 @@ class FieldWorld:
             self._reported_l = self.leader_twist(when)
             self._true_l = _noisy(self._reported_l, self.leader_base, self.rng)
             return what, stamp, sent
-        radio, pose = self.radio, self.relative()
-        if self.rng.uniform() < radio.dropout_rate:
+        sensor, pose = self.sensor, self.relative()
+        if self.rng.uniform() < sensor.dropout_rate:
             self.dropouts += 1
             return 'dropout', stamp, ()
-        value = math.hypot(pose[0], pose[1]) + radio.bias + radio.sigma * self.rng.normal()
-        if self.rng.uniform() < radio.outlier_rate:
+        if isinstance(sensor, Camera):
+            x, y, yaw = sensor.mount
+            c, s = math.cos(self.follower[2]), math.sin(self.follower[2])
+            at = (self.follower[0] + c * x - s * y, self.follower[1] + s * x + c * y)
+            value = math.atan2(self.leader[1] - at[1], self.leader[0] - at[0]) - \
+                self.follower[2] - yaw + sensor.sigma * self.rng.normal()
+            if self.rng.uniform() < sensor.outlier_rate:
+                self.outliers += 1
+                value = self.rng.uniform(-math.pi, math.pi)
+            return 'bearing', stamp, (float(wrap_angle(value)),)
+        value = math.hypot(pose[0], pose[1]) + sensor.bias + sensor.sigma * self.rng.normal()
+        if self.rng.uniform() < sensor.outlier_rate:
             self.outliers += 1
-            value += self.rng.uniform(radio.outlier_low, radio.outlier_high)
+            value += self.rng.uniform(sensor.outlier_low, sensor.outlier_high)
         return 'range', stamp, (value,)
 
 
@@ -153,10 +183,10 @@ def simulate_field(duration_s: float, start: np.ndarray,
                    leader_twist: Callable[[float], tuple[float, float]],
                    follower_command: Callable[[float, np.ndarray], tuple[float, float]],
                    rng: np.random.Generator, follower_base: Base = Base(),
-                   leader_base: Base = Base(), radio: Radio = Radio()) -> FieldRun:
+                   leader_base: Base = Base(), sensor: Sensor = Radio()) -> FieldRun:
     """Simulate ``duration_s`` seconds of :class:`FieldWorld`; ``follower_command``: (t s, true
     relative pose) -> the follower's command for its odometry period from t."""
-    world = FieldWorld(start, leader_twist, rng, duration_s, follower_base, leader_base, radio)
+    world = FieldWorld(start, leader_twist, rng, duration_s, follower_base, leader_base, sensor)
     world.command = follower_command(0.0, world.relative())
     out = FieldRun()
     while (event := world.step()) is not None:
@@ -168,7 +198,7 @@ def simulate_field(duration_s: float, start: np.ndarray,
             out.leader_odometry.append((stamp, values[0], values[1]))
         else:
             out.truth[stamp] = world.relative()
-            if what == 'range':
+            if what in ('range', 'bearing'):
                 out.ranges.append((stamp, values[0]))
     out.outliers, out.dropouts = world.outliers, world.dropouts
     return out
@@ -180,4 +210,4 @@ def _noisy(twist: tuple[float, float], base: Base,
     return (twist[0] + base.sigma_v * rng.normal(), twist[1] + base.sigma_omega * rng.normal())
 
 
-__all__ = ['Base', 'FieldRun', 'FieldWorld', 'Radio', 'relative_pose', 'simulate_field']
+__all__ = ['Base', 'Camera', 'FieldRun', 'FieldWorld', 'Radio', 'relative_pose', 'simulate_field']

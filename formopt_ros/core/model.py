@@ -314,8 +314,50 @@ def measurement_jacobian(kind: str, x: np.ndarray) -> np.ndarray:
     return stack_vector(-py / d2, px / d2, -1.0 + 0.0 * d2)
 
 
-def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str,
-               variance: float) -> tuple[np.ndarray, np.ndarray, Any, Any]:
+def sensor_pose(x: np.ndarray, offset: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """A sensor mounted at ``offset`` [m_x, m_y] (m, in the follower's body frame): its pose
+    [p + C(phi) m, phi] in {L}, (3,), and the Jacobian (3, 3) of that pose w.r.t. the
+    follower's [x, y, phi]; a measurement taken there has the Jacobian h(pose) times it."""
+    c, s = math.cos(float(x[2])), math.sin(float(x[2]))
+    mx, my = offset
+    pose = np.array([x[0] + c * mx - s * my, x[1] + s * mx + c * my, x[2]])
+    jacobian = np.array([[1.0, 0.0, -s * mx - c * my], [0.0, 1.0, c * mx - s * my],
+                         [0.0, 0.0, 1.0]])
+    return pose, jacobian
+
+
+def rotation_matrix(quaternion: tuple[float, float, float, float]) -> np.ndarray:
+    """The rotation (3, 3) of a unit quaternion (x, y, z, w), as geometry_msgs orders it."""
+    x, y, z, w = np.asarray(quaternion, dtype=float) / np.linalg.norm(quaternion)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def rpy_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """The quaternion (x, y, z, w) of fixed-axis roll, pitch, yaw (rad), as in ROS (tf2)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+def direction_bearing(direction: tuple[float, float, float],
+                      rotation: np.ndarray) -> float | None:
+    """The bearing (rad, wrapped) of a direction (any length) seen in a sensor frame, in a
+    frame parallel to the follower's body frame: atan2 of the direction turned by the sensor's
+    mounting ``rotation`` (3, 3; body from sensor). None when it points (nearly) straight up or
+    down, where no bearing exists."""
+    u = rotation @ np.asarray(direction, dtype=float)
+    if not math.hypot(u[0], u[1]) > 1e-6 * float(np.linalg.norm(u)):
+        return None
+    return float(wrap_angle(math.atan2(u[1], u[0])))
+
+
+def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str, variance: float,
+               offset: tuple[float, float] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, Any, Any]:
     """EKF measurement update, eq. (19), in Joseph form (stays symmetric positive definite).
 
     Args:
@@ -325,6 +367,9 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str,
         z: measured range (m) or bearing (rad): a float, or an array (T,).
         kind: 'range' or 'bearing'.
         variance: measurement noise variance, m^2 or rad^2.
+        offset: one pose only: the sensor's position [m_x, m_y] on the follower (m, body
+            frame; :func:`sensor_pose`); the measurement is taken there (a bearing in a frame
+            parallel to the body's). None: at the follower's origin, as in the paper.
 
     Returns:
         (x_post, P_post, innovation, innovation_variance); bearing innovations are wrapped.
@@ -332,8 +377,13 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str,
         gets alone.
     """
     n = x.shape[-1]
-    h = measurement_jacobian(kind, x[..., :3])
-    innovation = z - predict_measurement(kind, x[..., :3])
+    if offset is None:
+        h = measurement_jacobian(kind, x[..., :3])
+        innovation = z - predict_measurement(kind, x[..., :3])
+    else:
+        pose, jacobian = sensor_pose(x, offset)
+        h = measurement_jacobian(kind, pose) @ jacobian
+        innovation = z - predict_measurement(kind, pose)
     if kind == BEARING:
         innovation = wrap_angle(innovation)
     if n == 4:                                      # the range bias b enters with slope 1

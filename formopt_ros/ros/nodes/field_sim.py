@@ -1,20 +1,25 @@
 """field_sim: a simulated pair of real robots for follower_estimator: a differential-drive
-follower driven by cmd_vel, a leader on its path, their odometry and a UWB radio, in real time."""
+follower driven by cmd_vel, a leader on its path, their odometry and a UWB radio or a camera,
+in real time."""
 from __future__ import annotations
 
+import math
 import sys
+from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped, Twist
+from geometry_msgs.msg import PoseStamped, TransformStamped, Twist, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Range
+from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.controller import Limits, limited
-from formopt_ros.core.field import Base, FieldWorld, Radio
+from formopt_ros.core.field import Base, Camera, FieldWorld, Radio
+from formopt_ros.core.model import rpy_quaternion
 from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
-from formopt_ros.ros import conversions
+from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import PATH_PARAMS, SLOT, leader_path_from
 from formopt_ros.ros.runtime import node_main
@@ -23,8 +28,20 @@ from formopt_ros.ros.runtime import node_main
 RANGE_LIMITS = (0.05, 50.0)
 
 PARAMS = [
+    Param('sensor', 'range', 'the follower\'s sensor: range (a UWB radio, sensor_msgs/Range on '
+          'range) or bearing (a camera, geometry_msgs/Vector3Stamped toward the leader on '
+          'bearing)', choices=('range', 'bearing')),
     SLOT, *PATH_PARAMS,
     Param('leader_odom_topic', '/leader/odom', "where the leader's odometry is published"),
+    Param('publish_leader', True, "publish the leader's odometry (in a formation, one field_sim "
+          'does; all simulate the same leader when they share start_time)'),
+    Param('start_time', 0.0, 'the simulated world starts at this time of the node clock, s since '
+          'the epoch (0: when the node starts; the same value makes several field_sims share '
+          'one leader)', 0.0, 1e10),
+    Param('base_frame', 'base_link', "the follower base's frame (child_frame_id of odom)"),
+    Param('sensor_frame', '', "frame of the measurements ('': uwb for range, camera for "
+          'bearing); the camera\'s mount is published on /tf_static as base_frame -> '
+          'sensor_frame'),
     Param('odom_rate', 50.0, "follower odometry rate, Hz", 1.0, 1000.0),
     Param('leader_odom_rate', 50.0, "leader odometry rate, Hz", 1.0, 1000.0),
     Param('leader_odom_offset', 0.007, "phase of the leader's odometry clock, s", 0.0, 1.0),
@@ -37,7 +54,11 @@ PARAMS = [
     Param('range_bias', 0.1, 'range bias, m', -10.0, 10.0),
     Param('outlier_rate', 0.02, 'share of ranges with +U(1, 3) m added (non-line-of-sight)',
           0.0, 1.0),
-    Param('dropout_rate', 0.01, 'share of ranges not sent', 0.0, 1.0),
+    Param('dropout_rate', 0.01, 'share of measurements not sent', 0.0, 1.0),
+    Param('bearing_rate', 15.0, 'camera rate, Hz', 0.1, 1000.0),
+    Param('bearing_sigma', 0.02, 'camera bearing noise std, rad', 0.0, 3.2),
+    Param('camera_mount', [0.1, 0.0, 0.0], "the camera's pose on the base, [x m, y m, yaw rad]",
+          -100.0, 100.0),
     Param('latency', 0.02, 'delay between a cmd_vel message and the base executing it, s', 0.0,
           1.0),
     Param('max_speed', 2.5, 'largest forward speed of the base, m/s', 1e-3, 100.0),
@@ -54,7 +75,9 @@ PARAMS = [
 SUMMARY = ('Two simulated real robots in real time: the follower base executes cmd_vel (limits, '
            'latency, noise) and publishes nav_msgs/Odometry (odom) at its rate, the leader its '
            'odometry on leader_odom_topic, a UWB radio sensor_msgs/Range (range: bias, jitter, '
-           'outliers, dropouts); truth (PoseStamped in the leader frame) at each range time.')
+           'outliers, dropouts) or a camera geometry_msgs/Vector3Stamped toward the leader '
+           '(bearing, its mount on /tf_static); truth (PoseStamped in the leader frame) at each '
+           'measurement time.')
 
 
 class FieldSimNode(Node):
@@ -67,9 +90,9 @@ class FieldSimNode(Node):
         self.params = p = declare(self, PARAMS)
         slot = Scenario.paper('range').p_o if p['formation_slot'] == [0.0] else \
             tuple(p['formation_slot'])
-        if len(slot) != 2 or len(p['leader_outage']) != 2:
+        if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3:
             raise ParameterError("parameters 'formation_slot' and 'leader_outage' take two "
-                                 'numbers')
+                                 "numbers, 'camera_mount' three")
         path = leader_path_from(p)
         step = 1.0 / p['leader_odom_rate']
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
@@ -80,19 +103,44 @@ class FieldSimNode(Node):
             lambda t: path.velocity(int(round(t / step)), step), np.random.default_rng(p['seed']),
             p['duration'], Base(p['odom_rate'], 0.0, p['sigma_v'], p['sigma_omega']),
             Base(p['leader_odom_rate'], p['leader_odom_offset']),
-            Radio(p['range_rate'], p['range_jitter'], p['range_sigma'], p['range_bias'],
-                  p['outlier_rate'], dropout_rate=p['dropout_rate']))
+            self._sensor(p))
         self.commands: list[tuple[int, float, float]] = []     # (received ns, v, omega)
         self.executed = (0.0, 0.0)
-        self.start_ns = int(self.get_clock().now().nanoseconds)
+        self.start_ns = int(p['start_time'] * NS_PER_S) or int(self.get_clock().now().nanoseconds)
+        self.sensor_frame = p['sensor_frame'] or ('uwb' if p['sensor'] == 'range' else 'camera')
         self.odom_pub = self.create_publisher(Odometry, 'odom', 10)
         self.leader_pub = self.create_publisher(Odometry, p['leader_odom_topic'], 10)
-        self.range_pub = self.create_publisher(Range, 'range', 10)
+        if p['sensor'] == 'range':
+            self.range_pub = self.create_publisher(Range, 'range', 10)
+        else:
+            self.bearing_pub = self.create_publisher(Vector3Stamped, 'bearing', 10)
+            self._publish_mount()
         self.truth_pub = self.create_publisher(PoseStamped, 'truth', 10)
         self.create_subscription(Twist, 'cmd_vel', self.on_cmd_vel, 10)
         self.create_timer(0.002, self.tick)
         self.finished = False
-        self.sent = {'odom': 0, 'leader_odom': 0, 'range': 0, 'dropouts': 0}
+        self.sent = {'odom': 0, 'leader_odom': 0, p['sensor']: 0, 'dropouts': 0}
+
+    @staticmethod
+    def _sensor(p: dict[str, Any]) -> Radio | Camera:
+        if p['sensor'] == 'range':
+            return Radio(p['range_rate'], p['range_jitter'], p['range_sigma'], p['range_bias'],
+                         p['outlier_rate'], dropout_rate=p['dropout_rate'])
+        return Camera(p['bearing_rate'], p['range_jitter'], p['bearing_sigma'],
+                      tuple(p['camera_mount']), dropout_rate=p['dropout_rate'])
+
+    def _publish_mount(self) -> None:
+        """The camera's mount on /tf_static (transient local: late joiners get it)."""
+        x, y, yaw = self.params['camera_mount']
+        transform = TransformStamped(header=conversions.header(
+            self.get_clock().now().to_msg(), self.params['base_frame']),
+            child_frame_id=self.sensor_frame)
+        transform.transform.translation.x, transform.transform.translation.y = x, y
+        q = transform.transform.rotation
+        q.x, q.y, q.z, q.w = rpy_quaternion(0.0, 0.0, yaw)
+        self.tf_static_pub = self.create_publisher(TFMessage, '/tf_static',
+                                                   qos.profile('tf_static'))
+        self.tf_static_pub.publish(TFMessage(transforms=[transform]))
 
     def on_cmd_vel(self, message: Twist) -> None:
         """Keep the command with its arrival time (executed after the latency)."""
@@ -115,6 +163,8 @@ class FieldSimNode(Node):
     def tick(self) -> None:
         """Play every event up to now."""
         now = int(self.get_clock().now().nanoseconds) - self.start_ns
+        if now < 0:
+            return
         while (when := self.world.next_time()) is not None and when * NS_PER_S <= now:
             what, stamp, values = self.world.step()       # type: ignore[misc]
             self._publish(what, stamp, values)
@@ -125,14 +175,14 @@ class FieldSimNode(Node):
         p = self.params
         time = conversions.stamp(self.start_ns + stamp)
         if what == 'follower':
-            self.odom_pub.publish(conversions.odometry(time, 'odom', 'base_link',
+            self.odom_pub.publish(conversions.odometry(time, 'odom', p['base_frame'],
                                                        self.world.follower, values[0],
                                                        values[1]))
             self.sent['odom'] += 1
             self.world.command = self._due_command(self.start_ns + stamp)
         elif what == 'leader':
             start, end = p['leader_outage']
-            if not start <= stamp / NS_PER_S < end:
+            if p['publish_leader'] and not start <= stamp / NS_PER_S < end:
                 shifted = conversions.stamp(self.start_ns + stamp +
                                             int(p['leader_clock_offset'] * NS_PER_S))
                 self.leader_pub.publish(conversions.odometry(
@@ -143,12 +193,17 @@ class FieldSimNode(Node):
                                                             self.world.relative()))
             if what == 'range':
                 # sensor_msgs/Range knows no radio: INFRARED is the closest of its two types
-                message = Range(header=conversions.header(time, 'uwb'),
+                message = Range(header=conversions.header(time, self.sensor_frame),
                                 radiation_type=Range.INFRARED, field_of_view=6.28,
                                 min_range=RANGE_LIMITS[0], max_range=RANGE_LIMITS[1],
                                 range=float(values[0]))
                 self.range_pub.publish(message)
                 self.sent['range'] += 1
+            elif what == 'bearing':
+                direction = Vector3Stamped(header=conversions.header(time, self.sensor_frame))
+                direction.vector.x, direction.vector.y = math.cos(values[0]), math.sin(values[0])
+                self.bearing_pub.publish(direction)
+                self.sent['bearing'] += 1
             else:
                 self.sent['dropouts'] += 1
 

@@ -9,36 +9,47 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, Twist
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, Twist, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Range
+from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
 from formopt_ros.core.controller import Limits, required_velocity, twist_toward
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
+from formopt_ros.core.model import direction_bearing, rotation_matrix, rpy_quaternion
 from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
-    DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V,
-    SIGMA_V_LEADER, SLOT, SUMMARY_PATH, strategy_options, strategy_params)
+    BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SIGMA_OMEGA,
+    SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH, strategy_options,
+    strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
 from formopt_ros.wire.messages import twist_noise
 
-#: The streams this node watches for staleness.
-STREAMS = ('odom', 'leader_odom', 'range')
+#: The sensors a follower may carry (its measurement stream is named after the sensor).
+SENSORS = ('range', 'bearing')
 
 PARAMS = [
+    Param('sensor', 'range', 'what the follower measures: range (sensor_msgs/Range on range) '
+          'or bearing (geometry_msgs/Vector3Stamped on bearing: a direction toward the leader '
+          'in the sensor frame)', choices=SENSORS),
     Param('leader_frame', 'leader', "frame id of the published estimate and target (the "
           "leader's body frame)"),
+    Param('base_frame', 'base_link', "the follower's body frame: the parent of the sensor's "
+          'mounting transform on /tf_static'),
+    Param('sensor_mount', [0.0], "the sensor frame's pose on the follower, [x m, y m, z m, "
+          'roll rad, pitch rad, yaw rad] ([0.0]: from /tf_static, base_frame to the '
+          "measurement's frame_id; a measurement in base_frame needs none)", -100.0, 100.0),
     Param('follower_child_frame', '', "child_frame_id the follower's odometry must carry "
           "('': any)"),
     Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
-    SLOT, DEVIATION, RANGE_SIGMA,
+    SLOT, DEVIATION, RANGE_SIGMA, BEARING_SIGMA,
     Param('range_variance', 0.0, 'variance of a range message, m^2 (0: range_sigma^2)', 0.0,
           1e6),
     SIGMA_V, SIGMA_OMEGA,
@@ -48,8 +59,8 @@ PARAMS = [
     Param('initial_pose', [0.0], "initial estimate [x m, y m, phi rad] in the leader frame "
           "([0.0]: [slot, 0])", -1e4, 1e4),
     DT,
-    Param('bias_sigma', 0.3, 'initial std of a range-bias state, m (0: none; UWB radios carry '
-          'biases of 0.1-0.4 m)', 0.0, 100.0),
+    Param('bias_sigma', 0.3, 'range only: initial std of a range-bias state, m (0: none; UWB '
+          'radios carry biases of 0.1-0.4 m)', 0.0, 100.0),
     Param('bias_walk', 0.002, 'random walk of the range bias, m/sqrt(s)', 0.0, 10.0),
     Param('huber', 2.5, 'Huber threshold in innovation standard deviations (0: off)', 0.0,
           100.0),
@@ -96,13 +107,17 @@ class FollowerEstimatorNode(Node):
         self.params = p = declare(self, PARAMS)
         check_output_path('summary_path', p['summary_path'], may_exist=False)
         self.scenario = scenario = self._scenario(p)
+        self.sensor = sensor = p['sensor']
+        self.streams = ('odom', 'leader_odom', sensor)
         try:
-            noise = RealNoise(p['bias_sigma'], p['bias_walk'], p['huber'])
+            noise = RealNoise(p['bias_sigma'] if sensor == 'range' else 0.0, p['bias_walk'],
+                              p['huber'])
         except ValueError as error:
             raise ParameterError(str(error)) from None
         strategy = make_strategy(p['strategy'], **strategy_options(p['strategy'], p))
         strategy.prepare(scenario)
         self.estimator = EstimatorPlanner(scenario, strategy, np.random.default_rng(0), noise)
+
         if p['initial_pose'] != [0.0]:
             if len(p['initial_pose']) != 3:
                 raise ParameterError("parameter 'initial_pose' must be [x, y, phi] or [0.0], "
@@ -113,10 +128,21 @@ class FollowerEstimatorNode(Node):
         self.settings = AsyncSettings(int(p['reorder_lag'] * NS_PER_S),
                                       int(p['max_gap'] * NS_PER_S))
         self.tracker: AsyncEstimator | None = None         # starts with the first message
-        self.variance = p['range_variance'] or scenario.sigma ** 2
-        self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0}
-        self.newest: dict[str, int | None] = {s: None for s in STREAMS}   # stamps, ns
-        self.delay = {s: 0.0 for s in STREAMS}       # largest arrival - stamp this period, s
+        self.variance = (p['range_variance'] if sensor == 'range' else 0.0) or \
+            scenario.sigma ** 2
+        self.mounts: dict[str, tuple[tuple[float, float], np.ndarray]] = {}   # frame -> mount
+        self.sensor_frame: str | None = None       # the frame of the first measurement
+        self.fixed_mount: tuple[tuple[float, float], np.ndarray] | None = None
+        if p['sensor_mount'] != [0.0]:
+            if len(p['sensor_mount']) != 6:
+                raise ParameterError("parameter 'sensor_mount' must be [x, y, z, roll, pitch, "
+                                     f"yaw] or [0.0], got {p['sensor_mount']!r}")
+            x, y, _, *rpy = p['sensor_mount']
+            self.fixed_mount = ((x, y), rotation_matrix(rpy_quaternion(*rpy)))
+        self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0,
+                        'no_mount': 0}
+        self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
+        self.delay = {s: 0.0 for s in self.streams}  # largest arrival - stamp this period, s
         self.refusal: dict[str, str] = {}            # the last refusal per stream
         self.first_input_ns: int | None = None
         self._reported: dict[str, int] = {}          # counts at the last diagnostics
@@ -141,18 +167,24 @@ class FollowerEstimatorNode(Node):
         self.create_subscription(Odometry, 'leader_odom',
                                  lambda m: self.on_odometry('leader_odom', m),
                                  qos_profile_sensor_data)
-        self.create_subscription(Range, 'range', self.on_range, qos_profile_sensor_data)
+        if sensor == 'range':
+            self.create_subscription(Range, 'range', self.on_range, qos_profile_sensor_data)
+        else:
+            self.create_subscription(Vector3Stamped, 'bearing', self.on_bearing,
+                                     qos_profile_sensor_data)
+        self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
+                                 qos.profile('tf_static'))
         self.create_timer(2.0 * scenario.dt, self.plan)
         self.create_timer(1.0 / p['control_rate'], self.control)
         self.create_timer(p['status_period'], self.publish_diagnostics)
         self.frame = frame
-        self.get_logger().info(f'follower_estimator ready (range, strategy {strategy.name}, '
+        self.get_logger().info(f'follower_estimator ready ({sensor}, strategy {strategy.name}, '
                                f'slot {list(scenario.p_o)} m in {frame!r})')
 
     @staticmethod
     def _scenario(p: dict[str, Any]) -> Scenario:
         slot = p['formation_slot']
-        p_o = Scenario.paper('range').p_o if slot == [0.0] else tuple(slot)
+        p_o = Scenario.paper(p['sensor']).p_o if slot == [0.0] else tuple(slot)
         if len(p_o) != 2:
             raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
                                  f'{slot!r}')
@@ -160,8 +192,8 @@ class FollowerEstimatorNode(Node):
             raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] "
                                  f"variances, got {p['initial_covariance']!r}")
         try:
-            return Scenario('range', p_o, p['deviation_fraction'] * math.hypot(*p_o),
-                            p['range_sigma'], dt=p['dt'], sigma_v=p['sigma_v'],
+            return Scenario(p['sensor'], p_o, p['deviation_fraction'] * math.hypot(*p_o),
+                            p[f"{p['sensor']}_sigma"], dt=p['dt'], sigma_v=p['sigma_v'],
                             sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
                             sigma_omega_leader=p['sigma_omega_leader'],
                             initial_covariance=tuple(p['initial_covariance']))
@@ -224,8 +256,61 @@ class FollowerEstimatorNode(Node):
             self._refuse('out_of_range', 'range', f'range {value:.3f} m outside '
                          f'[{message.min_range:.3f}, {message.max_range:.3f}) m')
             return
-        stamp = stamp_ns(message)
-        if not self._accept('range', stamp):
+        if self._mount('range', message.header.frame_id) is None:
+            return
+        self._measure('range', stamp_ns(message), value)
+
+    def on_bearing(self, message: Vector3Stamped) -> None:
+        """A direction toward the leader in the sensor frame (any length), turned into a
+        bearing in the body frame's orientation by the sensor's mounting rotation."""
+        v = message.vector
+        if not all(math.isfinite(c) for c in (v.x, v.y, v.z)):
+            self._refuse('not_finite', 'bearing', 'bearing: direction is not finite')
+            return
+        mount = self._mount('bearing', message.header.frame_id)
+        if mount is None:
+            return
+        value = direction_bearing((v.x, v.y, v.z), mount[1])
+        if value is None:
+            self._refuse('out_of_range', 'bearing', 'bearing: the direction is vertical in the '
+                         'body frame (no bearing)')
+            return
+        self._measure('bearing', stamp_ns(message), value)
+
+    def on_tf_static(self, message: TFMessage) -> None:
+        """Mounting poses: base_frame -> sensor frame transforms (yaw, pitch, roll and the
+        horizontal offset are used)."""
+        for transform in message.transforms:
+            if transform.header.frame_id != self.params['base_frame']:
+                continue
+            t, q = transform.transform.translation, transform.transform.rotation
+            self.mounts[transform.child_frame_id] = (
+                (t.x, t.y), rotation_matrix((q.x, q.y, q.z, q.w)))
+
+    def _mount(self, stream: str, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
+        """The mounting pose of the measurement frame ``frame``: the parameter, the body frame
+        itself (none), or /tf_static; refused (counted) when unknown or when the sensor's frame
+        changes. Ranges from an unknown frame are taken at the body origin."""
+        if self.sensor_frame is not None and frame != self.sensor_frame:
+            self._refuse('frame', stream, f'{stream}: frame_id {frame!r} is not the sensor '
+                         f'frame {self.sensor_frame!r} of the first measurement')
+            return None
+        mount = self.fixed_mount or self.mounts.get(frame)
+        if mount is None and (frame in ('', self.params['base_frame']) or stream == 'range'):
+            mount = ((0.0, 0.0), np.eye(3))
+        if mount is None:
+            self._refuse('no_mount', stream, f"{stream}: no mounting pose for frame {frame!r}: "
+                         f"set sensor_mount or publish {self.params['base_frame']!r} -> "
+                         f'{frame!r} on /tf_static')
+            return None
+        if self.sensor_frame is None:
+            self.sensor_frame = frame
+            offset = mount[0]
+            self.estimator.sensor_offset = None if offset == (0.0, 0.0) else offset
+        return mount
+
+    def _measure(self, stream: str, stamp: int, value: float) -> None:
+        if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
         self.tracker.add_measurement(stamp, value, self.variance)
@@ -301,7 +386,7 @@ class FollowerEstimatorNode(Node):
                              + (f" ({', '.join(slow)})" if slow else ''))
         ages, limit = self.ages(), self.params['stale_timeout']
         if self.first_input_ns is None:
-            return 'WARN', 'waiting for input: ' + ', '.join(STREAMS)
+            return 'WARN', 'waiting for input: ' + ', '.join(self.streams)
         old = [s for s, a in ages.items() if a is None or a > limit]
         started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
         if old and started:
@@ -314,7 +399,8 @@ class FollowerEstimatorNode(Node):
         for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
                           ('gaps', f"odometry intervals longer than {self.params['max_gap']:g} "
                                    's (messages lost)'),
-                          ('gated_measurements', 'ranges refused by the innovation gate')):
+                          ('gated_measurements', 'measurements refused by the innovation '
+                                                 'gate')):
             if new.get(key):
                 return 'WARN', text
         return 'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input'
@@ -324,7 +410,7 @@ class FollowerEstimatorNode(Node):
         level, message = self.diagnostic_level()
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
-        self.delay = {s: 0.0 for s in STREAMS}
+        self.delay = {s: 0.0 for s in self.streams}
         if level == 'ERROR':
             self.worst = 'ERROR'
             if message.split(' (')[0] not in [e.split(' (')[0] for e in self.errors]:
