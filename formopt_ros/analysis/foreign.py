@@ -37,7 +37,7 @@ from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
-from formopt_ros.wire.messages import pose_values, twist_noise
+from formopt_ros.wire.messages import estimate_values, header_ns, pose_values, twist_noise
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap
 
 
@@ -184,4 +184,28 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
     return result
 
 
-__all__ = ['ForeignData', 'ForeignResult', 'estimate_foreign', 'read_foreign']
+def tracking_errors(bag: Bag, estimate_topic: str, truth_topic: str,
+                    skip_s: float = 3.0) -> dict[str, float | int | None]:
+    """How well a live estimator tracked: its estimates (PoseWithCovarianceStamped) against
+    the truth (PoseStamped, same frame) of the same stamps, after the first ``skip_s`` s.
+
+    Returns:
+        {'count', 'mean_nees' (3 is consistent), 'rms_position_error_m'}; None values when
+        no stamp matches.
+    """
+    truth = {header_ns(m): pose_values(m.pose) for _, m in bag.decode(truth_topic)}
+    first = min(truth, default=0)
+    pairs = []
+    for _, message in bag.decode(estimate_topic):
+        stamp = header_ns(message)
+        if stamp in truth and stamp - first > skip_s * 1e9:
+            pairs.append((truth[stamp], *estimate_values(message)))
+    if not pairs:
+        return {'count': 0, 'mean_nees': None, 'rms_position_error_m': None}
+    nees = [float(normalized_estimation_error(t, x, P)) for t, x, P in pairs]
+    errors = [float(np.hypot(*state_difference(t, x)[:2])) for t, x, _ in pairs]
+    return {'count': len(pairs), 'mean_nees': float(np.mean(nees)),
+            'rms_position_error_m': float(np.sqrt(np.mean(np.square(errors))))}
+
+
+__all__ = ['ForeignData', 'ForeignResult', 'estimate_foreign', 'read_foreign', 'tracking_errors']

@@ -1,5 +1,6 @@
 """run_formation: one formation run as separate node processes (leader_sim, a follower_sim and an
-estimator_planner per follower, the MCAP recorder), started through scripts/<node>.sh the way a
+estimator_planner per follower, the MCAP recorder; or, for followers with real interfaces, a
+field_sim and a follower_estimator per follower), started through scripts/<node>.sh the way a
 ROS user starts them; waits for the estimators, stops the rest, checks the recording and writes
 OUT/summary.json. scripts/run_formation.sh is its shell front end."""
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from formopt_ros.cli.common import ArgumentParser, command, fail, integer, number
+from formopt_ros.cli.real_run import REAL_NODES, check_real, node_parameters, run_real
 from formopt_ros.core.scenario import Formation, FollowerSpec, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.formation import load_formation
@@ -77,15 +79,16 @@ class Launcher:
     processes: list[Process] = field(default_factory=list)
 
     def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
-              summary: bool = True) -> Process:
-        """Start ``node`` as process ``name`` (log OUT/<name>.log, summary OUT/<name>.json)."""
+              summary: bool = True, remaps: list[str] | None = None) -> Process:
+        """Start ``node`` as process ``name`` (log OUT/<name>.log, summary OUT/<name>.json),
+        with the common remaps and ``remaps`` (FROM:=TO)."""
         summary_path = self.out / f'{name}.json' if summary else None
         if summary_path is not None:
             params = {**params, 'summary_path': str(summary_path)}
         if summary_path is not None and self.checkpoints:
             params['checkpoint_path'] = str(self.out / 'checkpoints' / f'{name}.pkl')
         args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
-        for remap in self.remaps:
+        for remap in self.remaps + (remaps or []):
             args += ['-r', remap]
         for key, value in params.items():
             args += ['-p', f'{key}:={format_value(value)}']
@@ -136,10 +139,12 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--seed', type=integer(0, 2**31 - 1),
                         help='single follower: seed of its random streams (default 0)')
     parser.add_argument('--steps', type=integer(1, 10**9), default=100,
-                        help='measurement steps (default 100)')
-    parser.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep',
+                        help='measurement steps (default 100; with real interfaces the run '
+                             'lasts steps * 2 dt seconds)')
+    parser.add_argument('--mode', choices=('lockstep', 'realtime'),
                         help='lockstep: deterministic, equals the pure simulation; realtime: '
-                             'timers at 1/dt (default lockstep)')
+                             'timers at 1/dt (default lockstep; followers with real interfaces '
+                             'always run in real time)')
     parser.add_argument('--out', type=Path, required=True,
                         help='output folder: <node>.log, <node>.json summaries, run.mcap, '
                              'summary.json (a folder holding an earlier run is refused)')
@@ -253,6 +258,25 @@ def check_formation(formation: Formation, path: Path) -> None:
     robots += [(f'follower {f.id!r}', FOLLOWER_NODES,
                 follower_values(f, formation.trial, formation.leader_id))
                for f in formation.followers]
+    if formation.followers[0].interfaces == 'real':
+        robots = []
+        names = real_names()
+
+        def check(node: str, name: str, value: Any) -> str | None:
+            try:
+                for spec in node_specs(name, (node,)):
+                    spec.check(value)
+            except ParameterError as error:
+                return f'{node}: {error}'
+            return None
+        problem = check_real(formation, names, check)
+        for index, follower in enumerate(formation.followers):
+            for node, values in node_parameters(formation, index, '/odom', 1.0, 1.0,
+                                                names).items():
+                problem = problem or next(filter(None, (check(node, k, v) for k, v in
+                                                        values.items())), None)
+        if problem:
+            fail(PROG, f'--formation {path}: {problem}')
     for robot, nodes, values in robots:
         try:
             for name, value in values.items():
@@ -273,6 +297,11 @@ def node_specs(name: str | None, nodes: tuple[str, ...]) -> list[Any]:
     return [spec for node in nodes
             for spec in importlib.import_module(f'formopt_ros.ros.nodes.{node}').PARAMS
             if name is None or spec.name == name]
+
+
+def real_names() -> dict[str, set[str]]:
+    """The parameter names of field_sim and follower_estimator."""
+    return {node: {spec.name for spec in node_specs(None, (node,))} for node in REAL_NODES}
 
 
 def prepare_out(out: Path) -> Path:
@@ -337,6 +366,9 @@ def global_remaps(prefix: str) -> list[str]:
 def run(args: Any) -> int:
     """The whole run; returns the exit code."""
     formation, formation_file, extra = formation_of(args)
+    if formation.followers[0].interfaces == 'real' and (args.mode == 'lockstep' or args.respawn):
+        fail(PROG, f"--{'mode lockstep' if args.mode == 'lockstep' else 'respawn'}: followers "
+                   'with real interfaces run in real time and are not respawned')
     try:
         check_id('--run-id', args.run_id) if args.run_id else None
     except ValueError as error:
@@ -353,6 +385,9 @@ def run(args: Any) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     launcher = Launcher(out, checkpoints=args.respawn > 0, remaps=global_remaps(prefix))
     record = not args.no_record
+    if formation.followers[0].interfaces == 'real':
+        return run_real_formation(args, formation, launcher, out, prefix, run_id)
+    args.mode = args.mode or 'lockstep'
     common: dict[str, Any] = {'mode': args.mode, 'run_id': run_id,
                               'recorders': 1 if record else 0,
                               'use_sim_time': args.mode == 'lockstep'}
@@ -407,6 +442,26 @@ def run(args: Any) -> int:
         launcher.stop([recorder])
     return write_summary(args, formation, out, launcher, leader, nodes, recorder, failure,
                          wall, prefix, run_id)
+
+
+def run_real_formation(args: Any, formation: Formation, launcher: Launcher, out: Path,
+                       prefix: str, run_id: str) -> int:
+    """A formation of followers with real interfaces (formopt_ros/cli/real_run.py)."""
+    started = time.monotonic()
+    result = run_real(formation, launcher, out, prefix, args.steps, args.timeout,
+                      not args.no_record, real_names())
+    wall = time.monotonic() - started
+    summary = {**result, 'run_id': run_id, 'mode': 'realtime', 'steps_requested': args.steps,
+               'wall_time_s': wall, 'formation': formation.to_dict()}
+    write_json(out / 'summary.json', summary)
+    if not summary['ok']:
+        return 1
+    tracking = ', '.join(
+        f"{f} NEES {t['mean_nees']:.2f} RMS {t['rms_position_error_m']:.3f} m"
+        if (t := r.get('tracking', {})).get('count') else f'{f} (not recorded)'
+        for f, r in summary['followers'].items())
+    print(f'{PROG}: real interfaces, {wall:.1f} s wall; {tracking}; {out / "summary.json"}')
+    return 0
 
 
 def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,

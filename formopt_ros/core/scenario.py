@@ -319,6 +319,10 @@ class FollowerSpec:
         scenario: what its estimator assumes (and its simulator does).
         strategy: motion strategy name; options: its options.
         seed: its random streams are seeded by (seed, trial).
+        interfaces: 'simulated' (follower_sim and estimator_planner: the paper's protocol in
+            lockstep or real time) or 'real' (field_sim and follower_estimator: standard
+            messages, cmd_vel, in real time).
+        real: parameters of field_sim and follower_estimator (interfaces 'real').
     """
 
     id: str
@@ -326,6 +330,8 @@ class FollowerSpec:
     strategy: str = 'ram'
     options: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
+    interfaces: str = 'simulated'
+    real: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_id('follower id', self.id)
@@ -333,6 +339,11 @@ class FollowerSpec:
             raise ValueError(f'follower {self.id}: seed must be an integer >= 0, '
                              f'got {self.seed!r}')
         make_strategy(self.strategy, **self.options)      # ValueError naming the option
+        if self.interfaces not in INTERFACES:
+            raise ValueError(f'follower {self.id}: interfaces must be one of '
+                             f'{", ".join(INTERFACES)}, got {self.interfaces!r}')
+        if self.real and self.interfaces != 'real':
+            raise ValueError(f"follower {self.id}: 'real' settings need interfaces: real")
 
 
 @dataclass(frozen=True)
@@ -364,6 +375,9 @@ class Formation:
             if shared != (first.leader, first.dt, first.kinematics):
                 raise ValueError(f'follower {follower.id}: every follower shares the leader '
                                  'path, dt and kinematics')
+            if follower.interfaces != self.followers[0].interfaces:
+                raise ValueError(f'follower {follower.id}: the followers of one run share '
+                                 'their interfaces (simulated or real)')
 
     @property
     def leader(self) -> LeaderPath:
@@ -419,12 +433,17 @@ class Formation:
                 'leader_odometry_noise': [f.scenario.sigma_v_leader,
                                           f.scenario.sigma_omega_leader],
                 'initial_covariance': list(f.scenario.initial_covariance),
-                'strategy': f.strategy, 'options': dict(f.options), 'seed': f.seed}
+                'strategy': f.strategy, 'options': dict(f.options), 'seed': f.seed,
+                **({'interfaces': f.interfaces, 'real': dict(f.real)}
+                   if f.interfaces != 'simulated' else {})}
                 for f in self.followers]}
 
 
 _FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'odometry_noise',
-                  'leader_odometry_noise', 'initial_covariance', 'strategy', 'options', 'seed'}
+                  'leader_odometry_noise', 'initial_covariance', 'strategy', 'options', 'seed',
+                  'interfaces', 'real'}
+#: How a follower's nodes talk (FollowerSpec.interfaces).
+INTERFACES = ('simulated', 'real')
 
 
 def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinematics: str,
@@ -446,8 +465,12 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
             kinematics=kinematics,
             initial_covariance=tuple(item.get('initial_covariance',
                                               base.initial_covariance)))
+        real = item.get('real') or {}
+        if not isinstance(real, dict):
+            raise ValueError(f"'real' must be a mapping of parameter names, got {real!r}")
         return FollowerSpec(str(name), scenario, str(item.get('strategy', 'ram')),
-                            dict(item.get('options') or {}), item.get('seed', default_seed))
+                            dict(item.get('options') or {}), item.get('seed', default_seed),
+                            str(item.get('interfaces', 'simulated')), dict(real))
     except (TypeError, ValueError) as error:
         raise ValueError(f'formation follower {name}: {error}') from None
 

@@ -21,8 +21,8 @@ from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
-from formopt_ros.ros.run_config import PATH_PARAMS, SLOT, leader_path_from
-from formopt_ros.ros.runtime import node_main
+from formopt_ros.ros.run_config import PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from
+from formopt_ros.ros.runtime import check_output_path, node_main, write_summary
 
 #: Limits of the UWB radio's Range messages, m.
 RANGE_LIMITS = (0.05, 50.0)
@@ -71,6 +71,7 @@ PARAMS = [
           'is sent (a link outage; [0, 0]: none)', 0.0, 1e6),
     Param('seed', 0, 'seed of the random streams', 0, 2**31 - 1),
     Param('duration', 60.0, 'run this long, s, then exit', 0.1, 1e6),
+    SUMMARY_PATH,
 ]
 SUMMARY = ('Two simulated real robots in real time: the follower base executes cmd_vel (limits, '
            'latency, noise) and publishes nav_msgs/Odometry (odom) at its rate, the leader its '
@@ -88,6 +89,7 @@ class FieldSimNode(Node):
         """The node; ``cli_args`` are node-local ROS arguments (several in one process)."""
         super().__init__('field_sim', cli_args=cli_args)
         self.params = p = declare(self, PARAMS)
+        check_output_path('summary_path', p['summary_path'], may_exist=False)
         slot = Scenario.paper('range').p_o if p['formation_slot'] == [0.0] else \
             tuple(p['formation_slot'])
         if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3:
@@ -208,8 +210,11 @@ class FieldSimNode(Node):
                 self.sent['dropouts'] += 1
 
     def close(self) -> None:
-        """Stop the base at the end."""
+        """Stop the base at the end and write the summary (messages sent, outliers)."""
         self.executed = (0.0, 0.0)
+        write_summary(self.params['summary_path'], {
+            'sent': dict(self.sent), 'outliers': self.world.outliers,
+            'finished': self.finished})
 
 
 def main(args: list[str] | None = None) -> None:

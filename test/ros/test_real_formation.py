@@ -1,0 +1,75 @@
+"""run_formation.sh on the real-robot interfaces (config/formation_real_interfaces.yaml): a
+field_sim and a follower_estimator per follower, standard messages, cmd_vel, real time."""
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+from harness.ros import REPO
+
+SCRIPT = REPO / 'scripts' / 'run_formation.sh'
+REAL = REPO / 'config' / 'formation_real_interfaces.yaml'
+
+
+def run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(SCRIPT), *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
+                                                           ros_domain: int) -> None:
+    """8 s of the shipped file (a UWB follower and a camera follower behind an S-curve):
+    exit 0; each estimator ok, tracking its recorded truth (mean NEES below 6, RMS error below
+    0.3 m); every odometry message, measurement and estimate the nodes sent is in run.mcap;
+    nothing refused."""
+    out = tmp_path / 'real'
+    result = run('--formation', str(REAL), '--steps', '80', '--out', str(out), '--domain-id',
+                 str(ros_domain))
+    assert result.returncode == 0, result.stdout + result.stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['ok'] and summary['interfaces'] == 'real', summary['failure']
+    assert set(summary['followers']) == {'uwb', 'camera'}
+    for follower_id, result_of in summary['followers'].items():
+        tracking = result_of['tracking']
+        assert tracking['count'] > 40 and tracking['mean_nees'] < 6.0 and \
+            tracking['rms_position_error_m'] < 0.3, (follower_id, tracking)
+        assert not any(result_of['refused'].values()), result_of['refused']
+        assert result_of['plans'] > 60
+    counts = json.loads((out / 'recorder_counts.json').read_text())['counts']
+    assert counts['/leader/odom'] == summary['followers']['uwb']['field_sim']['sent'][
+        'leader_odom'] > 300
+    assert counts['/camera/bearing'] == summary['followers']['camera']['field_sim']['sent'][
+        'bearing']
+
+
+@pytest.mark.parametrize('change, text', [
+    ({'real': {'max_sped': 1.0}}, "real: max_sped: no such parameter of field_sim or "
+                                  'follower_estimator'),
+    ({'real': {'max_speed': -1.0}}, "parameter 'max_speed' must be a number"),
+    ({'real': {'formation_slot': [1.0, 1.0]}}, 'real: formation_slot is set from'),
+    ({'interfaces': 'simulated'}, 'the followers of one run share their interfaces'),
+])
+def test_wrong_real_settings_stop_before_any_node_starts(tmp_path: Path, change: dict,
+                                                         text: str) -> None:
+    """Exit 2, one line naming the follower and the key; nothing started."""
+    data = yaml.safe_load(REAL.read_text())
+    data['formation']['followers'][1].update(change)
+    if change.get('interfaces') == 'simulated':
+        del data['formation']['followers'][1]['real']
+    formation = tmp_path / 'formation.yaml'
+    formation.write_text(yaml.safe_dump(data))
+    out = tmp_path / 'out'
+    result = run('--formation', str(formation), '--out', str(out), timeout=30)
+    assert result.returncode == 2, result.stdout + result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and text in lines[0], lines
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_real_interfaces_run_in_real_time(tmp_path: Path) -> None:
+    result = run('--formation', str(REAL), '--mode', 'lockstep', '--out', str(tmp_path / 'o'),
+                 timeout=30)
+    assert result.returncode == 2 and '--mode lockstep' in result.stderr, result.stderr
