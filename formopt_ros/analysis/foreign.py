@@ -16,6 +16,7 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
       bias_sigma: 0.0                    # range-bias state (0: none), m
       bias_walk: 0.0                     # m / sqrt(s)
       huber: 0.0                         # Huber threshold, standard deviations (0: off)
+      gate: 0.0                          # innovation gate, standard deviations (0: 10)
       initial_covariance: [0.1, 0.1, 0.01]
 
 The initial estimate is the truth at the first range (with ``initial_covariance``) when the bag
@@ -155,7 +156,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
                         sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
                         initial_covariance=tuple(s['initial_covariance']))
     filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None,
-                               RealNoise(s['bias_sigma'], s['bias_walk'], s['huber']))
+                               RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'],
+                                         s['gate']))
     filter_.state[:3] = initial
     tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
     inputs = sorted([(t, 0, robot, (v, w, noise)) for robot, stream in data.odometry.items()

@@ -99,13 +99,14 @@ class InputBounds:
 
 
 def innovation_gate(innovation: Any, S: Any, variance: float,
-                    gated_in_a_row: Any) -> tuple[Any, Any, Any]:
+                    gated_in_a_row: Any, gate: float = INNOVATION_GATE) -> tuple[Any, Any, Any]:
     """The gate's decision (module docstring) for one measurement or a batch (arrays (T,)).
 
     Args:
         innovation: z - h(x), m or rad; S: its variance H P H' + R.
         variance: the measurement noise variance R.
         gated_in_a_row: measurements gated in a row before this one.
+        gate: the normalised innovation squared above which it is refused.
 
     Returns:
         (nis, use, inflation): the normalised innovation squared; whether the measurement is
@@ -116,7 +117,7 @@ def innovation_gate(innovation: Any, S: Any, variance: float,
         projected = S - variance
         reopen = (np.asarray(gated_in_a_row) >= GATE_PATIENCE) & np.isfinite(nis) & \
             (projected > 0.0)
-        passes = nis <= INNOVATION_GATE
+        passes = nis <= gate
         inflation = np.where(reopen & ~passes, np.maximum(
             (innovation * innovation / REOPEN_NIS - variance) / projected, 1.0), 1.0)
     use = passes | reopen
@@ -137,22 +138,32 @@ class RealNoise:
         huber: Huber threshold k in innovation standard deviations (0: off). A measurement
             whose normalised innovation e exceeds k is used with its variance scaled by |e| / k,
             so it pulls the estimate as much as a k-sigma one (one-sided non-line-of-sight
-            tails, outliers the gate of 10 sigma lets through). Typical: 2 to 3.
+            tails, outliers the gate lets through). Typical: 2 to 3.
+        gate: the innovation gate in standard deviations (0: the paper filter's 10). Outliers
+            of a radio are often within 10 sigma of an uncertain prior (a +1 m range when
+            sqrt(S) is 0.2 m is 5 sigma): 5 keeps them out.
     """
 
     bias_sigma: float = 0.0
     bias_walk: float = 0.0
     huber: float = 0.0
+    gate: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ('bias_sigma', 'bias_walk', 'huber'):
+        for name in ('bias_sigma', 'bias_walk', 'huber', 'gate'):
             value = float(getattr(self, name))
             if not value >= 0.0 or not np.isfinite(value):
                 raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
             object.__setattr__(self, name, value)
-        if self.huber and self.huber < 1.0:
-            raise ValueError(f'huber must be 0 (off) or >= 1 standard deviation, got '
-                             f'{self.huber!r}')
+        for name in ('huber', 'gate'):
+            if getattr(self, name) and getattr(self, name) < 1.0:
+                raise ValueError(f'{name} must be 0 (off) or >= 1 standard deviation, got '
+                                 f'{getattr(self, name)!r}')
+
+    @property
+    def gate_nis(self) -> float:
+        """The gate as a normalised innovation squared."""
+        return self.gate ** 2 if self.gate else INNOVATION_GATE
 
 
 @dataclass(frozen=True)
@@ -310,7 +321,8 @@ class EstimatorPlanner:
         variance = s.sigma ** 2 if variance is None else variance
         x, P, innovation, S = ekf_update(self.state, self.covariance, z, s.measurement,
                                          variance, self.sensor_offset)
-        nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row)
+        nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row,
+                                              self.noise.gate_nis)
         if not use:
             self.gated_in_a_row += 1
             return UpdateResult(innovation, nis, False)

@@ -12,7 +12,7 @@ TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
               'follower_truth')
 ESTIMATOR_DEFAULTS: dict[str, Any] = {
     'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'bias_sigma': 0.0,
-    'bias_walk': 0.0, 'huber': 0.0, 'initial_covariance': [0.1, 0.1, 0.01]}
+    'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01]}
 
 
 @dataclass(frozen=True)

@@ -220,7 +220,8 @@ def test_one_robot_per_network_namespace(tmp_path: Path, two_hosts: tuple[str, s
 def test_a_camera_follower_reads_its_mount_from_tf_static(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
     """10 s with a camera 0.2 m ahead and 0.1 m left of the base, turned 0.3 rad, whose mount
-    only /tf_static tells: every bearing sent is applied, and the estimate stays consistent
+    only /tf_static tells: the bearings are applied once it is known, and the estimate stays
+    consistent
     (mean NEES below 6, RMS error below 0.3 m after 3 s)."""
     probe, summary = run_pair(
         tmp_path, {'sensor': 'bearing', 'camera_mount': [0.2, 0.1, 0.3], 'bearing_sigma': 0.02,
@@ -228,5 +229,6 @@ def test_a_camera_follower_reads_its_mount_from_tf_static(
         {'sensor': 'bearing', 'bearing_sigma': 0.02, 'formation_slot': [-1.0, -2.0]})
     nees, rms, count = consistency(probe, min(probe.truth) + 3 * 10**9)
     assert count > 80 and nees < 6.0 and rms < 0.3, (nees, rms, count)
-    assert summary['ok'] and summary['refused']['no_mount'] == 0, summary
+    # bearings that arrive before /tf_static's transient-local mount are refused and counted
+    assert summary['ok'] and summary['refused']['no_mount'] <= 3, summary
     assert summary['counters']['measurements'] == len(probe.estimates) > 120

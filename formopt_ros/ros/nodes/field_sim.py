@@ -3,6 +3,7 @@ follower driven by cmd_vel, a leader on its path, their odometry and a UWB radio
 in real time."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from typing import Any
@@ -21,7 +22,8 @@ from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
-from formopt_ros.ros.run_config import PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from
+from formopt_ros.ros.run_config import (
+    INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from)
 from formopt_ros.ros.runtime import check_output_path, node_main, write_summary
 
 #: Limits of the UWB radio's Range messages, m.
@@ -32,6 +34,9 @@ PARAMS = [
           'range) or bearing (a camera, geometry_msgs/Vector3Stamped toward the leader on '
           'bearing)', choices=('range', 'bearing')),
     SLOT, *PATH_PARAMS,
+    dataclasses.replace(INITIAL_COVARIANCE, low=0.0, description='the true start pose is drawn '
+                        'from N([slot, 0], diag(this)) [x m^2, y m^2, phi rad^2], as the '
+                        "estimator's initial_covariance assumes ([0, 0, 0]: the slot itself)"),
     Param('leader_odom_topic', '/leader/odom', "where the leader's odometry is published"),
     Param('publish_leader', True, "publish the leader's odometry (in a formation, one field_sim "
           'does; all simulate the same leader when they share start_time)'),
@@ -92,17 +97,20 @@ class FieldSimNode(Node):
         check_output_path('summary_path', p['summary_path'], may_exist=False)
         slot = Scenario.paper('range').p_o if p['formation_slot'] == [0.0] else \
             tuple(p['formation_slot'])
-        if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3:
+        if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3 or \
+                len(p['initial_covariance']) != 3:
             raise ParameterError("parameters 'formation_slot' and 'leader_outage' take two "
-                                 "numbers, 'camera_mount' three")
+                                 "numbers, 'camera_mount' and 'initial_covariance' three")
         path = leader_path_from(p)
         step = 1.0 / p['leader_odom_rate']
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
                              p['max_yaw_acceleration'])
         self.period = 1.0 / p['odom_rate']
+        rng = np.random.default_rng(p['seed'])
+        start = np.array([slot[0], slot[1], 0.0]) + \
+            np.sqrt(p['initial_covariance']) * rng.normal(size=3)
         self.world = FieldWorld(
-            np.array([slot[0], slot[1], 0.0]),
-            lambda t: path.velocity(int(round(t / step)), step), np.random.default_rng(p['seed']),
+            start, lambda t: path.velocity(int(round(t / step)), step), rng,
             p['duration'], Base(p['odom_rate'], 0.0, p['sigma_v'], p['sigma_omega']),
             Base(p['leader_odom_rate'], p['leader_odom_offset']),
             self._sensor(p))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,8 @@ PARAMS = [
     Param('bias_walk', 0.002, 'random walk of the range bias, m/sqrt(s)', 0.0, 10.0),
     Param('huber', 2.5, 'Huber threshold in innovation standard deviations (0: off)', 0.0,
           100.0),
+    Param('gate', 5.0, 'innovation gate in standard deviations: a measurement further out is '
+          "not used (0: 10, the simulated filter's)", 0.0, 100.0),
     Param('reorder_lag', 0.1, 'longest wait of a range for odometry and earlier ranges, s',
           0.0, 10.0),
     Param('max_gap', 0.5, 'odometry intervals longer than this count as gaps, s', 1e-3, 60.0),
@@ -111,7 +114,7 @@ class FollowerEstimatorNode(Node):
         self.streams = ('odom', 'leader_odom', sensor)
         try:
             noise = RealNoise(p['bias_sigma'] if sensor == 'range' else 0.0, p['bias_walk'],
-                              p['huber'])
+                              p['huber'], p['gate'])
         except ValueError as error:
             raise ParameterError(str(error)) from None
         strategy = make_strategy(p['strategy'], **strategy_options(p['strategy'], p))
@@ -153,6 +156,9 @@ class FollowerEstimatorNode(Node):
         self.worst = 'OK'
         self.errors: list[str] = []
         self.step = 0
+        # wall time of each input (odometry or measurement, with the updates it lets through
+        # and their estimates published) and of each plan (with its target published), s
+        self.handling: dict[str, list[float]] = {'input': [], 'plan': []}
         self.throttle = Throttle(self)
         self.started_ns = self.now_ns()
         self.finished = False
@@ -227,6 +233,7 @@ class FollowerEstimatorNode(Node):
     def on_odometry(self, stream: str, message: Odometry) -> None:
         """Follower ('odom') or leader ('leader_odom') odometry: its twist over the interval
         since the previous message."""
+        started = time.perf_counter()
         expected = self.params['follower_child_frame' if stream == 'odom'
                                else 'leader_child_frame']
         if expected and message.child_frame_id != expected:
@@ -243,7 +250,7 @@ class FollowerEstimatorNode(Node):
         assert self.tracker is not None
         self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega,
                                   twist_noise(message))
-        self._advance()
+        self._advance(started)
 
     def on_range(self, message: Range) -> None:
         """A range: dropped (counted) outside [min_range, max_range) (drivers report max_range
@@ -310,17 +317,21 @@ class FollowerEstimatorNode(Node):
         return mount
 
     def _measure(self, stream: str, stamp: int, value: float) -> None:
+        started = time.perf_counter()
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
         self.tracker.add_measurement(stamp, value, self.variance)
-        self._advance()
+        self._advance(started)
 
-    def _advance(self) -> None:
+    def _advance(self, started: float) -> None:
+        """Apply what the buffer lets through, publish the estimates; time the input from
+        ``started`` (perf_counter, s)."""
         assert self.tracker is not None
         for applied in self.tracker.advance(self.now_ns()):
             self.estimate_pub.publish(conversions.estimate(
                 conversions.stamp(applied.stamp_ns), self.frame, applied.x, applied.P))
+        self.handling['input'].append(time.perf_counter() - started)
 
     # --- planning and control ------------------------------------------------------------------
     def plan(self) -> None:
@@ -328,6 +339,7 @@ class FollowerEstimatorNode(Node):
         self._check_duration()
         if self.tracker is None or self.tracker.applied == 0:
             return
+        started = time.perf_counter()
         self.step += 1
         self.target = self.tracker.plan(self.step).solution.p
         x, _ = self.tracker.estimate_at(self.now_ns())
@@ -339,6 +351,7 @@ class FollowerEstimatorNode(Node):
                                                        self.frame))
         point.point.x, point.point.y = float(self.target[0]), float(self.target[1])
         self.target_pub.publish(point)
+        self.handling['plan'].append(time.perf_counter() - started)
 
     def stale(self) -> list[str]:
         """The streams silent, or stamped behind this clock, longer than stale_timeout."""
@@ -444,7 +457,12 @@ class FollowerEstimatorNode(Node):
             'final_weighted_trace': estimator.weighted_trace(),
             'counters': self.tracker.counters.as_dict() if self.tracker else {},
             'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step,
-            'unreachable_targets': self.unreachable}
+            'unreachable_targets': self.unreachable,
+            'handling_ms': {kind: {'count': len(times),
+                                   'median': 1e3 * float(np.median(times)) if times else None,
+                                   'p99': 1e3 * float(np.quantile(times, 0.99)) if times
+                                   else None}
+                            for kind, times in self.handling.items()}}
 
     def close(self) -> None:
         """Stop the base and write the summary (also on SIGINT/SIGTERM)."""
