@@ -14,7 +14,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from formopt_ros.cli.common import ArgumentParser, command, integer, new_file, number
-from formopt_ros.cli.run_formation import Launcher
+from formopt_ros.cli.supervisor import Launcher
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.wire.jsonfile import write_json
 

@@ -2,128 +2,29 @@
 estimator_planner per follower, the MCAP recorder; or, for followers with real interfaces, a
 field_sim and a follower_estimator per follower), started through scripts/<node>.sh the way a
 ROS user starts them; waits for the estimators, stops the rest, checks the recording and writes
-OUT/summary.json. scripts/run_formation.sh is its shell front end."""
+OUT/summary.json. scripts/run_formation.sh is its shell front end; the checks before the start
+(cli/preflight.py), the processes (cli/supervisor.py) and the recording's audit (cli/audit.py)
+live beside it."""
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
-import subprocess
 import sys
 import time
 import uuid
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from formopt_ros.cli.audit import audit_recording
 from formopt_ros.cli.common import ArgumentParser, command, fail, integer, number
-from formopt_ros.cli.real_run import REAL_NODES, check_real, node_parameters, run_real
-from formopt_ros.core.scenario import Formation, FollowerSpec, check_id
+from formopt_ros.cli.preflight import (
+    check_id_ok, formation_of, leader_extra, node_specs, prepare_out, real_names)
+from formopt_ros.cli.real_run import run_real
+from formopt_ros.cli.supervisor import PROG, Launcher, Process, global_remaps, supervise
+from formopt_ros.core.scenario import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
-from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.jsonfile import write_json
-from formopt_ros.wire.topics import BY_KEY, GLOBAL_TOPICS, resolve
-
-PROG = 'run_formation.sh'
-SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
-#: Exit code of a node refusing its configuration (not respawned: it would refuse again).
-CONFIGURATION_EXIT = 2
-
-
-@dataclass
-class Process:
-    """One node process: its command, log file and (after the run) exit code and summary."""
-
-    name: str
-    process: subprocess.Popen[bytes]
-    log: Path
-    args: list[str]
-    summary_path: Path | None = None
-    code: int | None = None
-    restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
-
-    def restart(self) -> None:
-        """Start the process again (same arguments; the log continues)."""
-        self.restarts.append(self.process.wait())
-        with open(self.log, 'ab') as stream:
-            stream.write(f'--- {PROG}: restarted after exit code {self.restarts[-1]} ---\n'
-                         .encode())
-            stream.flush()
-            self.process = subprocess.Popen(self.args, stdout=stream, stderr=subprocess.STDOUT,
-                                            start_new_session=True)
-
-    def alive(self) -> bool:
-        """True while the process runs."""
-        return self.process.poll() is None
-
-    def summary(self) -> dict[str, Any] | None:
-        """The node's JSON summary (None when it wrote none)."""
-        if self.summary_path is None or not self.summary_path.is_file():
-            return None
-        return dict(json.loads(self.summary_path.read_text()))
-
-    def tail(self, lines: int = 5) -> str:
-        """The last lines of its log."""
-        text = self.log.read_text(errors='replace').splitlines() if self.log.exists() else []
-        return '\n'.join(text[-lines:])
-
-
-@dataclass
-class Launcher:
-    """Starts node processes through scripts/<node>.sh with a namespace and -p parameters."""
-
-    out: Path
-    checkpoints: bool = False
-    remaps: list[str] = field(default_factory=list)   # FROM:=TO for every node
-    processes: list[Process] = field(default_factory=list)
-
-    def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
-              summary: bool = True, remaps: list[str] | None = None) -> Process:
-        """Start ``node`` as process ``name`` (log OUT/<name>.log, summary OUT/<name>.json),
-        with the common remaps and ``remaps`` (FROM:=TO)."""
-        summary_path = self.out / f'{name}.json' if summary else None
-        if summary_path is not None:
-            params = {**params, 'summary_path': str(summary_path)}
-        if summary_path is not None and self.checkpoints:
-            params['checkpoint_path'] = str(self.out / 'checkpoints' / f'{name}.pkl')
-        args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
-        for remap in self.remaps + (remaps or []):
-            args += ['-r', remap]
-        for key, value in params.items():
-            args += ['-p', f'{key}:={format_value(value)}']
-        log = self.out / f'{name}.log'
-        with open(log, 'wb') as stream:
-            process = subprocess.Popen(args, stdout=stream, stderr=subprocess.STDOUT,
-                                       start_new_session=True)
-        self.processes.append(Process(name, process, log, args, summary_path))
-        return self.processes[-1]
-
-    def stop(self, processes: list[Process], grace: float = 10.0) -> None:
-        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later."""
-        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            running = [p for p in processes if p.alive()]
-            if not running:
-                break
-            for item in running:
-                try:
-                    os.killpg(item.process.pid, sig)
-                except ProcessLookupError:
-                    pass
-            deadline = time.monotonic() + wait
-            while any(p.alive() for p in running) and time.monotonic() < deadline:
-                time.sleep(0.05)
-        for item in processes:
-            item.code = item.process.wait()
-
-
-def format_value(value: Any) -> str:
-    """A -p value: lists as YAML flow, bools lower case."""
-    if isinstance(value, bool):
-        return 'true' if value else 'false'
-    if isinstance(value, (list, tuple)):
-        return '[' + ', '.join(format_value(v) for v in value) + ']'
-    return str(value) if str(value) else "''"
 
 
 def build_parser() -> ArgumentParser:
@@ -171,198 +72,6 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
-def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
-    """The formation to run, its file (None for the single-follower flags) and the checked -p
-    values (the formation's scenario and options include them)."""
-    flags = [name for name in ('measurement', 'strategy', 'seed') if getattr(args, name)
-             is not None]
-    if args.formation is not None:
-        if flags or args.extra:
-            fail(PROG, f"--{(flags or ['p'])[0]} cannot be combined with --formation (set it "
-                       'in the formation file)')
-        try:
-            formation = load_formation(args.formation)
-        except ValueError as error:
-            fail(PROG, f'--formation: {error}')
-        check_formation(formation, args.formation)
-        return formation, args.formation.resolve(), {}
-    kind, strategy = args.measurement or 'range', args.strategy or 'ram'
-    extras: dict[str, str] = {}
-    for item in args.extra:
-        if ':=' not in item:
-            fail(PROG, f'-p must be NAME:=VALUE, got {item!r}')
-        name, text = item.split(':=', 1)
-        if name in extras:
-            fail(PROG, f'-p {name} is given twice ({extras[name]!r} and {text!r})')
-        extras[name] = text
-    values = check_extras(extras)
-    from formopt_ros.ros.params import ParameterError
-    from formopt_ros.ros.run_config import scenario_from
-    try:
-        scenario = scenario_from({**{spec.name: spec.default for spec in
-                                     node_specs(None, FOLLOWER_NODES + ('leader_sim',))},
-                                  'measurement': kind, **values})
-    except ParameterError as error:
-        fail(PROG, f'-p: {error}')
-    options = {name[len(strategy) + 1:]: value for name, value in values.items()
-               if name.startswith(f'{strategy}_')}
-    spec = FollowerSpec('follower', scenario, strategy, options, args.seed or 0)
-    return Formation('leader', (spec,)), None, values
-
-
-#: Node parameters that run_formation sets itself (-p of them is refused): its option for each.
-_MANAGED = {'mode': '--mode', 'run_id': '--run-id', 'steps': '--steps', 'seed': '--seed',
-            'measurement': '--measurement', 'strategy': '--strategy', 'recorders': '--no-record',
-            'use_sim_time': '--mode', 'followers': '--formation',
-            'formation_file': '--formation', 'summary_path': '--out',
-            'checkpoint_path': '--respawn', 'leader_id': '--formation',
-            'follower_id': '--formation'}
-
-
-def check_extras(extra: dict[str, str]) -> dict[str, Any]:
-    """The -p values parsed as YAML (like ``--ros-args -p``) and checked by the nodes' own
-    specs (integers for floats converted); refuse, before anything starts, a -p that no node
-    receiving it has, one this command sets itself, or a value a node would refuse."""
-    import difflib
-
-    from formopt_ros.ros.params import ParameterError, parse_value
-    values: dict[str, Any] = {}
-    for name, text in extra.items():
-        if name in _MANAGED:
-            fail(PROG, f'-p {name}: set by {PROG} itself; use {_MANAGED[name]}')
-        nodes = FOLLOWER_NODES + (('leader_sim',) if name in _LEADER_KEYS else ())
-        specs = node_specs(name, nodes)
-        if not specs:
-            known = sorted({spec.name for spec in node_specs(None, nodes)})
-            close = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
-            fail(PROG, f"-p {name}: no such parameter of follower_sim or estimator_planner"
-                       + (f"; did you mean '{close[0]}'?" if close else ''))
-        try:
-            values[name] = parse_value(name, text)
-            for spec in specs:
-                values[name] = spec.check(values[name])
-        except ParameterError as error:
-            fail(PROG, f'-p {name}:={text}: {error}')
-    return values
-
-
-def check_formation(formation: Formation, path: Path) -> None:
-    """Refuse, before anything starts, a formation whose values a node would refuse at start
-    (e.g. a noise of 1e300: the file's own checks only ask for a positive number)."""
-    from formopt_ros.ros.params import ParameterError
-    from formopt_ros.ros.run_config import follower_values
-    from formopt_ros.wire.description import path_parameters
-    robots: list[tuple[str, tuple[str, ...], dict[str, Any]]] = [
-        (f'leader {formation.leader_id!r}', ('leader_sim',),
-         {'dt': formation.dt, **path_parameters(formation.leader)})]
-    robots += [(f'follower {f.id!r}', FOLLOWER_NODES,
-                follower_values(f, formation.trial, formation.leader_id))
-               for f in formation.followers]
-    if formation.followers[0].interfaces == 'real':
-        robots = []
-        names = real_names()
-
-        def check(node: str, name: str, value: Any) -> str | None:
-            try:
-                for spec in node_specs(name, (node,)):
-                    spec.check(value)
-            except ParameterError as error:
-                return f'{node}: {error}'
-            return None
-        problem = check_real(formation, names, check)
-        for index, follower in enumerate(formation.followers):
-            for node, values in node_parameters(formation, index, '/odom', 1.0, 1.0,
-                                                names).items():
-                problem = problem or next(filter(None, (check(node, k, v) for k, v in
-                                                        values.items())), None)
-        if problem:
-            fail(PROG, f'--formation {path}: {problem}')
-    for robot, nodes, values in robots:
-        try:
-            for name, value in values.items():
-                for spec in node_specs(name, nodes):
-                    spec.check(value)
-        except ParameterError as error:
-            fail(PROG, f'--formation {path}: {robot}: {error}')
-
-
-#: The nodes of a follower (a -p of the single-follower flags goes to both).
-FOLLOWER_NODES = ('follower_sim', 'estimator_planner')
-
-
-def node_specs(name: str | None, nodes: tuple[str, ...]) -> list[Any]:
-    """The parameter specs called ``name`` (None: all) of ``nodes`` ('leader_sim',
-    'follower_sim', 'estimator_planner')."""
-    import importlib
-    return [spec for node in nodes
-            for spec in importlib.import_module(f'formopt_ros.ros.nodes.{node}').PARAMS
-            if name is None or spec.name == name]
-
-
-def real_names() -> dict[str, set[str]]:
-    """The parameter names of field_sim and follower_estimator."""
-    return {node: {spec.name for spec in node_specs(None, (node,))} for node in REAL_NODES}
-
-
-def prepare_out(out: Path) -> Path:
-    """Create OUT; refuse one that is not empty (nothing is overwritten)."""
-    if out.exists() and not out.is_dir():
-        fail(PROG, f'--out {out}: exists and is not a folder')
-    earlier = sorted(p.name for p in out.iterdir())[:3] if out.is_dir() else []
-    if earlier:
-        fail(PROG, f'--out {out}: is not empty ({", ".join(earlier)}, ...); choose a new '
-                   'folder (nothing is overwritten)')
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / '.write-test'
-        probe.write_text('')
-        probe.unlink()
-    except OSError as error:
-        fail(PROG, f'--out {out}: cannot write there: {error.strerror}')
-    return out.resolve()
-
-
-def expected_counts(prefix: str, leader: dict[str, Any] | None,
-                    followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]],
-                    remapped: bool = True) -> dict[str, int]:
-    """Messages per topic the nodes say they published (their summaries); the global topics
-    under ``prefix`` when ``remapped`` (:func:`global_remaps`, as run_formation starts them)."""
-    tf, tf_static, clock, diagnostics = (f'{prefix if remapped else ""}{name}' for name in (
-        '/tf', '/tf_static', '/clock', '/diagnostics'))
-    out: dict[str, int] = {tf: 0, diagnostics: 0}
-    leader_ns = f"{prefix}/{leader['leader_id']}" if leader else ''
-    if leader:
-        out[resolve(leader_ns, BY_KEY['leader_odom'])] = leader['published']['odometry']
-        out[resolve(leader_ns, BY_KEY['leader_description'])] = 1
-        out[clock] = leader['published']['clock']
-        out[tf] += leader['published']['tf']
-    for follower_id, (sim, estimator) in followers.items():
-        ns = f'{prefix}/{follower_id}'
-        if sim:
-            for key, name in (('follower_odom', 'odometry'), ('measurement', 'measurement'),
-                              ('truth', 'truth')):
-                out[resolve(ns, BY_KEY[key])] = sim['published'][name]
-            out[tf] += sim['published']['tf']
-            out[tf_static] = out.get(tf_static, 0) + 1
-            out[resolve(ns, BY_KEY['sim_description'])] = 1
-        if estimator:
-            published = estimator['message_counts']['published']
-            for key in ('estimate', 'waypoint', 'status', 'markers'):
-                out[resolve(ns, BY_KEY[key])] = published[key]
-            out[resolve(ns, BY_KEY['description'])] = 1
-            out[tf] += published['tf']
-            out[diagnostics] += published['diagnostics']
-    if out.get(clock) == 0:
-        del out[clock]
-    return {k: v for k, v in out.items() if v or k == tf}
-
-
-def global_remaps(prefix: str) -> list[str]:
-    """-r rules that move the global topics (/tf, /tf_static, /clock, /diagnostics) under
-    ``prefix``, so that two runs in one domain do not mix their transforms and clocks."""
-    return [f'{t.name}:={prefix}{t.name}' for t in GLOBAL_TOPICS] if prefix else []
-
-
 def run(args: Any) -> int:
     """The whole run; returns the exit code."""
     formation, formation_file, extra = formation_of(args)
@@ -383,10 +92,28 @@ def run(args: Any) -> int:
     if args.domain_id is not None:
         os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    launcher = Launcher(out, checkpoints=args.respawn > 0, remaps=global_remaps(prefix))
+    with Launcher(out, checkpoints=args.respawn > 0, remaps=global_remaps(prefix)) as launcher:
+        try:
+            if formation.followers[0].interfaces == 'real':
+                return run_real_formation(args, formation, launcher, out, prefix, run_id)
+            return run_simulated(args, formation, formation_file, extra, launcher, out, prefix,
+                                 run_id)
+        except (OSError, KeyboardInterrupt) as error:
+            failure = 'interrupted before the run was summarised' \
+                if isinstance(error, KeyboardInterrupt) else f'cannot run the nodes: {error}'
+            launcher.stop(launcher.processes)
+            write_json(out / 'summary.json', {
+                'ok': False, 'failure': failure, 'run_id': run_id,
+                'exit_codes': {p.name: p.code for p in launcher.processes}})
+            print(f'{PROG}: error: {failure}', file=sys.stderr)
+            return 1
+
+
+def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
+                  extra: dict[str, Any], launcher: Launcher, out: Path, prefix: str,
+                  run_id: str) -> int:
+    """A formation of simulated followers (leader_sim, follower_sim, estimator_planner)."""
     record = not args.no_record
-    if formation.followers[0].interfaces == 'real':
-        return run_real_formation(args, formation, launcher, out, prefix, run_id)
     args.mode = args.mode or 'lockstep'
     common: dict[str, Any] = {'mode': args.mode, 'run_id': run_id,
                               'recorders': 1 if record else 0,
@@ -464,45 +191,6 @@ def run_real_formation(args: Any, formation: Formation, launcher: Launcher, out:
     return 0
 
 
-def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,
-              respawn: int) -> str:
-    """Restart dead nodes while ``respawn`` allows; the failure when one cannot go on ('' if
-    none). An estimator that exited 0 has finished; any other exit before the end is a
-    failure unless the node can be restarted (not after exit code 2, a refused configuration,
-    and never the recorder, whose file would be cut)."""
-    for item in estimators + others + ([recorder] if recorder else []):
-        code = item.process.poll()
-        if code is None or (item in estimators and code == 0):
-            continue
-        if item is not recorder and code != CONFIGURATION_EXIT and \
-                len(item.restarts) < respawn:
-            print(f'{PROG}: {item.name} exited with code {code}; restarting it '
-                  f'({len(item.restarts) + 1}/{respawn})', file=sys.stderr)
-            item.restart()
-            continue
-        return f'{item.name} exited with code {code} before the run finished:\n{item.tail()}'
-    return ''
-
-
-def check_id_ok(part: str) -> bool:
-    """True for a namespace part that is a valid id."""
-    try:
-        check_id('prefix', part)
-        return True
-    except ValueError:
-        return False
-
-
-#: Leader parameters among the single-follower -p extras.
-_LEADER_KEYS = {'dt', 'path', 'v_leader', 'omega_leader', 'amplitude', 'period',
-                'segment_durations', 'segment_speeds', 'segment_yaw_rates', 'repeat_segments'}
-
-
-def leader_extra(extra: dict[str, Any]) -> dict[str, Any]:
-    """The -p extras that concern the leader."""
-    return {k: v for k, v in extra.items() if k in _LEADER_KEYS}
-
-
 def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher,
                   leader: Process, nodes: dict[str, tuple[Process, Process]],
                   recorder: Process | None, failure: str, wall: float, prefix: str,
@@ -518,6 +206,9 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
         if result['steps'] != args.steps:
             failure = failure or (f"{follower_id}: the estimator processed {result['steps']} of "
                                   f'{args.steps} steps')
+        if not result.get('ok', True):
+            failure = failure or (f'{follower_id}: '
+                                  f"{result.get('error') or 'the estimator did not end ok'}")
         followers[follower_id] = result
     bad = {name: code for name, code in codes.items() if code not in (0, None)}
     if bad and not failure:
@@ -525,24 +216,10 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
         failure = f'{name} exited with code {bad[name]}'
     recording = None
     if recorder is not None:
-        counts_file = out / 'recorder_counts.json'
-        recorded = json.loads(counts_file.read_text())['counts'] if counts_file.exists() else {}
-        expected = expected_counts(prefix, leader.summary(), {
-            f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()})
-        missing = {topic: n - recorded.get(topic, 0) for topic, n in expected.items()
-                   if recorded.get(topic, 0) < n}
-        extra = {topic: n - expected.get(topic, 0) for topic, n in recorded.items()
-                 if n > expected.get(topic, 0)}
-        complete = bool(recorded) and not missing
-        recording = {'path': str(out / 'run.mcap'), 'counts': recorded, 'expected': expected,
-                     'complete': complete, 'missing': missing, 'extra': extra}
-        if not complete and not failure:
-            failure = f'the recording misses messages: {missing or "no counts"}'
-        # a restarted node publishes again what it sent after its last checkpoint
-        if extra and not failure and not any(p.restarts for p in launcher.processes):
-            failure = (f'the recording holds messages that no node of this run published: '
-                       f'{extra} (another run publishes on these topics in this ROS domain; '
-                       'use --domain-id or --prefix)')
+        recording, problem = audit_recording(out, prefix, leader.summary(), {
+            f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()},
+            any(p.restarts for p in launcher.processes))
+        failure = failure or problem
     steps = min((r['steps'] for r in followers.values()), default=0)
     summary: dict[str, Any] = {
         'ok': not failure, 'failure': failure or None, 'run_id': run_id, 'mode': args.mode,
@@ -567,13 +244,15 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
 
 @command(PROG)
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of scripts/run_formation.sh; SIGTERM stops the run like Ctrl-C (exit 1)."""
+    """Entry point of scripts/run_formation.sh; SIGTERM and SIGHUP (the terminal closed) stop
+    the run like Ctrl-C: every node ends, the summary is written, exit 1."""
     args = build_parser().parse_args(argv)
 
     def interrupt(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, interrupt)
+    signal.signal(signal.SIGHUP, interrupt)
     return run(args)
 
 

@@ -23,7 +23,7 @@ def test_realtime_run_records_without_loss(node_process, tmp_path: Path) -> None
     from harness.ros import PREFIX
 
     from formopt_ros import bag as bags
-    from formopt_ros.cli.run_formation import expected_counts
+    from formopt_ros.cli.audit import expected_counts
     folder = Path(os.environ.get('FORMOPT_SOAK_OUT', tmp_path))
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / 'soak.mcap'

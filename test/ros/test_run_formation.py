@@ -3,6 +3,7 @@ lockstep run equals the pure simulation per follower and the recording loses not
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -297,3 +298,72 @@ def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(summary['final_truth'], ref.truth[-1], rtol=0, atol=TOL)
     assert summary['resumed']['from_step'] > 0
+
+
+def _alive_with(marker: str) -> list[str]:
+    """Command lines of live processes that mention ``marker`` (the run's output folder)."""
+    alive = []
+    for proc in Path('/proc').iterdir():
+        if proc.name.isdigit():
+            try:
+                line = (proc / 'cmdline').read_bytes().replace(b'\0', b' ').decode()
+            except OSError:
+                continue
+            if marker in line:
+                alive.append(line)
+    return alive
+
+
+@pytest.mark.parametrize('signum', [signal.SIGHUP, signal.SIGTERM, signal.SIGINT],
+                         ids=['SIGHUP', 'SIGTERM', 'SIGINT'])
+def test_a_signal_ends_every_process_and_writes_the_summary(
+        tmp_path: Path, ros_domain: int, signum: int) -> None:
+    """A realtime run of 100 s, signalled once its nodes started (the terminal closed, a
+    kill, Ctrl-C): exit 1, summary.json says why, and 5 s later no process of the run lives."""
+    out = tmp_path / 'signalled'
+    process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--mode', 'realtime',
+                                '--steps', '1000', '--out', str(out), '--domain-id',
+                                str(ros_domain)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout is not None
+    for line in process.stdout:                  # blocks per line until the nodes started
+        if 'started' in line:
+            break
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 1, stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    assert not summary['ok'] and 'interrupted' in summary['failure'], summary['failure']
+    deadline = time.monotonic() + 5.0
+    while _alive_with(str(out)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive_with(str(out))
+
+
+def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: int,
+                                                  monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The third node cannot be started (an OSError, e.g. a path the system refuses): exit 1,
+    summary.json names the error, and no process of the run lives 5 s later."""
+    from formopt_ros.cli import run_formation as command
+    from formopt_ros.cli.supervisor import Launcher
+    start = Launcher.start
+
+    def failing_start(self: Launcher, *args: object, **kwargs: object) -> object:
+        if len(self.processes) == 2:
+            raise OSError(36, 'File name too long')
+        return start(self, *args, **kwargs)
+
+    monkeypatch.setattr(Launcher, 'start', failing_start)
+    out = tmp_path / 'failed'
+    code = command.main(['--formation', str(FIG4), '--steps', '10', '--out', str(out),
+                         '--domain-id', str(ros_domain)])
+    assert code == 1
+    summary = json.loads((out / 'summary.json').read_text())
+    assert not summary['ok'] and 'File name too long' in summary['failure']
+    assert len(summary['exit_codes']) == 2 and None not in summary['exit_codes'].values()
+    assert 'File name too long' in capsys.readouterr().err
+    deadline = time.monotonic() + 5.0
+    while _alive_with(str(out)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive_with(str(out))

@@ -1,0 +1,152 @@
+"""The processes of a run: start nodes through scripts/<node>.sh, restart or stop them, and never
+leave one behind (every started process group is ended when the run ends, however it ends)."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from formopt_ros.wire.topics import GLOBAL_TOPICS
+
+PROG = 'run_formation.sh'
+SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
+#: Exit code of a node refusing its configuration (not respawned: it would refuse again).
+CONFIGURATION_EXIT = 2
+
+
+@dataclass
+class Process:
+    """One node process: its command, log file and (after the run) exit code and summary."""
+
+    name: str
+    process: subprocess.Popen[bytes]
+    log: Path
+    args: list[str]
+    summary_path: Path | None = None
+    code: int | None = None
+    restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
+
+    def restart(self) -> None:
+        """Start the process again (same arguments; the log continues)."""
+        self.restarts.append(self.process.wait())
+        with open(self.log, 'ab') as stream:
+            stream.write(f'--- {PROG}: restarted after exit code {self.restarts[-1]} ---\n'
+                         .encode())
+            stream.flush()
+            self.process = subprocess.Popen(self.args, stdout=stream, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
+
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.process.poll() is None
+
+    def summary(self) -> dict[str, Any] | None:
+        """The node's JSON summary (None when it wrote none)."""
+        if self.summary_path is None or not self.summary_path.is_file():
+            return None
+        return dict(json.loads(self.summary_path.read_text()))
+
+    def tail(self, lines: int = 5) -> str:
+        """The last lines of its log."""
+        text = self.log.read_text(errors='replace').splitlines() if self.log.exists() else []
+        return '\n'.join(text[-lines:])
+
+
+@dataclass
+class Launcher:
+    """Starts node processes through scripts/<node>.sh with a namespace and -p parameters."""
+
+    out: Path
+    checkpoints: bool = False
+    remaps: list[str] = field(default_factory=list)   # FROM:=TO for every node
+    processes: list[Process] = field(default_factory=list)
+
+    def start(self, name: str, node: str, namespace: str, params: dict[str, Any],
+              summary: bool = True, remaps: list[str] | None = None) -> Process:
+        """Start ``node`` as process ``name`` (log OUT/<name>.log, summary OUT/<name>.json),
+        with the common remaps and ``remaps`` (FROM:=TO)."""
+        summary_path = self.out / f'{name}.json' if summary else None
+        if summary_path is not None:
+            params = {**params, 'summary_path': str(summary_path)}
+        if summary_path is not None and self.checkpoints:
+            params['checkpoint_path'] = str(self.out / 'checkpoints' / f'{name}.pkl')
+        args = [str(SCRIPTS / f'{node}.sh'), '-r', f'__ns:={namespace or "/"}']
+        for remap in self.remaps + (remaps or []):
+            args += ['-r', remap]
+        for key, value in params.items():
+            args += ['-p', f'{key}:={format_value(value)}']
+        log = self.out / f'{name}.log'
+        with open(log, 'wb') as stream:
+            process = subprocess.Popen(args, stdout=stream, stderr=subprocess.STDOUT,
+                                       start_new_session=True)
+        self.processes.append(Process(name, process, log, args, summary_path))
+        return self.processes[-1]
+
+    def __enter__(self) -> 'Launcher':
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """However the run ends (an error while starting, a signal), no process outlives it."""
+        self.stop([p for p in self.processes if p.alive()])
+
+    def stop(self, processes: list[Process], grace: float = 10.0) -> None:
+        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later."""
+        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            running = [p for p in processes if p.alive()]
+            if not running:
+                break
+            for item in running:
+                try:
+                    os.killpg(item.process.pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + wait
+            while any(p.alive() for p in running) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        for item in processes:
+            item.code = item.process.wait()
+
+
+def format_value(value: Any) -> str:
+    """A -p value: lists as YAML flow, bools lower case."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(format_value(v) for v in value) + ']'
+    return str(value) if str(value) else "''"
+
+
+def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,
+              respawn: int) -> str:
+    """Restart dead nodes while ``respawn`` allows; the failure when one cannot go on ('' if
+    none). An estimator that exited 0 has finished; any other exit before the end is a
+    failure unless the node can be restarted (not after exit code 2, a refused configuration,
+    and never the recorder, whose file would be cut)."""
+    for item in estimators + others + ([recorder] if recorder else []):
+        code = item.process.poll()
+        if code is None or (item in estimators and code == 0):
+            continue
+        if item is not recorder and code != CONFIGURATION_EXIT and \
+                len(item.restarts) < respawn:
+            print(f'{PROG}: {item.name} exited with code {code}; restarting it '
+                  f'({len(item.restarts) + 1}/{respawn})', file=sys.stderr)
+            item.restart()
+            continue
+        return f'{item.name} exited with code {code} before the run finished:\n{item.tail()}'
+    return ''
+
+
+def global_remaps(prefix: str) -> list[str]:
+    """-r rules that move the global topics (/tf, /tf_static, /clock, /diagnostics) under
+    ``prefix``, so that two runs in one domain do not mix their transforms and clocks."""
+    return [f'{t.name}:={prefix}{t.name}' for t in GLOBAL_TOPICS] if prefix else []
+
+
+__all__ = ['CONFIGURATION_EXIT', 'Launcher', 'Process', 'format_value', 'global_remaps',
+           'supervise']
