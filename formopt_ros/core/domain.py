@@ -71,7 +71,8 @@ def check_input_domain(scenario: Scenario, field: str = 'p_o') -> None:
         raise ValueError(
             f'{field} [{s.p_o[0]:.6g}, {s.p_o[1]:.6g}] (|p_o| = {s.d_o:.6g} m) is too small '
             f'for this run: the estimator refuses as implausible any odometry of more than '
-            f'{TRAVEL_BOUND:g} |p_o| = {allowed:.6g} m per sub-step, and the follower may need {need:.6g} m '
+            f'{TRAVEL_BOUND:g} |p_o| = {allowed:.6g} m per sub-step, and the follower may '
+            f'need {need:.6g} m '
             f"(twice the leader's {speed:g} m/s x dt {s.dt:g} s, the disc 2 r = "
             f'{2 * s.r:.6g} m, the settling {SETTLING_SIGMAS:g} initial standard deviations '
             f'= {SETTLING_SIGMAS * sigma0:.6g} m): its odometry would be refused. Use a slot at '

@@ -114,8 +114,8 @@ def test_settings_are_checked() -> None:
     assert ConsistencyWatch(WatchSettings(cap_probability=1.0)).nis.cap == math.inf
 
 
-def session_run(scenario: Scenario, trial: int, steps: int) -> tuple[EstimatorSession,
-                                                                      TrialResult]:
+def session_run(scenario: Scenario, trial: int,
+                steps: int) -> tuple[EstimatorSession, TrialResult]:
     """A lockstep session fed run_trial's inputs and truth (as the node is)."""
     ref = run_trial(scenario, 'ram', 0, trial, steps)
     timebase = Timebase.from_dt(scenario.dt)
