@@ -199,3 +199,45 @@ def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     with pytest.raises(ValueError, match='yaw rate'):
         from formopt_ros.core.scenario import LeaderPath
         check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 1000.0)))
+
+
+def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None:
+    """replay --offline of the 20-step legacy bag: the re-estimate's watch saw 20 NIS and 20
+    NEES samples, too few to judge (ok), and the command prints that verdict."""
+    from pathlib import Path
+
+    from formopt_ros.analysis.offline import offline
+    from formopt_ros.analysis.recording import load_recording
+    from formopt_ros.bag import read_bag
+    from formopt_ros.cli.replay import main
+    bag = Path(__file__).resolve().parents[1] / 'data' / \
+        'legacy_0.1.0_lockstep_bearing_crm_seed2.mcap'
+    result = offline(load_recording(read_bag(bag)), seed=2)
+    assert result.consistent and result.consistency['worst']['level'] == OK
+    assert result.consistency['counters']['nis_samples'] == 20
+    assert result.as_dict()['consistency'] == result.consistency
+    with pytest.raises(SystemExit) as stop:
+        main([str(bag), '--offline', '--seed', '2'])
+    assert stop.value.code == 0
+    assert 'consistency of the re-estimate: ok\n' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('allow', [False, True])
+def test_montecarlo_command_warns_and_honours_allow_inconsistent(
+        tmp_path, capsys: pytest.CaptureFixture, allow: bool) -> None:
+    """formopt-montecarlo on a diverging bearing disc: exit 0, a warning naming RAM, report.md
+    and summary.json flag it; --allow-inconsistent prints the percentage, marked."""
+    import json
+
+    from formopt_ros.cli.montecarlo import main
+    argv = ['--measurement', 'bearing', '--r-fraction', '0.9', '--trials', '2', '--steps',
+            '100', '--strategies', 'ram,rq', '--jobs', '1', '--no-figures', '--out',
+            str(tmp_path)] + (['--allow-inconsistent'] if allow else [])
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert 'warning: bearing: RAM, RQ flagged inconsistent' in err
+    summary = json.loads((tmp_path / 'bearing' / 'summary.json').read_text())
+    assert summary['ok'] is False and set(summary['consistency']['flagged']) == {'ram', 'rq'}
+    row = next(line for line in (tmp_path / 'bearing' / 'report.md').read_text().splitlines()
+               if line.startswith('| RQ |'))
+    assert row.count('% (inconsistent) |' if allow else '| withheld |') == 2, row
