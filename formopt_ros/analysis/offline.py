@@ -41,6 +41,14 @@ class OfflineResult:
     max_stamp_diff_ns: int
     estimates: list[np.ndarray] = field(default_factory=list, repr=False)
     covariances: list[np.ndarray] = field(default_factory=list, repr=False)
+    #: the re-estimate's consistency watch (:meth:`ConsistencyWatch.summary`), the verdict the
+    #: estimator node reaches on the same inputs
+    consistency: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def consistent(self) -> bool:
+        """False when the re-estimate saw sustained inconsistency or gating."""
+        return self.consistency.get('worst', {}).get('level') != 'error'
 
     @property
     def max_diff(self) -> float:
@@ -60,7 +68,8 @@ class OfflineResult:
                 'max_state_diff': self.max_state_diff,
                 'max_covariance_diff': self.max_covariance_diff,
                 'max_waypoint_diff': self.max_waypoint_diff,
-                'max_stamp_diff_ns': self.max_stamp_diff_ns, 'max_diff': self.max_diff}
+                'max_stamp_diff_ns': self.max_stamp_diff_ns, 'max_diff': self.max_diff,
+                'consistency': self.consistency}
 
 
 def _inputs(recording: Recording, follower: FollowerRecording) -> list[tuple[int, str, Any]]:
@@ -133,4 +142,4 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
                          description.strategy, description.scenario.measurement,
                          description.mode, follower.legacy, state, covariance, waypoint,
                          stamps if lockstep else 0, [o.x for o in outcomes],
-                         [o.P for o in outcomes])
+                         [o.P for o in outcomes], session.watch.summary())

@@ -21,8 +21,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
-    ENGINES, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, memory_estimate, nees_band,
-    run_studies, summarize)
+    ENGINES, FLAG_RULE, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, memory_estimate,
+    nees_band, run_studies, summarize)
 from formopt_ros.wire.jsonfile import write_json
 
 FIGURE_NAMES = {'range': 'fig5_range_weighted_trace.png',
@@ -65,6 +65,10 @@ def build_parser() -> ArgumentParser:
                              '(default: runs/montecarlo)')
     parser.add_argument('--no-figures', action='store_true',
                         help='skip the PNG figures (faster, no matplotlib needed)')
+    parser.add_argument('--allow-inconsistent', action='store_true',
+                        help='print the "vs RAM" percentages of strategies flagged inconsistent '
+                             f'({FLAG_RULE}), marked as such; without it they are withheld '
+                             '(summary.json flags them either way)')
     return parser
 
 
@@ -79,12 +83,14 @@ def _progress(total: int, label: str):
     return None
 
 
-def write_into(folder: Path, figures: bool, result: StudyResult) -> None:
+def write_into(folder: Path, figures: bool, result: StudyResult,
+               allow_inconsistent: bool = False) -> None:
     """:func:`write_outputs` into folder/<measurement>."""
-    write_outputs(result, folder / result.config.measurement, figures)
+    write_outputs(result, folder / result.config.measurement, figures, allow_inconsistent)
 
 
-def write_outputs(result: StudyResult, out: Path, figures: bool) -> dict[str, Any]:
+def write_outputs(result: StudyResult, out: Path, figures: bool,
+                  allow_inconsistent: bool = False) -> dict[str, Any]:
     """Write summary.json, steps.csv, report.md and the figures into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarize(result)
@@ -102,7 +108,7 @@ def write_outputs(result: StudyResult, out: Path, figures: bool) -> dict[str, An
             writer.writerow([k + 1, f'{time_s[k]:.2f}']
                             + [f'{mean_trace[n][k]:.9g}' for n in names]
                             + [f'{mean_nees[n][k]:.6g}' for n in names])
-    (out / 'report.md').write_text(report_markdown(summary))
+    (out / 'report.md').write_text(report_markdown(summary, allow_inconsistent))
     if figures:
         _figures(result, out, time_s, mean_trace, mean_nees)
     return summary
@@ -146,9 +152,15 @@ def describe_path(path: dict[str, Any]) -> str:
     return text
 
 
-def report_markdown(summary: dict[str, Any]) -> str:
-    """A short Markdown report with the summary table."""
+def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -> str:
+    """A short Markdown report with the summary table.
+
+    A strategy flagged inconsistent (``summary['consistency']['flagged']``) is marked in the
+    table; its "vs RAM" percentages (and everyone's when RAM is flagged) read 'withheld'
+    unless ``allow_inconsistent``, then they are printed followed by '(inconsistent)'.
+    """
     lo, hi = summary['nees_band']
+    flagged = summary.get('consistency', {}).get('flagged', {})
     scenario = summary['scenario']
     lines = [f"# Monte Carlo, {summary['measurement']}-only",
              '',
@@ -161,20 +173,27 @@ def report_markdown(summary: dict[str, Any]) -> str:
              f'[{lo:.3f}, {hi:.3f}].',
              '',
              '| strategy | steady tr(W P W) [m^2] | vs RAM | std over trials | mean tr(W P W) '
-             '[m^2] | vs RAM | mean NEES | steps in NEES band | decision time mean / median '
-             '[ms] | fallbacks |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             '[m^2] | vs RAM | mean NEES | steps in NEES band | consistent | decision time '
+             'mean / median [ms] | fallbacks |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     ram = summary['strategies'].get('ram')
 
-    def versus(row: dict[str, float], key: str) -> str:
+    def versus(name: str, row: dict[str, float], key: str) -> str:
+        if not ram:
+            return '-'
+        doubtful = name in flagged or 'ram' in flagged
+        if doubtful and not allow_inconsistent:
+            return 'withheld'
         # rounded first and + 0.0: a difference in the last bits reads '+0.0 %', not '-0.0 %'
-        return f'{round(100 * (row[key] / ram[key] - 1), 1) + 0.0:+.1f} %' if ram else '-'
+        text = f'{round(100 * (row[key] / ram[key] - 1), 1) + 0.0:+.1f} %'
+        return text + ' (inconsistent)' if doubtful else text
 
     for name, row in summary['strategies'].items():
         lines.append(f"| {name.upper()} | {row['steady_trace']:.6g} | "
-                     f"{versus(row, 'steady_trace')} | {row['steady_trace_std']:.3g} | "
-                     f"{row['mean_trace']:.6g} | {versus(row, 'mean_trace')} | "
+                     f"{versus(name, row, 'steady_trace')} | {row['steady_trace_std']:.3g} | "
+                     f"{row['mean_trace']:.6g} | {versus(name, row, 'mean_trace')} | "
                      f"{row['nees_mean']:.3f} | {100 * row['nees_in_band']:.1f} % | "
+                     f"{'FLAGGED' if name in flagged else 'yes'} | "
                      f"{1e3 * row['decision_time_s']:.3f} / "
                      f"{1e3 * row['decision_time_median_s']:.3f} | {row['fallback_steps']} |")
     rows = summary['strategies'].values()
@@ -184,6 +203,12 @@ def report_markdown(summary: dict[str, Any]) -> str:
     lines += ['', f'Innovation gate ({INNOVATION_GATE:g}): {gated} of {updates} updates '
               f'refused; largest normalised innovation squared {largest:.3g}.']
     lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
+    if flagged:
+        lines += ['', f'Flagged inconsistent ({FLAG_RULE}); "vs RAM" of a flagged strategy, '
+                  'and of every strategy when RAM is flagged, is '
+                  + ("printed but compares an inconsistent filter's covariance:"
+                     if allow_inconsistent else 'withheld (--allow-inconsistent prints it):')]
+        lines += [f'- {name.upper()}: {reason}' for name, reason in flagged.items()]
     return '\n'.join(lines) + '\n'
 
 
@@ -268,11 +293,18 @@ def main(argv: list[str] | None = None) -> int:
     bar = _progress(args.trials * len(strategies) * len(kinds), ' + '.join(kinds))
     # each kind's outputs (figures take a second) are written as soon as its runs are in
     results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,
-                          partial(write_into, args.out, not args.no_figures))
+                          partial(write_into, args.out, not args.no_figures,
+                                  allow_inconsistent=args.allow_inconsistent))
     if bar:
         bar.close()
     for result in results:
-        print(report_markdown(summarize(result)))
+        summary = summarize(result)
+        print(report_markdown(summary, args.allow_inconsistent))
+        flagged = summary['consistency']['flagged']
+        if flagged:
+            print(f"{parser.prog}: warning: {result.config.measurement}: "
+                  f"{', '.join(n.upper() for n in flagged)} flagged inconsistent (the filter's "
+                  'NEES left its band; see report.md)', file=sys.stderr)
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
           f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')

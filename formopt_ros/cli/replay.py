@@ -153,6 +153,10 @@ def offline_main(args: Any) -> int:
     print(f'max |estimate - recorded|: state {result.max_state_diff:.3e}, covariance '
           f'{result.max_covariance_diff:.3e}; waypoints {way} m; stamps '
           f'{result.max_stamp_diff_ns} ns')
+    worst = result.consistency['worst']
+    print('consistency of the re-estimate: ' + (
+        'ok' if worst['level'] == 'ok' else
+        f"{worst['level'].upper()} at step {worst['step']}: {worst['reason']}"))
     print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
           f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
     if args.json:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.cost import Problem, weighted_trace
 from formopt_ros.core.model import (
     ekf_update, normalized_estimation_error, propagate, transition_matrices)
@@ -384,6 +385,8 @@ class EstimatorSession:
         estimator: the EKF and strategy.
         assembler: which inputs make which step.
         steps: stop planning after this many steps (0: never).
+        watch: the consistency watch, fed every measurement's NIS (gated or used) and every
+            step's NEES where the truth is known (:mod:`formopt_ros.core.consistency`).
     """
 
     estimator: EstimatorPlanner
@@ -395,6 +398,7 @@ class EstimatorSession:
     last_reason: str = ''
     last_stamp_ns: int | None = None
     final_truth: np.ndarray | None = None
+    watch: ConsistencyWatch = field(default_factory=ConsistencyWatch)
     _truth: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
     _posteriors: dict[int, tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict, repr=False)
@@ -471,8 +475,10 @@ class EstimatorSession:
         if stamp_ns in self._truth and stamp_ns in self._posteriors:
             x, P = self._posteriors.pop(stamp_ns)
             truth = self._truth.pop(stamp_ns)
-            self.nees_sum += normalized_estimation_error(truth, x, P)
+            nees = normalized_estimation_error(truth, x, P)
+            self.nees_sum += nees
             self.nees_count += 1
+            self.watch.add_nees(nees, self.step)
             if stamp_ns == self.last_stamp_ns:
                 self.final_truth = truth
 
@@ -491,6 +497,7 @@ class EstimatorSession:
         for m in ready.motions:
             estimator.propagate(m.v_f, m.omega_f, m.v_l, m.omega_l)
         update = estimator.update(ready.step, ready.value, ready.variance)
+        self.watch.add_nis(update.nis, not update.used, ready.step)
         if not update.used:
             self.reject('gated_measurements', f'measurement of step {ready.step} gated: '
                         f'normalised innovation {update.nis:.4g} > {INNOVATION_GATE:g}')

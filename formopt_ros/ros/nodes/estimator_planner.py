@@ -98,6 +98,7 @@ class EstimatorPlannerNode(Node):
         self.last_status = 0.0
         self.last_diagnostics = 0.0
         self.last_markers = -math.inf
+        self.watch_reported = False
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
@@ -199,6 +200,11 @@ class EstimatorPlannerNode(Node):
             self.checkpoint.save(self._state(), finished=self.session.finished)
         for outcome in outcomes:
             self._publish(outcome)
+        watch = self.session.watch
+        if watch.failed and not self.watch_reported:
+            self.watch_reported = True
+            self.get_logger().error(f'filter inconsistent at step {watch.worst.step}: '
+                                    f'{watch.worst.reason}; the run will not end ok')
         if self.session.finished and not self.finished:
             self.finish()
 
@@ -293,14 +299,20 @@ class EstimatorPlannerNode(Node):
 
     def diagnostic(self) -> Any:
         """OK while steps complete; WARN when inputs were refused, the run stalls or waits for
-        subscribers; ERROR when the estimate is not finite."""
+        subscribers, or the consistency watch warns; ERROR when the estimate is not finite or
+        the watch saw sustained inconsistency or sustained gating (for the rest of the run)."""
         estimator, counters = self.session.estimator, self.session.counters
+        watch = self.session.watch
         stalled = time.monotonic() - self.last_progress
         level, message = 'OK', f'step {self.session.step}'
         if not (np.all(np.isfinite(estimator.x)) and np.all(np.isfinite(estimator.P))):
             level, message = 'ERROR', 'the estimate is not finite'
         elif self.error:
             level, message = 'ERROR', self.error
+        elif watch.failed:
+            current = watch.verdict()
+            level, message = 'ERROR', current.reason if current.level == 'error' else \
+                f'inconsistent since step {watch.worst.step}: {watch.worst.reason}'
         elif not self.gate.open:
             level, message = 'WARN', 'waiting for subscribers: ' + ', '.join(self.gate.missing())
         elif not self.guard.ready():
@@ -312,6 +324,8 @@ class EstimatorPlannerNode(Node):
         elif counters.rejected_measurements or counters.rejected_odometry or \
                 counters.gated_measurements or counters.foreign_messages:
             level, message = 'WARN', f'inputs refused, last: {self.session.last_reason}'
+        elif watch.verdict().level == 'warn':
+            level, message = 'WARN', watch.verdict().reason
         solve = self.solve_times[-1] if self.solve_times else 0.0
         return conversions.diagnostic(
             self.get_fully_qualified_name(), self.follower_id, level, message, {
@@ -320,16 +334,24 @@ class EstimatorPlannerNode(Node):
                 'solve_time_ms': 1e3 * solve,
                 'mean_solve_time_ms': 1e3 * float(np.mean(self.solve_times))
                 if self.solve_times else 0.0,
-                **counters.as_dict(), 'seconds_since_progress': round(stalled, 3)})
+                **counters.as_dict(), 'seconds_since_progress': round(stalled, 3),
+                'consistency': watch.verdict().level,
+                'inconsistent_steps': watch.counters['inconsistent_steps'],
+                'gating_steps': watch.counters['gating_steps']})
 
     # --- end of run --------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
-        """Final state, evaluation and message counts of the run."""
+        """Final state, evaluation and message counts of the run; not ok after an error or
+        after sustained inconsistency or gating (``consistency``)."""
         estimator = self.session.estimator
         truth = self.session.final_truth
+        watch = self.session.watch
+        inconsistent = f'filter inconsistent at step {watch.worst.step}: {watch.worst.reason}' \
+            if watch.failed else ''
         return {
-            'ok': not self.error and (self.session.finished or not self.params['steps']),
-            'error': self.error or None,
+            'ok': not self.error and not watch.failed and (
+                self.session.finished or not self.params['steps']),
+            'error': self.error or inconsistent or None,
             'run_id': self.params['run_id'],
             'steps': self.session.step,
             'resumed': self.resumed,
@@ -344,6 +366,7 @@ class EstimatorPlannerNode(Node):
             'final_weighted_trace': estimator.weighted_trace(),
             'mean_nees': self.session.mean_nees(),
             'counters': self.session.counters.as_dict(),
+            'consistency': watch.summary(),
             'message_counts': {'received': dict(self.received),
                                'published': dict(self.published)},
         }

@@ -1,0 +1,124 @@
+"""Domain rules a scenario must meet before a run starts, each with its stated reason.
+
+* :func:`check_input_domain`: the inputs the run itself produces must pass the estimator's
+  plausibility gate (:class:`~formopt_ros.core.estimator.InputBounds`, relative to |p_o|):
+  otherwise every leader odometry message of a tiny slot (e.g. 2 mm at 1 m/s) is refused as
+  implausible and the run hangs until its timeout.
+* :func:`check_deviation_domain`: a bearing follower whose disc comes too close to the leader
+  diverges (docs/faults.md, "Why large discs diverge for bearing"): the EKF's bearing model is
+  linearised with a Jacobian of size 1/|p| and a curvature of 1/|p|^2, so a position error
+  that is a fair fraction of the distance to the leader makes the update wrong by more than
+  the measurement noise. Measured boundary (50 trials x 600 steps, RAM): consistent when the
+  disc keeps ``CLEARANCE_SIGMAS`` initial position standard deviations and
+  ``CLEARANCE_FRACTION`` |p_o| from the leader, divergent trials just beyond.
+
+Both raise ValueError naming the field to change; neither is needed for the paper's settings.
+"""
+from __future__ import annotations
+
+import math
+
+from formopt_ros.core.estimator import TRAVEL_BOUND, TURN_BOUND
+from formopt_ros.core.model import BEARING
+from formopt_ros.core.scenario import LeaderPath, Scenario
+
+#: Bearing: the disc must keep this many initial position standard deviations from the leader.
+CLEARANCE_SIGMAS = 3.5
+#: Bearing: ... and this fraction of |p_o| (the steady state near the leader).
+CLEARANCE_FRACTION = 0.2
+#: Initial position standard deviations the estimate may move by when it settles (the
+#: follower's commands cover that correction in one sub-step).
+SETTLING_SIGMAS = 3.0
+
+
+def leader_extremes(path: LeaderPath) -> tuple[float, float]:
+    """The largest |speed| (m/s) and |yaw rate| (rad/s) the leader path ever commands."""
+    if path.kind == 'segments':
+        return (max(abs(s.speed) for s in path.segments),
+                max(abs(s.yaw_rate) for s in path.segments))
+    turn = {'straight': 0.0, 'arc': abs(path.yaw_rate), 's-curve': abs(path.amplitude)}
+    return abs(path.speed), turn[path.kind]
+
+
+def check_input_domain(scenario: Scenario, field: str = 'p_o') -> None:
+    """Refuse a scenario whose own odometry the estimator would refuse as implausible.
+
+    The gate allows TRAVEL_BOUND |p_o| of travel and TURN_BOUND half-turns per sub-step dt.
+    The leader travels up to max |v_L| dt per sub-step; the follower, which rotates in place on
+    one sub-step and translates on the other, covers twice that plus a move across the disc
+    (up to 2 r) plus the estimate's settling (SETTLING_SIGMAS initial position standard
+    deviations: a correction of the estimate is driven in one sub-step). All of it must fit in
+    TRAVEL_BOUND |p_o|.
+
+    Args:
+        scenario: the follower's settings.
+        field: the name the message gives the slot (the caller's spelling, e.g. 'slot').
+
+    Raises:
+        ValueError: naming ``field``, the need and the bound, with the smallest slot allowed.
+    """
+    s = scenario
+    speed, turn = leader_extremes(s.leader)
+    if turn > TURN_BOUND * math.pi / s.dt:
+        raise ValueError(f'leader yaw rate {turn:g} rad/s exceeds what the estimator accepts '
+                         f'as plausible ({TURN_BOUND:g} half-turns per dt = '
+                         f'{TURN_BOUND * math.pi / s.dt:.6g} rad/s)')
+    sigma0 = math.sqrt(max(s.initial_covariance[0], s.initial_covariance[1]))
+    need = 2.0 * speed * s.dt + 2.0 * s.r + SETTLING_SIGMAS * sigma0
+    allowed = TRAVEL_BOUND * s.d_o
+    if need > allowed:
+        smallest = need / TRAVEL_BOUND
+        raise ValueError(
+            f'{field} [{s.p_o[0]:.6g}, {s.p_o[1]:.6g}] (|p_o| = {s.d_o:.6g} m) is too small '
+            f'for this run: the estimator refuses as implausible any odometry of more than '
+            f'{TRAVEL_BOUND:g} |p_o| = {allowed:.6g} m per sub-step, and the follower may '
+            f'need {need:.6g} m '
+            f"(twice the leader's {speed:g} m/s x dt {s.dt:g} s, the disc 2 r = "
+            f'{2 * s.r:.6g} m, the settling {SETTLING_SIGMAS:g} initial standard deviations '
+            f'= {SETTLING_SIGMAS * sigma0:.6g} m): its odometry would be refused. Use a slot at '
+            f'least {smallest:.6g} m from the leader')
+
+
+def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None:
+    """Refuse a bearing scenario whose disc reaches too close to the leader (module docstring).
+
+    The clearance |p_o| - r must be at least CLEARANCE_SIGMAS initial position standard
+    deviations (the first updates) and CLEARANCE_FRACTION |p_o| (the steady state). Range
+    followers are not limited: RAM and RQ stay consistent up to a deviation of 0.999 |p_o|
+    (PERIODIC does not at 0.9-0.95; the consistency watch flags it).
+
+    Args:
+        scenario: the follower's settings.
+        field: the name the message gives the deviation (e.g. 'deviation',
+            'deviation_fraction', '--r-fraction').
+
+    Raises:
+        ValueError: naming ``field``, the clearance, the rule and the largest fraction allowed.
+    """
+    s = scenario
+    if s.measurement != BEARING:
+        return
+    sigma0 = math.sqrt(max(s.initial_covariance[0], s.initial_covariance[1]))
+    clearance = s.d_o - s.r
+    need = max(CLEARANCE_SIGMAS * sigma0, CLEARANCE_FRACTION * s.d_o)
+    if clearance < need:
+        largest = max(0.0, 1.0 - need / s.d_o)
+        raise ValueError(
+            f"{field} {s.r / s.d_o:.6g}: a bearing follower's disc must stay {need:.4g} m from "
+            f'the leader (the larger of {CLEARANCE_SIGMAS:g} initial position standard '
+            f'deviations = {CLEARANCE_SIGMAS * sigma0:.4g} m and {CLEARANCE_FRACTION:g} '
+            f'|p_o| = {CLEARANCE_FRACTION * s.d_o:.4g} m), this one comes to '
+            f'{clearance:.4g} m: closer, the linearised bearing model is wrong by more than '
+            f'the noise and the filter diverges (docs/faults.md). Use a deviation of at most '
+            f'{largest:.4g}')
+
+
+def check_domain(scenario: Scenario, slot_field: str = 'p_o',
+                 deviation_field: str = 'deviation') -> None:
+    """:func:`check_input_domain` then :func:`check_deviation_domain`."""
+    check_input_domain(scenario, slot_field)
+    check_deviation_domain(scenario, deviation_field)
+
+
+__all__ = ['CLEARANCE_FRACTION', 'CLEARANCE_SIGMAS', 'SETTLING_SIGMAS', 'check_deviation_domain',
+           'check_domain', 'check_input_domain', 'leader_extremes']

@@ -1,0 +1,243 @@
+"""The consistency watch on seeded streams, in the estimator session, the study's flag and the
+domain rules."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from formopt_ros.core.consistency import (
+    ERROR, OK, WARN, ConsistencyWatch, WatchSettings, capped_moments, window_band)
+from formopt_ros.core.domain import check_deviation_domain, check_domain, check_input_domain
+from formopt_ros.core.estimator import EstimatorSession
+from formopt_ros.core.protocol import Timebase
+from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.simulation import TrialResult, run_trial, trial_streams
+from formopt_ros.core.strategies import make_strategy
+from formopt_ros.core.study import StudyConfig, nees_band, run_study, summarize
+
+SQRT5 = math.sqrt(5.0)
+
+
+def stream(watch: ConsistencyWatch, nis: np.ndarray, nees: np.ndarray | None = None,
+           gated: np.ndarray | None = None) -> list[str]:
+    """Feed one NIS (and NEES) per step; the level after each step."""
+    levels = []
+    for k, value in enumerate(nis):
+        watch.add_nis(value, bool(gated[k]) if gated is not None else False, k + 1)
+        if nees is not None:
+            watch.add_nees(nees[k], k + 1)
+        levels.append(watch.verdict().level)
+    return levels
+
+
+def test_band_without_cap_is_the_chi_square_band_of_the_mean() -> None:
+    """Uncapped, the band is chi2(n dof) / n: the study's NEES band for 50 trials, and the
+    99.999 % band of 50 NIS values; the cap of 1 dof at 99.9 % lowers the mean to 0.998 and
+    the band's upper edge from 2.140 to 2.124."""
+    assert window_band(50, 3, 0.95) == pytest.approx(nees_band(50), rel=1e-12)
+    low, high = window_band(50, 1, 0.99999)
+    assert low == pytest.approx(0.3483, abs=1e-4) and high == pytest.approx(2.1403, abs=1e-4)
+    watch = ConsistencyWatch()
+    assert watch.band(1, 50) == pytest.approx((0.3517, 2.1235), abs=1e-4)
+    mean, variance = capped_moments(1, 10.827566)
+    assert mean == pytest.approx(0.9981, abs=1e-4) and variance < 2.0
+
+
+def test_consistent_streams_stay_ok() -> None:
+    """200 seeded runs of 600 chi-square NIS (1 dof) and NEES (3 dof) values: none ends in
+    error (the band is 99.999 %, held for 25 samples in a row)."""
+    rng = np.random.default_rng(0)
+    failed = 0
+    for _ in range(200):
+        watch = ConsistencyWatch()
+        stream(watch, rng.chisquare(1, 600), rng.chisquare(3, 600))
+        failed += watch.failed
+    assert failed == 0
+    assert watch.counters['nis_samples'] == watch.counters['nees_samples'] == 600
+    assert watch.summary()['window_mean_nis'] == pytest.approx(1.0, abs=0.5)
+
+
+def test_an_overconfident_filter_is_an_error_with_its_reason() -> None:
+    """NIS three times too large: the window mean (about 2.4 once capped) leaves the band
+    (upper edge 2.12-2.27 for 50-20 samples); after 25 samples in a row above it, an error,
+    latched with the step it came at (the current verdict may drop back to a warning)."""
+    rng = np.random.default_rng(1)
+    watch = ConsistencyWatch()
+    levels = stream(watch, 3.0 * rng.chisquare(1, 200))
+    first = levels.index(ERROR) + 1
+    assert first == 49
+    assert watch.failed and watch.worst.step == first
+    assert watch.worst.reason == (
+        'sustained inconsistency: window mean NIS 2.4 over the last 49 samples above the '
+        '99.999 % band [0.347, 2.14] of a consistent filter (1 dof) for 25 samples in a row')
+    assert watch.counters['inconsistent_steps'] == levels.count(ERROR) == 24
+
+
+def test_sustained_gating_is_an_error_and_a_few_gated_a_warning() -> None:
+    """Every fifth measurement gated (20 % > 10 %): an error at the 20th sample, when the
+    window is first judged; one gated measurement among 60 only warns."""
+    nis = np.ones(60)
+    gated = np.arange(60) % 5 == 4
+    nis[gated] = 400.0
+    watch = ConsistencyWatch()
+    levels = stream(watch, nis, gated=gated)
+    assert levels[18] != ERROR and levels[19] == ERROR
+    assert watch.worst.reason.startswith('sustained gating: 4 of the last 20 measurements')
+    assert watch.counters['gated'] == 12 and watch.counters['gating_steps'] == 41
+    once = ConsistencyWatch()
+    stream(once, np.where(np.arange(60) == 30, 400.0, 1.0), gated=np.arange(60) == 30)
+    assert once.worst.level == WARN and not once.failed
+
+
+def test_one_outlier_is_capped_and_a_conservative_filter_warns() -> None:
+    """A single NIS of 1e6 (or nan) in a consistent stream moves the window mean by at most
+    10.8 / 50: no error. NIS ten times too small: a warning, never an error."""
+    rng = np.random.default_rng(2)
+    nis = rng.chisquare(1, 300)
+    nis[100], nis[200] = 1e6, math.nan
+    watch = ConsistencyWatch()
+    stream(watch, nis)
+    assert not watch.failed
+    small = ConsistencyWatch()
+    levels = stream(small, 0.1 * rng.chisquare(1, 300))
+    assert small.worst.level == WARN and levels[-1] == WARN
+    assert small.worst.reason.startswith('conservative: window mean NIS')
+
+
+def test_settings_are_checked() -> None:
+    for bad in (dict(window=10, min_samples=20), dict(confidence=1.0), dict(patience=0),
+                dict(max_gated_share=1.5), dict(cap_probability=0.0)):
+        with pytest.raises(ValueError):
+            WatchSettings(**bad)
+    assert ConsistencyWatch(WatchSettings(cap_probability=1.0)).nis.cap == math.inf
+
+
+def session_run(scenario: Scenario, trial: int,
+                steps: int) -> tuple[EstimatorSession, TrialResult]:
+    """A lockstep session fed run_trial's inputs and truth (as the node is)."""
+    ref = run_trial(scenario, 'ram', 0, trial, steps)
+    timebase = Timebase.from_dt(scenario.dt)
+    _, rng = trial_streams(0, trial)
+    session = EstimatorSession.create(scenario, make_strategy('ram'), rng, True, steps)
+    session.plan_next()
+    for k in range(1, steps + 1):
+        for j, n in enumerate(((k - 1) * 2, (k - 1) * 2 + 1)):
+            stamp = timebase.substep_end(n)
+            session.add_odometry('leader', stamp, *ref.leader[k - 1, j])
+            session.add_odometry('follower', stamp, *ref.commands[k - 1, j])
+        stamp = timebase.measurement_stamp(k)
+        session.add_truth(stamp, ref.truth[k - 1])
+        session.add_measurement(k, stamp, ref.measurements[k - 1], scenario.sigma ** 2)
+        session.advance()
+    return session, ref
+
+
+def test_the_session_watches_a_diverging_bearing_follower() -> None:
+    """Bearing, deviation 0.9 |p_o|, trial 1: the first update, 0.11 m from the leader with a
+    prior of 0.32 m, leaves NEES 785; the window mean NEES stays above the band and the
+    session's watch is in error at step 44; the true follower later passes 7 cm from the
+    leader (step 81) and the estimate runs off. The paper's disc, same trial: ok."""
+    session, ref = session_run(Scenario.paper('bearing', r=0.9 * SQRT5), 1, 140)
+    np.testing.assert_allclose(session.estimator.x, ref.estimate[-1], rtol=0, atol=1e-9)
+    watch = session.watch
+    assert watch.failed and watch.worst.step == 44, watch.worst
+    assert watch.worst.reason.startswith('sustained inconsistency: window mean NEES 27.5 ')
+    assert watch.counters['nees_samples'] == watch.counters['nis_samples'] == 140
+    assert ref.nees[0] > 700 and np.hypot(*ref.truth[80, :2]) < 0.08
+    paper, _ = session_run(Scenario.paper('bearing'), 1, 140)
+    assert paper.watch.worst.level in (OK, WARN) and not paper.watch.failed
+
+
+def test_study_flags_an_inconsistent_strategy_and_the_report_withholds_it() -> None:
+    """Bearing with a disc of 0.9 |p_o| (4 trials x 150 steps): RAM's NEES leaves the band, the
+    summary flags it (ok false) and the report withholds every "vs RAM"; with
+    allow_inconsistent it prints them marked. The paper's disc: nothing flagged."""
+    from formopt_ros.cli.montecarlo import report_markdown
+    config = StudyConfig('bearing', trials=4, steps=150, seed=0, strategies=('ram', 'periodic'),
+                         scenario={'r': 0.9 * SQRT5})
+    summary = summarize(run_study(config, jobs=1))
+    flagged = summary['consistency']['flagged']
+    assert not summary['ok'] and 'ram' in flagged
+    assert summary['strategies']['ram']['nees_mean'] > 100
+    assert 'outside the 95 % band' in flagged['ram']
+    report = report_markdown(summary)
+    row = next(line for line in report.splitlines() if line.startswith('| PERIODIC |'))
+    assert row.count('| withheld |') == 2 and '%  |' not in row
+    assert '- RAM: trial-mean NEES outside the 95 % band' in report
+    allowed = report_markdown(summary, allow_inconsistent=True)
+    row = next(line for line in allowed.splitlines() if line.startswith('| PERIODIC |'))
+    assert row.count(' % (inconsistent) |') == 2
+    paper = summarize(run_study(StudyConfig('bearing', trials=4, steps=150, seed=0,
+                                            strategies=('ram', 'periodic')), jobs=1))
+    assert paper['ok'] and paper['consistency']['flagged'] == {}
+    assert '| withheld |' not in report_markdown(paper)
+
+
+def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
+    """The paper's settings pass; a bearing disc of 0.6 |p_o| and a 2 mm slot are refused,
+    naming the field, the rule and the limit."""
+    for kind in ('range', 'bearing'):
+        check_domain(Scenario.paper(kind))
+    check_deviation_domain(Scenario.paper('range', r=0.999 * SQRT5))
+    check_deviation_domain(Scenario.paper('bearing', r=0.5 * SQRT5))
+    with pytest.raises(ValueError, match=r'^deviation_fraction 0\.6: a bearing follower.*'
+                                         r'at most 0\.505'):
+        check_deviation_domain(Scenario.paper('bearing', r=0.6 * SQRT5), 'deviation_fraction')
+    with pytest.raises(ValueError, match=r'0\.2 \|p_o\|'):
+        check_deviation_domain(Scenario.paper('bearing', r=0.9 * SQRT5,
+                                              initial_covariance=(1e-4, 1e-4, 4e-4)))
+    tiny = Scenario.paper('range', p_o=(-0.002, 0.0), r=0.0002)
+    with pytest.raises(ValueError, match=r'^slot \[-0\.002, 0\] .*refuses as implausible.*'
+                                         r'at least 0\.052'):
+        check_input_domain(tiny, 'slot')
+    sure = dict(initial_covariance=(1e-8, 1e-8, 4e-4))     # even a well-known start:
+    with pytest.raises(ValueError, match=r"twice the leader's 1 m/s"):
+        check_input_domain(Scenario.paper('range', p_o=(-0.002, 0.0), r=0.0002, **sure))
+    check_input_domain(Scenario.paper('range', p_o=(-0.006, 0.0), r=0.0006, **sure))
+    with pytest.raises(ValueError, match='yaw rate'):
+        from formopt_ros.core.scenario import LeaderPath
+        check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 1000.0)))
+
+
+def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None:
+    """replay --offline of the 20-step legacy bag: the re-estimate's watch saw 20 NIS and 20
+    NEES samples, too few to judge (ok), and the command prints that verdict."""
+    from pathlib import Path
+
+    from formopt_ros.analysis.offline import offline
+    from formopt_ros.analysis.recording import load_recording
+    from formopt_ros.bag import read_bag
+    from formopt_ros.cli.replay import main
+    bag = Path(__file__).resolve().parents[1] / 'data' / \
+        'legacy_0.1.0_lockstep_bearing_crm_seed2.mcap'
+    result = offline(load_recording(read_bag(bag)), seed=2)
+    assert result.consistent and result.consistency['worst']['level'] == OK
+    assert result.consistency['counters']['nis_samples'] == 20
+    assert result.as_dict()['consistency'] == result.consistency
+    with pytest.raises(SystemExit) as stop:
+        main([str(bag), '--offline', '--seed', '2'])
+    assert stop.value.code == 0
+    assert 'consistency of the re-estimate: ok\n' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('allow', [False, True])
+def test_montecarlo_command_warns_and_honours_allow_inconsistent(
+        tmp_path, capsys: pytest.CaptureFixture, allow: bool) -> None:
+    """formopt-montecarlo on a diverging bearing disc: exit 0, a warning naming RAM, report.md
+    and summary.json flag it; --allow-inconsistent prints the percentage, marked."""
+    import json
+
+    from formopt_ros.cli.montecarlo import main
+    argv = ['--measurement', 'bearing', '--r-fraction', '0.9', '--trials', '2', '--steps',
+            '100', '--strategies', 'ram,rq', '--jobs', '1', '--no-figures', '--out',
+            str(tmp_path)] + (['--allow-inconsistent'] if allow else [])
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert 'warning: bearing: RAM, RQ flagged inconsistent' in err
+    summary = json.loads((tmp_path / 'bearing' / 'summary.json').read_text())
+    assert summary['ok'] is False and set(summary['consistency']['flagged']) == {'ram', 'rq'}
+    row = next(line for line in (tmp_path / 'bearing' / 'report.md').read_text().splitlines()
+               if line.startswith('| RQ |'))
+    assert row.count('% (inconsistent) |' if allow else '| withheld |') == 2, row
