@@ -14,6 +14,7 @@ import numpy as np
 
 from formopt_ros.cli.common import (
     ArgumentParser, command, fail, integer, name_list, new_folder, number)
+from formopt_ros.core.domain import check_domain
 from formopt_ros.core.estimator import INNOVATION_GATE
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
@@ -282,8 +283,13 @@ def main(argv: list[str] | None = None) -> int:
         configs = [StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
                                {'gbs': {'cell': args.gbs_cell}}, scenario_overrides(kind, args))
                    for kind in kinds]
+        if not args.allow_inconsistent:
+            for config in configs:
+                check_domain(Scenario.paper(config.measurement, **config.scenario), 'slot',
+                             '--r-fraction')
     except ValueError as error:
-        fail(parser.prog, str(error))
+        fail(parser.prog, f'{error}' + ('' if args.allow_inconsistent else
+                                        ' (--allow-inconsistent runs it anyway, flagged)'))
     need, have = memory_estimate(configs), physical_memory()
     if need > have // 2:
         fail(parser.prog, f'--trials {args.trials} x --steps {args.steps}: the study would hold '

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.estimator import EstimatorPlanner, StepPlan, UpdateResult
 from formopt_ros.core.protocol import NS_PER_S, held_leader_motion
 
@@ -161,6 +162,7 @@ class AsyncEstimator:
         self._previous = {robot: start_ns for robot in ROBOTS}   # end of the last interval
         self._waiting: list[tuple[int, float, float]] = []      # heap of measurements
         self.applied = 0
+        self.watch = ConsistencyWatch()          # every update's NIS and whether it was gated
 
     # --- inputs ------------------------------------------------------------------------------
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
@@ -213,6 +215,7 @@ class AsyncEstimator:
             update = self.estimator.update(self.applied + 1, value, variance)
             self.applied += 1
             self._count(update)
+            self.watch.add_nis(update.nis, not update.used, self.applied)
             out.append(AppliedMeasurement(stamp, self.estimator.x.copy(),
                                           self.estimator.P.copy(), update, bridged))
         return out

@@ -8,6 +8,7 @@ from typing import Any
 
 from rclpy.node import Node
 
+from formopt_ros.core.domain import check_domain
 from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
 from formopt_ros.core.scenario import (
@@ -145,7 +146,7 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
         raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] variances, "
                              f"got {values['initial_covariance']!r}")
     try:
-        return Scenario.paper(
+        scenario = Scenario.paper(
             kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
             sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
             leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
@@ -154,6 +155,11 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
             initial_covariance=tuple(values['initial_covariance']))
     except ValueError as error:
         raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
+    try:
+        check_domain(scenario, 'formation_slot', 'deviation_fraction')
+    except ValueError as error:
+        raise ParameterError(f'parameters {error}') from None
+    return scenario
 
 
 def follower_values(spec: FollowerSpec, trial: int, leader_id: str) -> dict[str, Any]:

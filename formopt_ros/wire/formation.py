@@ -7,6 +7,7 @@ from typing import Any
 
 import yaml
 
+from formopt_ros.core.domain import check_domain
 from formopt_ros.core.scenario import Formation
 
 
@@ -29,6 +30,12 @@ def load_formation(path: str | Path) -> Formation:
     if not isinstance(data, dict) or 'formation' not in data:
         raise ValueError(f"{path}: a formation file has one top-level key 'formation'")
     try:
-        return Formation.from_dict(data['formation'] or {})
+        formation = Formation.from_dict(data['formation'] or {})
+        for follower in formation.followers:
+            try:
+                check_domain(follower.scenario, 'slot', 'deviation')
+            except ValueError as error:
+                raise ValueError(f'formation follower {follower.id}: {error}') from None
+        return formation
     except ValueError as error:
         raise ValueError(f'{path}: {error}') from None

@@ -222,22 +222,27 @@ def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None
     assert 'consistency of the re-estimate: ok\n' in capsys.readouterr().out
 
 
-@pytest.mark.parametrize('allow', [False, True])
-def test_montecarlo_command_warns_and_honours_allow_inconsistent(
-        tmp_path, capsys: pytest.CaptureFixture, allow: bool) -> None:
-    """formopt-montecarlo on a diverging bearing disc: exit 0, a warning naming RAM, report.md
-    and summary.json flag it; --allow-inconsistent prints the percentage, marked."""
+def test_montecarlo_command_refuses_the_domain_unless_told(
+        tmp_path, capsys: pytest.CaptureFixture) -> None:
+    """formopt-montecarlo on a diverging bearing disc: refused at the door (exit 2, naming
+    --r-fraction and the largest fraction allowed); with --allow-inconsistent it runs, exit 0,
+    a warning names RAM and RQ, report.md and summary.json flag them and print the
+    percentages marked."""
     import json
 
     from formopt_ros.cli.montecarlo import main
     argv = ['--measurement', 'bearing', '--r-fraction', '0.9', '--trials', '2', '--steps',
             '100', '--strategies', 'ram,rq', '--jobs', '1', '--no-figures', '--out',
-            str(tmp_path)] + (['--allow-inconsistent'] if allow else [])
-    assert main(argv) == 0
+            str(tmp_path)]
+    with pytest.raises(SystemExit) as refused:
+        main(argv)
+    assert refused.value.code == 2
+    assert '--r-fraction 0.9' in capsys.readouterr().err
+    assert main(argv + ['--allow-inconsistent']) == 0
     err = capsys.readouterr().err
     assert 'warning: bearing: RAM, RQ flagged inconsistent' in err
     summary = json.loads((tmp_path / 'bearing' / 'summary.json').read_text())
     assert summary['ok'] is False and set(summary['consistency']['flagged']) == {'ram', 'rq'}
     row = next(line for line in (tmp_path / 'bearing' / 'report.md').read_text().splitlines()
                if line.startswith('| RQ |'))
-    assert row.count('% (inconsistent) |' if allow else '| withheld |') == 2, row
+    assert row.count('% (inconsistent) |') == 2, row

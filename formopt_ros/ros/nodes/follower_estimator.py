@@ -18,6 +18,7 @@ from sensor_msgs.msg import Range
 from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
+from formopt_ros.core.domain import check_deviation_domain
 from formopt_ros.core.controller import Limits, required_velocity, twist_toward
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
 from formopt_ros.core.model import direction_bearing, rotation_matrix, rpy_quaternion
@@ -198,11 +199,14 @@ class FollowerEstimatorNode(Node):
             raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] "
                                  f"variances, got {p['initial_covariance']!r}")
         try:
-            return Scenario(p['sensor'], p_o, p['deviation_fraction'] * math.hypot(*p_o),
-                            p[f"{p['sensor']}_sigma"], dt=p['dt'], sigma_v=p['sigma_v'],
-                            sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
-                            sigma_omega_leader=p['sigma_omega_leader'],
-                            initial_covariance=tuple(p['initial_covariance']))
+            scenario = Scenario(
+                p['sensor'], p_o, p['deviation_fraction'] * math.hypot(*p_o),
+                p[f"{p['sensor']}_sigma"], dt=p['dt'], sigma_v=p['sigma_v'],
+                sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
+                sigma_omega_leader=p['sigma_omega_leader'],
+                initial_covariance=tuple(p['initial_covariance']))
+            check_deviation_domain(scenario, 'deviation_fraction')
+            return scenario
         except ValueError as error:
             raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
 
@@ -381,7 +385,8 @@ class FollowerEstimatorNode(Node):
 
     # --- health --------------------------------------------------------------------------------
     def diagnostic_level(self) -> tuple[str, str]:
-        """ERROR: stamps ahead of this clock; inputs arriving later than reorder_lag after
+        """ERROR: sustained inconsistency or gating (the consistency watch, latched); stamps
+        ahead of this clock; inputs arriving later than reorder_lag after
         their stamps (a clock behind this one, or a slow link: they are dropped as late);
         a stream silent, or stamped behind this clock, for stale_timeout since input began.
         WARN: waiting for the first input, a stream older than half the timeout, odometry
@@ -389,6 +394,9 @@ class FollowerEstimatorNode(Node):
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
+        if self.tracker is not None and self.tracker.watch.failed:
+            worst = self.tracker.watch.worst
+            return 'ERROR', f'filter inconsistent at measurement {worst.step}: {worst.reason}'
         if new.get('refused_future'):
             return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
         lag = self.params['reorder_lag']
@@ -458,6 +466,7 @@ class FollowerEstimatorNode(Node):
             'counters': self.tracker.counters.as_dict() if self.tracker else {},
             'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step,
             'unreachable_targets': self.unreachable,
+            'consistency': self.tracker.watch.summary() if self.tracker else None,
             'handling_ms': {kind: {'count': len(times),
                                    'median': 1e3 * float(np.median(times)) if times else None,
                                    'p99': 1e3 * float(np.quantile(times, 0.99)) if times
