@@ -5,7 +5,10 @@ config/formation_real_interfaces.yaml through scripts/run_formation.sh (field_si
 with limits, odometry at 50 Hz, ranges at 30 Hz with +-5 ms jitter, 0.1 m bias, 2 % outliers of
 +1-3 m, 1 % dropouts; follower_estimator with the bias state and Huber weighting), one run per
 seed, and the same scenario's ideal lockstep run (run_trial: the paper's protocol, Gaussian
-ranges once per step, no bias, no outliers) over 20 trials. Prints a table: mean NEES of the
+ranges once per step, no bias, no outliers) over 20 trials. Each leader runs twice: with the
+radio of the file (its 0.1 m bias estimated by the bias state) and with the same radio without
+its bias (plain filter: outliers, jitter and dropouts kept), which separates what the unknown
+bias costs from what the interfaces cost. Prints a table: mean NEES of the
 real runs (3 is consistent), RMS position errors after the first 3 s and their ratio, and
 the estimator's p99 wall time per input (an odometry message or a range, with the updates it
 lets through and their estimates published) and per plan (with its target published) against
@@ -15,6 +18,7 @@ Usage: .venv/bin/python scripts/bench_real_stack.py [SEEDS] [STEPS] [DOMAIN_ID]
 """
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -33,21 +37,29 @@ PATHS = {'straight': {'kind': 'straight', 'speed': 1.0},
 SKIP_STEPS = 30                       # 3 s, as the real runs' tracking skips
 
 
-def formation_file(folder: Path, path: dict, seed: int) -> Path:
-    """The shipped real formation with its UWB follower only, on ``path``, seeded."""
+#: Radio variants: changes of the UWB follower's real settings.
+RADIOS = {'bias 0.1 m, bias state': {},
+          'no bias, plain filter': {'range_bias': 0.0, 'bias_sigma': 0.0}}
+
+
+def formation_file(folder: Path, path: dict, seed: int, radio: str = '') -> Path:
+    """The shipped real formation with its UWB follower only, on ``path``, seeded, with the
+    ``radio`` variant."""
     data = yaml.safe_load((REPO / 'config' / 'formation_real_interfaces.yaml').read_text())
     data['formation']['leader']['path'] = path
-    data['formation']['followers'] = [dict(data['formation']['followers'][0], seed=seed)]
-    target = folder / f"{path['kind']}_{seed}.yaml"
+    follower = data['formation']['followers'][0]
+    follower['real'].update(RADIOS.get(radio, {}))
+    data['formation']['followers'] = [dict(follower, seed=seed)]
+    target = folder / f"{path['kind']}_{seed}_{len(radio)}.yaml"
     target.write_text(yaml.safe_dump(data))
     return target
 
 
-def real_run(folder: Path, path: dict, seed: int, steps: int, domain: int) -> dict:
+def real_run(folder: Path, path: dict, seed: int, steps: int, domain: int, radio: str) -> dict:
     """One real-stack run; the UWB follower's tracking (mean NEES, RMS error)."""
-    out = folder / f"run_{path['kind']}_{seed}"
+    out = folder / f"run_{path['kind']}_{seed}_{len(radio)}"
     result = subprocess.run([str(REPO / 'scripts' / 'run_formation.sh'), '--formation',
-                             str(formation_file(folder, path, seed)), '--steps', str(steps),
+                             str(formation_file(folder, path, seed, radio)), '--steps', str(steps),
                              '--out', str(out), '--domain-id', str(domain)],
                             capture_output=True, text=True)
     summary = json.loads((out / 'summary.json').read_text())
@@ -74,19 +86,20 @@ def main(argv: list[str]) -> int:
     seeds = int(argv[0]) if argv else 4
     steps = int(argv[1]) if len(argv) > 1 else 300
     domain = int(argv[2]) if len(argv) > 2 else 42
-    print('| leader | real runs | all ok | mean NEES (range over runs) | real RMS m | '
+    print('| leader | radio | real runs | all ok | mean NEES (range over runs) | real RMS m | '
           'ideal lockstep RMS m | ratio (bar 1.25) | unreachable targets | p99 input ms | '
           'p99 plan ms |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        for name, path in PATHS.items():
-            runs = [real_run(folder, path, seed, steps, domain) for seed in range(seeds)]
+        for (name, path), radio in itertools.product(PATHS.items(), RADIOS):
+            runs = [real_run(folder, path, seed, steps, domain, radio) for seed in range(seeds)]
             nees = [r['mean_nees'] for r in runs]
             rms = float(np.sqrt(np.mean([r['rms_position_error_m'] ** 2 for r in runs])))
             ideal = ideal_rms(folder, path, steps)
             share = sum(r['unreachable'] for r in runs) / sum(r['plans'] for r in runs)
-            print(f'| {name} | {seeds} x {steps * 0.1:g} s | {all(r["ok"] for r in runs)} | '
+            print(f'| {name} | {radio} | {seeds} x {steps * 0.1:g} s | '
+                  f'{all(r["ok"] for r in runs)} | '
                   f'{np.mean(nees):.2f} ({min(nees):.2f}-{max(nees):.2f}) | {rms:.3f} | '
                   f'{ideal:.3f} | {rms / ideal:.2f} | {100 * share:.0f} % | '
                   f"{max(r['p99_input'] for r in runs):.2f} | "

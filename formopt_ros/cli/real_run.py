@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from formopt_ros.core.scenario import Formation, FollowerSpec
+from formopt_ros.wire.topics import real_frames
 
 #: Parameters run_formation sets for the real nodes ('real' settings may not).
 MANAGED = {'sensor', 'formation_slot', 'leader_odom_topic', 'publish_leader', 'start_time',
@@ -32,9 +33,9 @@ def node_parameters(formation: Formation, index: int, leader_topic: str, start_t
     follower: FollowerSpec = formation.followers[index]
     values = follower_values(follower, formation.trial, formation.leader_id)
     values['sensor'] = values.pop('measurement')
-    sensor_frame = 'uwb' if values['sensor'] == 'range' else 'camera'
-    values.update({'base_frame': f'{follower.id}/base_link', 'leader_frame': formation.leader_id,
-                   'sensor_frame': f'{follower.id}/{sensor_frame}'})
+    frames = real_frames(follower.id, values['sensor'])
+    values.update({'base_frame': frames['base'], 'leader_frame': formation.leader_id,
+                   'sensor_frame': frames['sensor']})
     out = {node: {k: v for k, v in values.items() if k in names[node]} for node in REAL_NODES}
     out['field_sim'].update({'leader_odom_topic': leader_topic, 'publish_leader': index == 0,
                              'start_time': start_time, 'duration': duration})

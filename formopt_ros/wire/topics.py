@@ -98,6 +98,24 @@ GLOBAL_TOPICS = (
 BY_KEY = {t.key: t for t in LEADER_TOPICS + FOLLOWER_TOPICS + GLOBAL_TOPICS}
 
 
+#: The frames. Every robot's odometry starts in 'odom'; the leader's body frame is its id.
+ODOM_FRAME = 'odom'
+
+
+def follower_frames(follower_id: str) -> dict[str, str]:
+    """A simulated follower's frames: its odometry frame, its body, its true and estimated
+    poses."""
+    return {'odom': f'{follower_id}/odom', 'body': follower_id,
+            'truth': f'{follower_id}/truth', 'estimate': f'{follower_id}/estimate'}
+
+
+def real_frames(robot_id: str, sensor: str) -> dict[str, str]:
+    """The frames of a follower on the real-robot interfaces: its base and its sensor (a UWB
+    radio for 'range', a camera for 'bearing')."""
+    return {'base': f'{robot_id}/base_link',
+            'sensor': f"{robot_id}/{'uwb' if sensor == 'range' else 'camera'}"}
+
+
 def resolve(namespace: str, topic: Topic) -> str:
     """Absolute name of ``topic`` published in ``namespace`` (a robot id or '/id')."""
     if topic.name.startswith('/'):

@@ -24,7 +24,6 @@ from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
 from formopt_ros.ros.guard import follower_guard
 from formopt_ros.ros.naming import peer_topic
-from formopt_ros.ros.nodes.follower_sim import frames
 from formopt_ros.ros.params import Param, ParameterError, declare, validate_on_set
 from formopt_ros.ros.run_config import (
     CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
@@ -33,7 +32,7 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
-from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
     strategy_params() + [
@@ -75,7 +74,7 @@ class EstimatorPlannerNode(Node):
         self.run = follower_run(self, p, strategy_owned=True)
         self.follower_id, self.leader_id = self.run.follower_id, self.run.leader_id
         self.scenario = self.run.spec.scenario
-        self.frames = frames(self.follower_id)
+        self.frames = follower_frames(self.follower_id)
         strategy = make_strategy(self.run.spec.strategy, **self.run.spec.options)
         strategy.prepare(self.scenario)           # e.g. PERIODIC's cycle design, before step 1
         _, planner_rng = trial_streams(self.run.spec.seed, self.run.trial)

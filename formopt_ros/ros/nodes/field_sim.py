@@ -25,6 +25,7 @@ from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
     INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from)
 from formopt_ros.ros.runtime import check_output_path, node_main, write_summary
+from formopt_ros.wire.topics import ODOM_FRAME
 
 #: Limits of the UWB radio's Range messages, m.
 RANGE_LIMITS = (0.05, 50.0)
@@ -185,7 +186,7 @@ class FieldSimNode(Node):
         p = self.params
         time = conversions.stamp(self.start_ns + stamp)
         if what == 'follower':
-            self.odom_pub.publish(conversions.odometry(time, 'odom', p['base_frame'],
+            self.odom_pub.publish(conversions.odometry(time, ODOM_FRAME, p['base_frame'],
                                                        self.world.follower, values[0],
                                                        values[1]))
             self.sent['odom'] += 1
@@ -196,7 +197,7 @@ class FieldSimNode(Node):
                 shifted = conversions.stamp(self.start_ns + stamp +
                                             int(p['leader_clock_offset'] * NS_PER_S))
                 self.leader_pub.publish(conversions.odometry(
-                    shifted, 'odom', 'leader', self.world.leader, values[0], values[1]))
+                    shifted, ODOM_FRAME, 'leader', self.world.leader, values[0], values[1]))
                 self.sent['leader_odom'] += 1
         else:
             self.truth_pub.publish(conversions.pose_stamped(time, 'leader',

@@ -19,7 +19,6 @@ from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
 from formopt_ros.ros.guard import MISMATCH_EXIT, follower_guard
 from formopt_ros.ros.naming import peer_topic
-from formopt_ros.ros.nodes.leader_sim import ODOM_FRAME
 from formopt_ros.ros.params import declare
 from formopt_ros.ros.run_config import (
     CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
@@ -30,7 +29,7 @@ from formopt_ros.wire.inputs import odometry_frames
 from formopt_ros.wire.messages import (
     foreign_run, header_ns, odometry_problem, odometry_values, waypoint_mismatch,
     waypoint_problem)
-from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, ODOM_FRAME, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + [
     RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
@@ -42,12 +41,6 @@ SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and
 #: estimator knows the truth of a step when it processes it, also the last one), the
 #: measurement; /tf, which no node of the run reads, follows off the critical path.
 WAITED_FOR = {'odometry': 0, 'truth': 1, 'measurement': 2}
-
-
-def frames(follower_id: str) -> dict[str, str]:
-    """The follower's frames: its odometry frame, its body, its true and estimated poses."""
-    return {'odom': f'{follower_id}/odom', 'body': follower_id,
-            'truth': f'{follower_id}/truth', 'estimate': f'{follower_id}/estimate'}
 
 
 class FollowerSim(Node):
@@ -78,7 +71,7 @@ class FollowerSim(Node):
         self.run = follower_run(self, p, strategy_owned=False)
         self.follower_id, self.leader_id = self.run.follower_id, self.run.leader_id
         self.scenario = self.run.spec.scenario
-        self.frames = frames(self.follower_id)
+        self.frames = follower_frames(self.follower_id)
         self.timebase = Timebase.from_dt(self.scenario.dt)
         self.lockstep = p['mode'] == 'lockstep'
         noise, _ = trial_streams(self.run.spec.seed, self.run.trial)

@@ -26,7 +26,7 @@ from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, stop_run,
 from formopt_ros.wire.description import LeaderDescription, RunDescription as Description
 from formopt_ros.wire.description import leader_differences
 from formopt_ros.wire.messages import foreign_run, waypoint_problem
-from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER
+from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER, ODOM_FRAME
 
 PARAMS = [FORMATION_FILE, FOLLOWERS, MODE, DT] + PATH_PARAMS + [
     RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
@@ -34,7 +34,6 @@ SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub
            "odom -> leader on /tf and, in lockstep, /clock (lockstep: a step once every "
            "follower's waypoint for it is in; realtime: at 1/dt).")
 #: The fixed frame of the leader's odometry (the world of the formation).
-ODOM_FRAME = 'odom'
 
 
 class LeaderSim(Node):
