@@ -2,6 +2,8 @@
 flags, -p values, every value against the nodes' own parameter specs, the output folder."""
 from __future__ import annotations
 
+import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -88,10 +90,28 @@ def check_extras(extra: dict[str, str]) -> dict[str, Any]:
     return values
 
 
+def check_discs(formation: Formation, path: Path) -> None:
+    """Two followers in one slot are refused; discs that overlap (two followers may plan the
+    same point) are a warning on stderr."""
+    followers = formation.followers
+    for i, a in enumerate(followers):
+        for b in followers[i + 1:]:
+            gap = math.dist(a.scenario.p_o, b.scenario.p_o)
+            if gap == 0.0:
+                fail(PROG, f'--formation {path}: followers {a.id!r} and {b.id!r} share the slot '
+                           f'{list(a.scenario.p_o)}')
+            if gap < a.scenario.r + b.scenario.r:
+                print(f'{PROG}: warning: --formation {path}: the discs of {a.id!r} and {b.id!r} '
+                      f'overlap (slots {gap:.3g} m apart, radii {a.scenario.r:.3g} and '
+                      f'{b.scenario.r:.3g} m): both may plan the same point', file=sys.stderr)
+
+
 def check_formation(formation: Formation, path: Path) -> None:
     """Refuse, before anything starts, a formation whose values a node would refuse at start
-    (e.g. a noise of 1e300: the file's own checks only ask for a positive number)."""
+    (e.g. a noise of 1e300: the file's own checks only ask for a positive number), or whose
+    followers share a slot (overlapping discs: a warning)."""
     from formopt_ros.ros.params import ParameterError
+    check_discs(formation, path)
     from formopt_ros.ros.run_config import follower_values
     from formopt_ros.wire.description import path_parameters
     robots: list[tuple[str, tuple[str, ...], dict[str, Any]]] = [
@@ -183,5 +203,5 @@ def leader_extra(extra: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in extra.items() if k in _LEADER_KEYS}
 
 
-__all__ = ['FOLLOWER_NODES', 'check_extras', 'check_formation', 'check_id_ok', 'formation_of',
-           'leader_extra', 'node_specs', 'prepare_out', 'real_names']
+__all__ = ['FOLLOWER_NODES', 'check_discs', 'check_extras', 'check_formation', 'check_id_ok',
+           'formation_of', 'leader_extra', 'node_specs', 'prepare_out', 'real_names']

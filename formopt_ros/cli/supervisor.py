@@ -114,12 +114,15 @@ class Launcher:
 
 
 def format_value(value: Any) -> str:
-    """A -p value: lists as YAML flow, bools lower case."""
+    """A -p value as rcl reads it (YAML): lists as flow sequences, bools lower case, strings
+    single-quoted (a '#' or ': ' in a path would otherwise start a comment or a mapping)."""
     if isinstance(value, bool):
         return 'true' if value else 'false'
     if isinstance(value, (list, tuple)):
         return '[' + ', '.join(format_value(v) for v in value) + ']'
-    return str(value) if str(value) else "''"
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
 
 
 def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,

@@ -11,11 +11,26 @@ from formopt_ros.core.domain import check_domain
 from formopt_ros.core.scenario import Formation
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A safe loader that refuses a key given twice in one mapping (YAML would silently keep
+    the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> Any:
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)   # type: ignore[no-untyped-call]
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f'key {key!r} is given twice', key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def read_yaml(path: str | Path, what: str) -> Any:
     """The content of a YAML file; ValueError in one line naming the file and ``what`` it
-    should hold when it is missing or not YAML."""
+    should hold when it is missing, not YAML or gives a key twice."""
     try:
-        return yaml.safe_load(Path(path).read_text())
+        return yaml.load(Path(path).read_text(), Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ValueError(f'{path}: no such {what} file') from None
     except (OSError, yaml.YAMLError) as error:

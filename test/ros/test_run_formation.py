@@ -367,3 +367,44 @@ def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: in
     while _alive_with(str(out)) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _alive_with(str(out))
+
+
+def test_paths_with_yaml_characters_stay_inside_the_output_folder(tmp_path: Path,
+                                                                   ros_domain: int) -> None:
+    """--out "hash #1: it's" (a comment sign, a mapping sign and a quote, which rcl would read
+    as YAML): the run is ok and every file lands in that folder."""
+    out = tmp_path / "hash #1: it's"
+    result = run('--measurement', 'range', '--steps', '5', '--out', str(out), '--domain-id',
+                 str(ros_domain), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert json.loads((out / 'summary.json').read_text())['ok']
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+    assert (out / 'run.mcap').is_file() and (out / 'follower.estimator_planner.json').is_file()
+
+
+@pytest.mark.parametrize('followers, text', [
+    ('[{id: a, sensor: range, slot: [-1, -2]}, {id: b, sensor: range, slot: [-1, -2]}]',
+     "followers 'a' and 'b' share the slot [-1.0, -2.0]"),
+    ('[{id: a, sensor: range, slot: [-1, -2], id: b}]', "key 'id' is given twice"),
+])
+def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, followers: str,
+                                                             text: str) -> None:
+    formation = tmp_path / 'formation.yaml'
+    formation.write_text(f'formation:\n  followers: {followers}\n')
+    out = tmp_path / 'out'
+    result = run('--formation', str(formation), '--out', str(out), timeout=30)
+    assert result.returncode == 2 and text in result.stderr, result.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_overlapping_discs_are_a_warning() -> None:
+    from formopt_ros.cli.preflight import check_discs
+    from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario
+    near = [FollowerSpec(name, Scenario.paper('range', p_o=slot, r=0.3))
+            for name, slot in (('a', (-1.0, -2.0)), ('b', (-1.0, -2.5)))]
+    import contextlib
+    import io
+    stream = io.StringIO()
+    with contextlib.redirect_stderr(stream):
+        check_discs(Formation('leader', tuple(near)), Path('f.yaml'))
+    assert "warning: --formation f.yaml: the discs of 'a' and 'b' overlap" in stream.getvalue()
