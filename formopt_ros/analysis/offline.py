@@ -57,6 +57,11 @@ class OfflineResult:
         other waypoints than the recorded ones fails it even when the estimates agree."""
         if self.steps != self.recorded_steps:
             return math.inf
+        return self.compared_diff
+
+    @property
+    def compared_diff(self) -> float:
+        """The largest difference over the steps both the re-estimate and the recording have."""
         return max(self.max_state_diff, self.max_covariance_diff,
                    self.max_waypoint_diff or 0.0, self.max_stamp_diff_ns * 1e-9)
 

@@ -54,7 +54,12 @@ def main(argv: list[str] | None = None) -> int:
     if result.summary_messages is not None and result.damage:
         lost = result.summary_messages - result.kept - result.lost
         skipped += f' ({lost} of the {result.summary_messages} messages its summary counts)'
-    state = ('the file was complete' if result.was_complete else
+    if result.kept == 0:
+        print(f'formopt-bag: nothing recoverable: no message of {args.source} could be read'
+              f'{skipped}; {args.target} holds no message', file=sys.stderr)
+        return 1
+    state = ('the file was complete' if result.was_complete and not result.damage else
+             'the file ended cleanly' if result.was_complete else
              f'dropped the tail from byte {result.stop_offset} of {result.size} '
              f'({result.stop_reason})')
     print(f'kept {result.kept} messages in {result.chunks} chunks; {state}{skipped}; '

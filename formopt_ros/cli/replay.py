@@ -157,8 +157,20 @@ def offline_main(args: Any) -> int:
     print('consistency of the re-estimate: ' + (
         'ok' if worst['level'] == 'ok' else
         f"{worst['level'].upper()} at step {worst['step']}: {worst['reason']}"))
-    print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
-          f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
+    if result.steps != result.recorded_steps:
+        both = min(result.steps, result.recorded_steps)
+        short = 'recording' if result.recorded_steps < result.steps else 're-estimate'
+        last = max(result.steps, result.recorded_steps)
+        gone = f'step {last} is' if last == both + 1 else f'steps {both + 1}-{last} are'
+        agree = result.compared_diff <= args.tolerance
+        print(f'step counts differ: {result.steps} re-estimated, {result.recorded_steps} '
+              f'recorded; {gone} missing from the {short} (a cut or repaired bag?). The '
+              f'{both} steps both have '
+              f"{'agree' if agree else 'differ'}: max difference {result.compared_diff:.3e} "
+              f"{'<=' if agree else '>'} tolerance {args.tolerance:.1e}. FAILED: incomplete")
+    else:
+        print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
+              f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
     if args.json:
         write_json(args.json, {'bag': str(args.bag), **result.as_dict(),
                                'tolerance': args.tolerance, 'ok': ok})

@@ -466,3 +466,18 @@ def test_cli_info_repair_and_bad_files(tmp_path: Path) -> None:
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'cut.mcap')), 'truncated')
     assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'directory')
     assert_clean_error(run_module(cli, 'bogus'), 'invalid choice')
+
+
+def test_repair_with_nothing_recoverable_says_so(tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Every chunk damaged: the command says 'nothing recoverable', not 'complete', exit 1."""
+    path = tmp_path / 'run.mcap'
+    write_bag(path, 200, flush_every=20)
+    data = bytearray(path.read_bytes())
+    for start, end in chunk_offsets(bytes(data)):
+        data[start + 60] ^= 0xFF
+    broken = tmp_path / 'ruined.mcap'
+    broken.write_bytes(bytes(data))
+    assert bag_main(['repair', str(broken), str(tmp_path / 'fixed.mcap')]) == 1
+    captured = capsys.readouterr()
+    assert 'nothing recoverable' in captured.err and 'complete' not in captured.out

@@ -360,3 +360,39 @@ def test_truncated_bag_names_the_repair(recording: Recording, tmp_path: Path) ->
                                 timeout=120)
         assert result.returncode == 2 and 'Traceback' not in result.stderr
         assert 'truncated' in result.stderr and 'formopt-bag repair' in result.stderr
+
+
+def test_offline_replay_of_a_cut_recording_names_the_missing_steps(recording: Recording,
+                                                                   tmp_path: Path) -> None:
+    """The recording without the estimates of its last 40 % (a damaged stretch of the
+    estimate topic): replay --offline compares the steps both have (equal), names the steps
+    missing from the recording and fails, exit 1."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+    cut = tmp_path / 'cut.mcap'
+    with open(recording.path, 'rb') as source, open(cut, 'wb') as target:
+        messages = list(make_reader(source).iter_messages())
+        first, last = messages[0][2].log_time, messages[-1][2].log_time
+        end = first + 0.6 * (last - first)
+        writer = Writer(target)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in messages:
+            if message.log_time > end and channel.topic.endswith('/estimate'):
+                continue
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding,
+                                                            schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding,
+                    schemas.get(channel.schema_id, 0), channel.metadata)
+            writer.add_message(channels[channel.id], message.log_time, message.data,
+                               message.publish_time, message.sequence)
+        writer.finish()
+    result = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(cut),
+                             '--offline'], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1, result.stdout + result.stderr
+    line = next(x for x in result.stdout.splitlines() if x.startswith('step counts differ'))
+    assert 'missing from the recording' in line and 'both have agree' in line, line

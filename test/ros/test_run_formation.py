@@ -369,8 +369,8 @@ def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: in
     assert not _alive_with(str(out))
 
 
-def test_paths_with_yaml_characters_stay_inside_the_output_folder(tmp_path: Path,
-                                                                   ros_domain: int) -> None:
+def test_paths_with_yaml_characters_stay_inside_the_output_folder(
+        tmp_path: Path, ros_domain: int) -> None:
     """--out "hash #1: it's" (a comment sign, a mapping sign and a quote, which rcl would read
     as YAML): the run is ok and every file lands in that folder."""
     out = tmp_path / "hash #1: it's"
