@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from formopt_ros.core.cost import Problem, quotient_gain
+from formopt_ros.core.cost import Problem
+from formopt_ros.core.formulas import quotient_gain
 
 #: Starts of the multi-start variants: p_o and points at STARTS_RADIUS r around it.
 MULTI_STARTS = 8

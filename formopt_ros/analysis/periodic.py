@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from formopt_ros.analysis.figures import COLOURS, plt, save_figure
-from formopt_ros.core.cost import weighted_trace
 from formopt_ros.core.estimator import EstimatorPlanner
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import predict_measurement
 from formopt_ros.core.protocol import held_leader_motion
 from formopt_ros.core.scenario import Scenario

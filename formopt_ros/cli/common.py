@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
+from formopt_ros.core.checks import InvalidInput, as_integer, as_real
 from formopt_ros.wire.outputs import broken_link_on
 
 #: Exit codes of :func:`command`: an interrupted command and one whose reader closed the pipe
@@ -61,33 +62,24 @@ def fail(prog: str, message: str) -> NoReturn:
 
 
 def integer(low: int, high: int | None = None) -> Callable[[str], int]:
-    """argparse type: an integer in [low, high]."""
+    """argparse type: an integer in [low, high] (:func:`~formopt_ros.core.checks.as_integer`)."""
     def parse(text: str) -> int:
         try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'must be an integer, got {text!r}') from None
-        if value < low or (high is not None and value > high):
-            where = f'>= {low}' if high is None else f'in [{low}, {high}]'
-            raise argparse.ArgumentTypeError(f'must be an integer {where}, got {value}')
-        return value
+            return as_integer('value', text, low, high)
+        except InvalidInput as error:
+            raise argparse.ArgumentTypeError(error.reason) from None
     return parse
 
 
 def number(low: float, high: float = math.inf, low_open: bool = False) -> Callable[[str], float]:
-    """argparse type: a finite number in [low, high] (or (low, high] with low_open)."""
+    """argparse type: a finite number in [low, high] (or (low, high] with low_open)
+    (:func:`~formopt_ros.core.checks.as_real`)."""
     def parse(text: str) -> float:
         try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'must be a number, got {text!r}') from None
-        inside = (value > low if low_open else value >= low) and value <= high
-        if not (math.isfinite(value) and inside):
-            bracket = '(' if low_open else '['
-            upper = 'inf)' if math.isinf(high) else f'{high:g}]'
-            raise argparse.ArgumentTypeError(f'must be a finite number in {bracket}{low:g}, '
-                                             f'{upper}, got {text}')
-        return value
+            return as_real('value', text, low, None if math.isinf(high) else high,
+                           low_open=low_open)
+        except InvalidInput as error:
+            raise argparse.ArgumentTypeError(error.reason) from None
     return parse
 
 

@@ -28,8 +28,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from formopt_ros.core.cost import ProblemBatch, weighted_trace
+from formopt_ros.core.cost import ProblemBatch
 from formopt_ros.core.estimator import HISTORY_LENGTH, driven_prior, innovation_gate
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
 from formopt_ros.core.protocol import SUBSTEPS, command_velocities, held_leader_motion, \
     step_substeps

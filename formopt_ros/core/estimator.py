@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.core.consistency import ConsistencyWatch
-from formopt_ros.core.cost import Problem, weighted_trace
+from formopt_ros.core.cost import Problem
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import (
     ekf_update, normalized_estimation_error, propagate, transition_matrices)
 from formopt_ros.core.protocol import (

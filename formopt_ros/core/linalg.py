@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from fractions import Fraction
 
 #: Unit roundoff of IEEE double precision.
 EPS = 2.0 ** -53
@@ -68,3 +69,39 @@ def top_eigenpair3(C: Sequence[Sequence[float]]) -> tuple[float, list[float]]:
     rayleigh = (c00 * v0 * v0 + c11 * v1 * v1 + c22 * v2 * v2
                 + 2.0 * (c01 * v0 * v1 + c02 * v0 * v2 + c12 * v1 * v2))
     return rayleigh * size, [v0, v1, v2]
+
+
+def positive_definite_entries(entries: Sequence[float]) -> bool:
+    """True when the symmetric 3x3 matrix with these six entries has positive LDL' pivots."""
+    a00, a01, a02, a11, a12, a22 = entries
+    if not a00 > 0.0:
+        return False
+    l10, l20 = a01 / a00, a02 / a00
+    d1 = a11 - l10 * a01
+    if not d1 > 0.0:
+        return False
+    b12 = a12 - l20 * a01
+    return a22 - l20 * a02 - b12 * b12 / d1 > 0.0
+
+
+def positive_definite_exactly(entries: Sequence[float]) -> bool:
+    """True when the symmetric 3x3 matrix with these six entries (floats, taken as exact) is
+    positive definite: the LDL' pivots in floating point where they clear their rounding with
+    room, else its leading minors in exact rational arithmetic (Sylvester).
+
+    d1 = a11 - a01^2/a00 carries a few units of a11's rounding, and d2 that of a22 plus
+    4 u a22 sqrt(a11 / d1) from b12^2 / d1 (|b12| <= sqrt(d1 a22)); the margins below are 10x
+    those bounds. A float check alone accepted P with exact determinant below zero."""
+    a00, a01, a02, a11, a12, a22 = entries
+    if not a00 > 0.0:
+        return False
+    l10, l20 = a01 / a00, a02 / a00
+    d1 = a11 - l10 * a01
+    if d1 > 1e-12 * a11:
+        b12 = a12 - l20 * a01
+        d2 = a22 - l20 * a02 - b12 * b12 / d1
+        if d2 > 1e-14 * a22 * (2.0 + math.sqrt(a11 / d1)):
+            return True
+    e00, e01, e02, e11, e12, e22 = map(Fraction, entries)
+    return (e00 * e11 - e01 * e01 > 0 and e00 * (e11 * e22 - e12 * e12)
+            - e01 * (e01 * e22 - e12 * e02) + e02 * (e01 * e12 - e11 * e02) > 0)

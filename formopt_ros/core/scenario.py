@@ -1,6 +1,7 @@
 """What defines a run: the leader's path and one follower's scenario (paper Sec. V defaults).
 
-Everything here is plain data with validation and a JSON-friendly dict form, so that the same
+Everything here is plain data, checked where it is made (the one boundary of a run: every
+number against :data:`RANGES`) and with a JSON-friendly dict form, so that the same
 description configures the simulator, the study, the nodes and is recorded in every bag.
 """
 from __future__ import annotations
@@ -12,33 +13,53 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import check_disc
+from formopt_ros.core.checks import (
+    InvalidInput, as_array, as_bool, as_choice, as_integer, as_real)
+from formopt_ros.core.cost import MAX_DEVIATION, MIN_DEVIATION, check_disc
 from formopt_ros.core.model import BEARING, EULER, EXACT, KINEMATICS, MEASUREMENT_KINDS, RANGE
 from formopt_ros.core.strategies import make_strategy
 
 #: Shapes of leader path.
 PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
+#: The admissible range (low, high, unit) of every number of a run, enforced where a run is
+#: described (:class:`Scenario`, :class:`LeaderPath`, :class:`Formation`); the node parameters
+#: and the commands' flags take their ranges from here. Each keeps a margin to the range of the
+#: solvers (cost.SIGMA_RANGE, cost.SLOT_DISTANCE_RANGE), so a run that passes them never fails
+#: deeper (test_boundary.py runs each bound). The bearing noise is an angle, at most pi; a range
+#: noise below 1 mm (3e-4 m measured) makes the periodic strategy's covariance maps singular.
+RANGES: dict[str, tuple[float, float, str]] = {
+    'range_sigma': (1e-3, 1e3, 'm'),
+    'bearing_sigma': (1e-6, math.pi, 'rad'),
+    'dt': (1e-3, 10.0, 's'),
+    'slot': (-1e4, 1e4, 'm'),
+    'deviation': (MIN_DEVIATION, MAX_DEVIATION, '|p_o|'),
+    'initial_covariance': (1e-12, 1e6, 'm^2 or rad^2'),
+    'sigma_v': (0.0, 100.0, 'm/s'),
+    'sigma_omega': (0.0, 100.0, 'rad/s'),
+    'sigma_v_leader': (0.0, 100.0, 'm/s'),
+    'sigma_omega_leader': (0.0, 100.0, 'rad/s'),
+    'speed': (-100.0, 100.0, 'm/s'),
+    'yaw_rate': (-100.0, 100.0, 'rad/s'),
+    'amplitude': (-100.0, 100.0, 'rad/s'),
+    'period': (1e-3, 1e6, 's'),
+    'duration': (1e-3, 1e6, 's'),
+    'seed': (0, 2**31 - 1, ''),
+    'trial': (0, 2**31 - 1, ''),
+}
 
 
-def _finite(name: str, value: float) -> float:
-    number = float(value)
-    if not math.isfinite(number):
-        raise ValueError(f'{name} must be a finite number, got {value!r}')
-    return number
+def ranged(name: str, value: object, key: str | None = None) -> float:
+    """``value`` as a float in the range ``RANGES[key or name]``, else InvalidInput naming
+    ``name``."""
+    low, high, unit = RANGES[key or name]
+    return as_real(name, value, low, high, unit=unit)
 
 
-def _positive(name: str, value: float, unit: str) -> float:
-    number = _finite(name, value)
-    if number <= 0.0:
-        raise ValueError(f'{name} must be > 0 ({unit}), got {value!r}')
-    return number
-
-
-def _non_negative(name: str, value: float, unit: str) -> float:
-    number = _finite(name, value)
-    if number < 0.0:
-        raise ValueError(f'{name} must be >= 0 ({unit}), got {value!r}')
-    return number
+def ranged_integer(name: str, value: object, key: str | None = None) -> int:
+    """``value`` as an int in the range ``RANGES[key or name]``, else InvalidInput naming
+    ``name``."""
+    low, high, _ = RANGES[key or name]
+    return as_integer(name, value, int(low), int(high))
 
 
 @dataclass(frozen=True)
@@ -50,9 +71,19 @@ class Segment:
     yaw_rate: float = 0.0
 
     def __post_init__(self) -> None:
-        _positive('segment duration', self.duration, 's')
-        _finite('segment speed', self.speed)
-        _finite('segment yaw_rate', self.yaw_rate)
+        for name in ('duration', 'speed', 'yaw_rate'):
+            object.__setattr__(self, name, ranged(f'segment {name}', getattr(self, name), name))
+
+    @classmethod
+    def from_dict(cls, data: object) -> 'Segment':
+        """A segment from {'duration', 'speed', 'yaw_rate' (default 0)}."""
+        if isinstance(data, Segment):
+            return data
+        if not isinstance(data, dict):
+            raise InvalidInput('leader segments', f'must be mappings, got {data!r}')
+        _check_keys('leader segment', data, {'duration', 'speed', 'yaw_rate'})
+        return cls(data.get('duration'), data.get('speed'),  # type: ignore[arg-type]
+                   data.get('yaw_rate', 0.0))
 
 
 @dataclass(frozen=True)
@@ -83,19 +114,19 @@ class LeaderPath:
     repeat: bool = False
 
     def __post_init__(self) -> None:
-        if self.kind not in PATH_KINDS:
-            raise ValueError(f'leader path kind must be one of {PATH_KINDS}, got {self.kind!r}')
-        _finite('leader speed', self.speed)
-        _finite('leader yaw_rate', self.yaw_rate)
-        _finite('leader amplitude', self.amplitude)
-        _positive('leader period', self.period, 's')
+        as_choice('leader path kind', self.kind, PATH_KINDS)
+        for name in ('speed', 'yaw_rate', 'amplitude', 'period'):
+            object.__setattr__(self, name, ranged(f'leader {name}', getattr(self, name), name))
+        object.__setattr__(self, 'repeat', as_bool('leader repeat', self.repeat))
         if self.kind == 'straight' and self.yaw_rate != 0.0:
-            raise ValueError(f'a straight leader path has yaw_rate 0, got {self.yaw_rate!r}; '
-                             "use kind 'arc'")
+            raise InvalidInput('leader yaw_rate', f'of a straight path is 0, got '
+                                                  f"{self.yaw_rate!r}; use kind 'arc'")
+        if not isinstance(self.segments, (list, tuple)):
+            raise InvalidInput('leader segments', f'must be a list, got {self.segments!r}')
         if self.kind == 'segments' and not self.segments:
-            raise ValueError("a leader path of kind 'segments' needs at least one segment")
-        object.__setattr__(self, 'segments', tuple(
-            s if isinstance(s, Segment) else Segment(**s) for s in self.segments))
+            raise InvalidInput('leader segments', "of a path of kind 'segments' must hold at "
+                                                  'least one segment')
+        object.__setattr__(self, 'segments', tuple(map(Segment.from_dict, self.segments)))
 
     @classmethod
     def constant(cls, speed: float, yaw_rate: float = 0.0) -> 'LeaderPath':
@@ -135,18 +166,17 @@ class LeaderPath:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> 'LeaderPath':
-        """Inverse of :meth:`to_dict`; unknown keys raise ValueError naming them."""
+        """Inverse of :meth:`to_dict`; unknown keys raise InvalidInput naming them."""
         _check_keys('leader path', data, {f.name for f in fields(cls)})
-        values = dict(data)
-        values['segments'] = tuple(Segment(**s) if isinstance(s, dict) else s
-                                   for s in values.get('segments', ()))
-        return cls(**values)
+        return cls(**data)
 
 
-def _check_keys(what: str, data: dict[str, Any], known: set[str]) -> None:
+def _check_keys(what: str, data: object, known: set[str]) -> None:
+    if not isinstance(data, dict):
+        raise InvalidInput(what, f'must be a mapping, got {data!r}')
     unknown = sorted(set(data) - known)
     if unknown:
-        raise ValueError(f'{what}: unknown keys {unknown} (known: {sorted(known)})')
+        raise InvalidInput(what, f'has unknown keys {unknown} (known: {sorted(known)})')
 
 
 @dataclass(frozen=True)
@@ -183,48 +213,30 @@ class Scenario:
     kinematics: str = EXACT
 
     def __post_init__(self) -> None:
-        if self.measurement not in MEASUREMENT_KINDS:
-            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
-                             f'got {self.measurement!r}')
-        p_o = tuple(_finite('p_o', v) for v in self.p_o)
-        if len(p_o) != 2:
-            raise ValueError(f'p_o must be [x, y] in m, got {list(self.p_o)!r}')
-        if math.hypot(*p_o) == 0.0:
-            raise ValueError('p_o must not be the leader position [0, 0]')
-        r = _positive('r', self.r, 'm')
+        kind = as_choice('measurement', self.measurement, MEASUREMENT_KINDS)
+        p_o = tuple(ranged('p_o', v, 'slot') for v in as_array('p_o', self.p_o, (2,)).tolist())
+        r = as_real('r', self.r, unit='m')
         check_disc(p_o[0], p_o[1], r)
-        _positive('sigma', self.sigma, 'm' if self.measurement == RANGE else 'rad')
-        _positive('dt', self.dt, 's')
-        _non_negative('sigma_v', self.sigma_v, 'm/s')
-        _non_negative('sigma_omega', self.sigma_omega, 'rad/s')
-        _non_negative('sigma_v_leader', self.sigma_v_leader, 'm/s')
-        _non_negative('sigma_omega_leader', self.sigma_omega_leader, 'rad/s')
-        if self.kinematics not in KINEMATICS:
-            raise ValueError(f'kinematics must be one of {KINEMATICS}, got {self.kinematics!r}')
-        covariance = tuple(_positive('initial_covariance', v, 'm^2 or rad^2')
-                           for v in self.initial_covariance)
-        if len(covariance) != 3:
-            raise ValueError('initial_covariance must have 3 entries (x, y, phi), got '
-                             f'{list(self.initial_covariance)!r}')
-        leader = self.leader if isinstance(self.leader, LeaderPath) else \
-            LeaderPath.from_dict(self.leader)
-        object.__setattr__(self, 'p_o', p_o)
-        for name in ('r', 'sigma', 'dt', 'sigma_v', 'sigma_omega', 'sigma_v_leader',
-                     'sigma_omega_leader'):
-            object.__setattr__(self, name, float(getattr(self, name)))
-        object.__setattr__(self, 'initial_covariance', covariance)
-        object.__setattr__(self, 'leader', leader)
+        covariance = as_array('initial_covariance', self.initial_covariance, (3,)).tolist()
+        values: dict[str, object] = {
+            'p_o': p_o, 'r': r, 'sigma': ranged('sigma', self.sigma, f'{kind}_sigma'),
+            'initial_covariance': tuple(ranged('initial_covariance', v) for v in covariance),
+            'kinematics': as_choice('kinematics', self.kinematics, KINEMATICS),
+            'leader': self.leader if isinstance(self.leader, LeaderPath) else
+            LeaderPath.from_dict(self.leader)}
+        for name in ('dt', 'sigma_v', 'sigma_omega', 'sigma_v_leader', 'sigma_omega_leader'):
+            values[name] = ranged(name, getattr(self, name))
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
 
     @classmethod
     def paper(cls, measurement: str, **overrides: Any) -> 'Scenario':
         """The paper's Sec. V settings for 'range' (p_o = [-1, -2], sigma_d = 0.1 m) or
         'bearing' (p_o = [-1, 2], sigma_beta = 0.02 rad); r = 0.1 |p_o|, and its eq. (9) as the
         kinematics ('euler'), unless overridden."""
-        if measurement not in MEASUREMENT_KINDS:
-            raise ValueError(f'measurement must be one of {MEASUREMENT_KINDS}, '
-                             f'got {measurement!r}')
-        p_o = tuple(overrides.pop('p_o', (-1.0, -2.0) if measurement == RANGE
-                                  else (-1.0, 2.0)))
+        as_choice('measurement', measurement, MEASUREMENT_KINDS)
+        p_o = tuple(as_array('p_o', overrides.pop(
+            'p_o', (-1.0, -2.0) if measurement == RANGE else (-1.0, 2.0)), (2,)).tolist())
         values: dict[str, Any] = dict(measurement=measurement, p_o=p_o,
                                       r=0.1 * math.hypot(*p_o),
                                       sigma=0.1 if measurement == RANGE else 0.02,
@@ -256,15 +268,9 @@ class Scenario:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> 'Scenario':
-        """Inverse of :meth:`to_dict`; unknown keys raise ValueError naming them."""
+        """Inverse of :meth:`to_dict`; unknown keys raise InvalidInput naming them."""
         _check_keys('scenario', data, {f.name for f in fields(cls)})
-        values = dict(data)
-        if isinstance(values.get('leader'), dict):
-            values['leader'] = LeaderPath.from_dict(values['leader'])
-        for key in ('p_o', 'initial_covariance'):
-            if key in values:
-                values[key] = tuple(values[key])
-        return cls(**values)
+        return cls(**data)
 
     def differences(self, other: 'Scenario', rtol: float = 1e-12) -> list[tuple[str, Any, Any]]:
         """(field, this value, other value) for every field that differs (relative rtol)."""
@@ -303,10 +309,11 @@ _ID = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
 def check_id(what: str, value: object) -> str:
-    """``value`` if it is a valid robot id (letters, digits, underscores; a letter first)."""
+    """``value`` if it is a valid robot id (letters, digits, underscores; a letter first), else
+    InvalidInput naming ``what``."""
     if not isinstance(value, str) or not _ID.match(value):
-        raise ValueError(f'{what} must be a name of letters, digits and underscores starting '
-                         f'with a letter (it becomes a ROS namespace), got {value!r}')
+        raise InvalidInput(what, 'must be a name of letters, digits and underscores starting '
+                                 f'with a letter (it becomes a ROS namespace), got {value!r}')
     return value
 
 
@@ -335,15 +342,17 @@ class FollowerSpec:
 
     def __post_init__(self) -> None:
         check_id('follower id', self.id)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f'follower {self.id}: seed must be an integer >= 0, '
-                             f'got {self.seed!r}')
+        if not isinstance(self.scenario, Scenario):
+            raise InvalidInput('scenario', f'must be a Scenario, got {self.scenario!r}')
+        object.__setattr__(self, 'seed', ranged_integer('seed', self.seed))
+        if not isinstance(self.options, dict):
+            raise InvalidInput('options', f'must be a mapping, got {self.options!r}')
         make_strategy(self.strategy, **self.options)      # ValueError naming the option
         if self.interfaces not in INTERFACES:
-            raise ValueError(f'follower {self.id}: interfaces must be one of '
-                             f'{", ".join(INTERFACES)}, got {self.interfaces!r}')
+            raise InvalidInput('interfaces', f'must be one of {", ".join(INTERFACES)}, got '
+                               f'{self.interfaces!r}')
         if self.real and self.interfaces != 'real':
-            raise ValueError(f"follower {self.id}: 'real' settings need interfaces: real")
+            raise InvalidInput('real', 'settings need interfaces: real')
 
 
 @dataclass(frozen=True)
@@ -362,8 +371,9 @@ class Formation:
 
     def __post_init__(self) -> None:
         check_id('leader id', self.leader_id)
+        object.__setattr__(self, 'trial', ranged_integer('trial', self.trial))
         if not self.followers:
-            raise ValueError('a formation needs at least one follower')
+            raise InvalidInput('followers', 'must hold at least one follower')
         ids = [f.id for f in self.followers]
         if len(set(ids) | {self.leader_id}) != len(ids) + 1:
             raise ValueError(f'robot ids must be unique, got leader {self.leader_id!r} and '
@@ -403,22 +413,21 @@ class Formation:
         names the key for anything unknown, missing or out of range."""
         _check_keys('formation', data, {'leader', 'dt', 'kinematics', 'seed', 'trial',
                                         'followers'})
-        leader = dict(data.get('leader') or {})
+        leader = data.get('leader') or {}
         _check_keys('formation leader', leader, {'id', 'path'})
-        path = LeaderPath.from_dict(dict(leader.get('path') or {}))
+        path = LeaderPath.from_dict(leader.get('path') or {})
         dt = data.get('dt', 0.05)
         kinematics = data.get('kinematics', EXACT)
-        seed = data.get('seed', 0)
+        seed = ranged_integer('formation seed', data.get('seed', 0), 'seed')
         followers = data.get('followers')
         if not isinstance(followers, list) or not followers:
-            raise ValueError('formation followers must be a non-empty list')
+            raise InvalidInput('formation followers', f'must be a non-empty list, got '
+                                                      f'{followers!r}')
         specs = []
         for index, item in enumerate(followers):
-            if not isinstance(item, dict):
-                raise ValueError(f'formation follower {index + 1} must be a mapping, '
-                                 f'got {item!r}')
+            _check_keys(f'formation follower {index + 1}', item, _FOLLOWER_KEYS)
             specs.append(_follower_from_dict(item, path, dt, kinematics, seed + index))
-        return cls(str(leader.get('id', 'leader')), tuple(specs), int(data.get('trial', 0)))
+        return cls(leader.get('id', 'leader'), tuple(specs), data.get('trial', 0))
 
     def to_dict(self) -> dict[str, Any]:
         """The file layout (inverse of :meth:`from_dict`, every value explicit)."""
@@ -452,27 +461,36 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
     _check_keys(f'formation follower {name}', item, _FOLLOWER_KEYS)
     missing = sorted({'id', 'sensor', 'slot'} - set(item))
     if missing:
-        raise ValueError(f'formation follower {name}: missing keys {missing}')
+        raise InvalidInput(f'formation follower {name}', f'lacks the keys {missing}')
     try:
-        base = Scenario.paper(item['sensor'], p_o=tuple(item['slot']))
-        sigma_v, sigma_omega = item.get('odometry_noise', (base.sigma_v, base.sigma_omega))
-        sigma_v_leader, sigma_omega_leader = item.get('leader_odometry_noise', (0.0, 0.0))
+        base = Scenario.paper(item['sensor'], p_o=item['slot'])
+        sigma_v, sigma_omega = _pair('odometry_noise', item.get(
+            'odometry_noise', (base.sigma_v, base.sigma_omega)))
+        sigma_v_leader, sigma_omega_leader = _pair('leader_odometry_noise', item.get(
+            'leader_odometry_noise', (0.0, 0.0)))
         scenario = Scenario.paper(
-            item['sensor'], p_o=base.p_o, r=float(item.get('deviation', 0.1)) * base.d_o,
-            sigma=float(item.get('noise', base.sigma)), leader=path, dt=float(dt),
-            sigma_v=float(sigma_v), sigma_omega=float(sigma_omega),
-            sigma_v_leader=float(sigma_v_leader), sigma_omega_leader=float(sigma_omega_leader),
-            kinematics=kinematics,
-            initial_covariance=tuple(item.get('initial_covariance',
-                                              base.initial_covariance)))
+            item['sensor'], p_o=base.p_o, r=ranged('deviation', item.get('deviation', 0.1))
+            * base.d_o, sigma=item.get('noise', base.sigma), leader=path, dt=dt,
+            sigma_v=sigma_v, sigma_omega=sigma_omega, sigma_v_leader=sigma_v_leader,
+            sigma_omega_leader=sigma_omega_leader, kinematics=kinematics,
+            initial_covariance=item.get('initial_covariance', base.initial_covariance))
         real = item.get('real') or {}
         if not isinstance(real, dict):
-            raise ValueError(f"'real' must be a mapping of parameter names, got {real!r}")
-        return FollowerSpec(str(name), scenario, str(item.get('strategy', 'ram')),
-                            dict(item.get('options') or {}), item.get('seed', default_seed),
+            raise InvalidInput('real', f'must be a mapping of parameter names, got {real!r}')
+        return FollowerSpec(name, scenario, item.get('strategy', 'ram'),
+                            item.get('options') or {}, item.get('seed', default_seed),
                             str(item.get('interfaces', 'simulated')), dict(real))
-    except (TypeError, ValueError) as error:
+    except InvalidInput as error:
+        raise InvalidInput(f'formation follower {name}: {error.name}', error.reason) from None
+    except ValueError as error:
         raise ValueError(f'formation follower {name}: {error}') from None
+
+
+def _pair(name: str, value: object) -> tuple[object, object]:
+    """``value`` if it is a list of two (linear, angular), else InvalidInput naming it."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise InvalidInput(name, f'must be [m/s, rad/s], got {value!r}')
+    return value[0], value[1]
 
 
 __all__ = ['BEARING', 'Formation', 'FollowerSpec', 'LeaderPath', 'PATH_KINDS', 'RANGE',

@@ -65,12 +65,13 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
         certify its own answer, return RQ's with ``Solution.fallback = 'rq'``.
 
     Raises:
-        ValueError: for an rng that is not a numpy Generator, a context that is not a
-            PlanContext, a non-SPD or non-finite P, a variance of P outside
-            ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), |p_o| outside
+        InvalidInput: (a ValueError naming the field) for a non-SPD or non-finite P, a
+            variance of P outside ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), |p_o| outside
             ``cost.SLOT_DISTANCE_RANGE`` ([1e-3, 1e6] m), r outside [1e-6, 0.999] |p_o|,
-            sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), or an unknown measurement,
-            method or option.
+            sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), an unknown measurement or a bad
+            option value (:func:`~formopt_ros.core.cost.check_problem`, one cheap check).
+        ValueError: for an rng that is not a numpy Generator, a context that is not a
+            PlanContext, or an unknown method or option.
     """
     if rng is not None and not isinstance(rng, np.random.Generator):
         raise ValueError('rng must be a numpy.random.Generator (e.g. '

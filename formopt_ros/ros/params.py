@@ -3,7 +3,6 @@ validated the same way in every node, and the documented config files generated 
 from __future__ import annotations
 
 import difflib
-import math
 import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -13,6 +12,8 @@ from rcl_interfaces.msg import (
     FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from formopt_ros.core.checks import InvalidInput, as_bool, as_choice, as_integer, as_real
 
 
 #: Parameters rclpy declares itself; never reported as unknown.
@@ -65,43 +66,35 @@ class Param:
         return descriptor
 
     def check(self, value: Any) -> Any:
-        """Return value if admissible, else raise ParameterError naming the parameter."""
-        expected = self.expected()
-        if isinstance(self.default, float) and isinstance(value, int) \
-                and not isinstance(value, bool):
-            value = float(value)
-        if isinstance(self.default, list) and isinstance(value, (list, tuple)):
-            value = list(value)
-            if not value:
-                raise ParameterError(f"parameter '{self.name}' must be a non-empty list "
-                                     f'({expected}), got []')
-            if self.default and isinstance(self.default[0], float):   # ints pass for floats
-                value = [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
-                         for v in value]
-            kind = type(self.default[0]) if self.default else None
-            if kind is not None and not all(type(v) is kind for v in value):
-                raise ParameterError(f"parameter '{self.name}' must be {expected}, "
-                                     f'got {value!r}')
-        elif type(value) is not type(self.default):
-            raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
+        """The value as the parameter's type (integers pass for floats), else ParameterError
+        naming the parameter."""
+        name = f"parameter '{self.name}'"
+        try:
+            if not isinstance(self.default, list):
+                return self._check_one(name, value, self.default)
+            if not isinstance(value, (list, tuple)) or not value:
+                raise InvalidInput(name, f'must be a non-empty list ({self.expected()}), got '
+                                         f'{value!r}')
+            kind = self.default[0] if self.default else ''
+            return [self._check_one(name, item, kind) for item in value]
+        except InvalidInput as error:
+            raise ParameterError(str(error)) from None
+
+    def _check_one(self, name: str, value: Any, kind: Any) -> Any:
+        if isinstance(kind, bool):
+            return as_bool(name, value)
+        if isinstance(kind, int):
+            return as_integer(name, value, None if self.low is None else int(self.low),
+                              None if self.high is None else int(self.high))
+        if isinstance(kind, float):
+            return as_real(name, value, self.low, self.high)
+        if self.choices:
+            return as_choice(name, value, self.choices)
+        if not isinstance(value, str):
+            raise InvalidInput(name, f'must be a string, got {value!r}')
         if self.identifier and value:
             from formopt_ros.core.scenario import check_id
-            try:
-                check_id(f"parameter '{self.name}'", value)
-            except ValueError as error:
-                raise ParameterError(str(error)) from None
-        if self.choices and value not in self.choices:
-            raise ParameterError(f"parameter '{self.name}' must be {expected}, got {value!r}")
-        numbers = value if isinstance(value, list) else [value]
-        for number in numbers:
-            if isinstance(number, (int, float)) and not isinstance(number, bool):
-                if isinstance(number, float) and not math.isfinite(number):
-                    raise ParameterError(f"parameter '{self.name}' must be {expected}, "
-                                         f'got {value!r}')
-                if (self.low is not None and number < self.low) or \
-                        (self.high is not None and number > self.high):
-                    raise ParameterError(f"parameter '{self.name}' must be {expected}, "
-                                         f'got {value!r}')
+            check_id(name, value)
         return value
 
     def expected(self) -> str:

@@ -12,13 +12,20 @@ from formopt_ros.core.domain import check_domain
 from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
 from formopt_ros.core.scenario import (
-    PATH_KINDS, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
+    PATH_KINDS, RANGES, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.ros.naming import robot_id
 from formopt_ros.ros.params import Param, ParameterError
 from formopt_ros.wire.description import MODES, path_parameters, scenario_parameters
 from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.topics import DEFAULT_FOLLOWER, DEFAULT_LEADER
+
+
+def _range(key: str) -> tuple[float, float]:
+    """(low, high) of a number of a run (core.scenario.RANGES)."""
+    low, high, _ = RANGES[key]
+    return low, high
+
 
 FORMATION_FILE = Param('formation_file', '', 'a formation YAML file (config/formation_fig4.yaml '
                        'documents it); when set, the scenario, leader path, strategy and seed '
@@ -30,40 +37,43 @@ LEADER_ID = Param('leader_id', DEFAULT_LEADER, 'id of the leader: its namespace 
                   "node's) and frame", identifier=True)
 MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
              'realtime: timers at 1/dt', choices=MODES)
-DT = Param('dt', 0.05, 'sub-step length, s', 1e-3, 10.0)
+DT = Param('dt', 0.05, 'sub-step length, s', *_range('dt'))
 MEASUREMENT = Param('measurement', 'range', 'the follower sensor', choices=MEASUREMENT_KINDS)
-SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)', 0, 2**31 - 1)
-TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)', 0, 2**31 - 1)
-SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', 0.0, 100.0)
-SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s', 0.0,
-                    100.0)
+SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)',
+             *_range('seed'))
+TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)',
+              *_range('trial'))
+SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', *_range('sigma_v'))
+SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s',
+                    *_range('sigma_omega'))
 SIGMA_V_LEADER = Param('sigma_v_leader', 0.0, "noise std of the leader's odometry speed as the "
-                       'estimator receives it, m/s (0: exact, as in the paper)', 0.0, 100.0)
+                       'estimator receives it, m/s (0: exact, as in the paper)',
+                       *_range('sigma_v_leader'))
 SIGMA_OMEGA_LEADER = Param('sigma_omega_leader', 0.0, "noise std of the leader's odometry yaw "
-                           'rate, rad/s (0: exact)', 0.0, 100.0)
+                           'rate, rad/s (0: exact)', *_range('sigma_omega_leader'))
 KINEMATICS = Param('kinematics', EXACT, 'motion model of the truth and the EKF: exact (arcs of '
                    "constant velocities) or euler (the paper's eq. 9, as its Sec. V simulates)",
                    choices=MOTION_MODELS)
-RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', 1e-6, 1e3)
-BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', 1e-6, 3.2)
+RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', *_range('range_sigma'))
+BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', *_range('bearing_sigma'))
 SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
-             '[0.0] means the paper default for the measurement kind', -1e4, 1e4)
+             '[0.0] means the paper default for the measurement kind', *_range('slot'))
 DEVIATION = Param('deviation_fraction', 0.1, 'allowed deviation r as a fraction of |p_o|',
-                  1e-6, 0.999)
+                  *_range('deviation'))
 PATH = Param('path', 'straight', "the leader's path: straight (v_leader), arc (v_leader, "
              'omega_leader), s-curve (v_leader, yaw rate amplitude * sin(2 pi t / period)) or '
              'segments (the segment_* lists)', choices=PATH_KINDS)
-V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', -100.0, 100.0)
+V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', *_range('speed'))
 OMEGA_LEADER = Param('omega_leader', 0.0, "leader yaw rate of an arc, rad/s (with path "
-                     "'straight', a value other than 0 makes it an arc)", -100.0, 100.0)
-AMPLITUDE = Param('amplitude', 0.0, 'peak yaw rate of an s-curve, rad/s', -100.0, 100.0)
-PERIOD = Param('period', 10.0, 'period of an s-curve, s', 1e-3, 1e6)
-SEGMENT_DURATIONS = Param('segment_durations', [1.0], 'segments: duration of each, s', 1e-3,
-                          1e6)
-SEGMENT_SPEEDS = Param('segment_speeds', [1.0], 'segments: forward speed of each, m/s', -100.0,
-                       100.0)
+                     "'straight', a value other than 0 makes it an arc)", *_range('yaw_rate'))
+AMPLITUDE = Param('amplitude', 0.0, 'peak yaw rate of an s-curve, rad/s', *_range('amplitude'))
+PERIOD = Param('period', 10.0, 'period of an s-curve, s', *_range('period'))
+SEGMENT_DURATIONS = Param('segment_durations', [1.0], 'segments: duration of each, s',
+                          *_range('duration'))
+SEGMENT_SPEEDS = Param('segment_speeds', [1.0], 'segments: forward speed of each, m/s',
+                       *_range('speed'))
 SEGMENT_YAW_RATES = Param('segment_yaw_rates', [0.0], 'segments: yaw rate of each, rad/s',
-                          -100.0, 100.0)
+                          *_range('yaw_rate'))
 REPEAT = Param('repeat_segments', False, 'segments: repeat the list instead of holding the '
                'last segment')
 RUN_ID = Param('run_id', '', 'identity of the run: messages and peers of another run are '
@@ -87,7 +97,7 @@ PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATION
                SEGMENT_SPEEDS, SEGMENT_YAW_RATES, REPEAT]
 INITIAL_COVARIANCE = Param(
     'initial_covariance', [0.1, 0.1, 4e-4], 'diagonal of P_1|1 [x m^2, y m^2, phi rad^2]; the '
-    'truth starts at N([p_o, 0], P_1|1)', 1e-12, 1e6)
+    'truth starts at N([p_o, 0], P_1|1)', *_range('initial_covariance'))
 SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER,
                    KINEMATICS, RANGE_SIGMA, BEARING_SIGMA, SLOT, DEVIATION,
                    INITIAL_COVARIANCE] + PATH_PARAMS

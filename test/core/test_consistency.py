@@ -198,7 +198,8 @@ def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     check_input_domain(Scenario.paper('range', p_o=(-0.006, 0.0), r=0.0006, **sure))
     with pytest.raises(ValueError, match='yaw rate'):
         from formopt_ros.core.scenario import LeaderPath
-        check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 1000.0)))
+        check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 50.0),
+                                          dt=1.0))
 
 
 def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None:

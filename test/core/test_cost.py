@@ -2,17 +2,17 @@
 from __future__ import annotations
 
 import math
-import pickle
 from collections import Counter
-from decimal import Decimal
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
 from formopt_ros.core import METHODS, Problem, cost, solve, solver
-from formopt_ros.core.cost import point_from_q
+from formopt_ros.core.checks import InvalidInput, as_covariance
+from formopt_ros.core.formulas import point_from_q
 from formopt_ros.core.strategies import STRATEGIES, PlanContext, Solution, make_solution
+from formopt_ros.core.linalg import positive_definite_entries, positive_definite_exactly
 from formopt_ros.core.model import BEARING, RANGE, ekf_update, predict_measurement
 
 SEED = 4711
@@ -40,113 +40,80 @@ def points_in_disc(rng: np.random.Generator, problem: Problem, n: int) -> np.nda
 
 
 def bad_problem_cases() -> list[tuple[str, dict, str]]:
-    """(label, keyword overrides, regex the message must start with) for every bad input."""
+    """(label, keyword overrides, the field the refusal names) for bad inputs."""
     not_symmetric = GOOD_P.copy()
     not_symmetric[0, 1] += 1e-3
-    # a correlation of +0.9 above the diagonal and -0.9 below, between variances 1e4 and 1e-16:
-    # tiny next to P's largest entry, but not rounding (a reviewer found it averaged to 0)
+    # +0.9 above the diagonal and -0.9 below, between variances 1e4 and 1e-16: tiny next to
+    # P's largest entry, but not rounding
     sign_flipped = np.array([[1e4, 0.0, 0.0], [0.0, 1e4, 9e-7], [0.0, -9e-7, 1e-16]])
-    not_pd = np.diag([1.0, 1.0, -1e-3])
-    singular = np.diag([1.0, 1.0, 0.0])
-    cases = [('P not symmetric', {'P': not_symmetric}, r'P must be symmetric'),
-             ('P sign-flipped correlation', {'P': sign_flipped},
-              r'P must be symmetric, got P\[1, 2\] = 9e-07 and P\[2, 1\] = -9e-07'),
-             ('P indefinite', {'P': not_pd}, r'P must be positive definite'),
-             ('P singular', {'P': singular}, r'P must be positive definite'),
-             ('P shape', {'P': np.eye(2)}, r'P must have shape'),
-             ('p_o shape', {'p_o': np.array([1.0, 2.0, 3.0])}, r'p_o must have shape'),
-             ('r zero', {'r': 0.0}, r'r must be'),
-             ('r negative', {'r': -0.1}, r'r must be'),
-             ('r reaches leader', {'r': math.hypot(*GOOD_P_O)}, r'r must be at most 0.999'),
-             ('r beyond leader', {'r': 5.0}, r'r must be at most 0.999'),
-             ('r just below |p_o|', {'r': 0.999999 * math.hypot(*GOOD_P_O)},
-              r'r must be at most 0.999'),
-             ('r below 1e-6 |p_o|', {'r': 0.9e-6 * math.hypot(*GOOD_P_O)},
-              r'r must be at least 1e-06 \|p_o\|'),
-             ('r None', {'r': None}, r'r must be a real number'),
-             ('r text', {'r': '0.3'}, r'r must be a real number'),
-             ('r bool', {'r': True}, r'r must be a real number'),
-             ('sigma list', {'sigma': [1.0]}, r'sigma must be a real number'),
-             ('sigma complex', {'sigma': np.array(0.05 + 0j)}, r'sigma must be a real number'),
-             ('P masked', {'P': np.ma.masked_array(GOOD_P, mask=np.eye(3, dtype=bool))},
-              r'P has masked entries \(at \[\[0, 0\], \[1, 1\], \[2, 2\]\]\)'),
-             ('p_o masked', {'p_o': np.ma.masked_array(GOOD_P_O, mask=[False, True])},
-              r'p_o has masked entries'),
-             ('r huge int', {'r': 10 ** 400}, r'r = 1000.* \(m\) is beyond the range of doubles'),
-             ('sigma tiny Fraction', {'sigma': Fraction(1, 10 ** 400)},
-              r'sigma = Fraction\(1, 1.*\) \(.*\) rounds to 0 as a double'),
-             ('p_o huge int', {'p_o': [10 ** 400, 1]}, r'p_o holds a number beyond the range'),
-             ('p_o 0-d boolean', {'p_o': [-1.0, np.array(True)]},
-              r'p_o must hold real numbers, got a boolean'),
-             ('P ragged', {'P': [[1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
-              r'P must be an array of shape \(3, 3\)'),
-             ('p_o with a boolean', {'p_o': [True, 1.0]},
-              r'p_o must hold real numbers, got a bool'),
-             ('P with a boolean', {'P': [[True, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.1]]},
-              r'P must hold real numbers, got a boolean'),
-             ('r masked 0-d', {'r': np.ma.array(0.3, mask=True)}, r'r is masked'),
-             ('P rows masked', {'P': list(np.ma.array(GOOD_P, mask=np.eye(3, dtype=bool)))},
-              r'P has masked entries'),
-             ('p_o masked constant', {'p_o': [np.ma.masked, 1.0]}, r'p_o has masked entries'),
-             ('r timedelta', {'r': np.timedelta64(1)}, r'r must be a real number'),
+    d_o = math.hypot(*GOOD_P_O)
+    cases = [('P not symmetric', {'P': not_symmetric}, 'P'),
+             ('P sign-flipped correlation', {'P': sign_flipped}, 'P'),
+             ('P indefinite', {'P': np.diag([1.0, 1.0, -1e-3])}, 'P'),
+             ('P singular', {'P': np.diag([1.0, 1.0, 0.0])}, 'P'),
              ('P indefinite below rounding',
               {'P': [[3.0, 1.7157497662356598, 0.0], [1.7157497662356598, 0.981265753445907, 0.0],
-                     [0.0, 0.0, 1.0]]},
-              r'P must be positive definite, but it is indefinite or singular in exact'),
-             ('P complex', {'P': GOOD_P.astype(complex)}, r'P must hold real numbers'),
-             ('P bool', {'P': np.eye(3, dtype=bool)}, r'P must hold real numbers'),
-             ('P objects', {'P': [[1, 0, 0], [0, None, 0], [0, 0, 1]]},
-              r'P must hold real numbers'),
-             ('p_o complex', {'p_o': GOOD_P_O + 0j}, r'p_o must hold real numbers'),
-             ('tiny p_o', {'p_o': GOOD_P_O * 1e-200, 'r': 0.1e-200}, r'\|p_o\| = .* outside'),
-             ('huge p_o', {'p_o': GOOD_P_O * 1e200, 'r': 0.1e200}, r'\|p_o\| = .* outside'),
-             ('P tiny', {'P': GOOD_P * 1e-300}, r'the variances on the diagonal of P'),
-             ('P huge', {'P': GOOD_P * 1e300}, r'the variances on the diagonal of P'),
-             ('sigma huge', {'sigma': 1e200}, r'sigma must lie in \[1e-09, 1e\+06\]'),
-             ('sigma tiny', {'sigma': 1e-200}, r'sigma must lie in \[1e-09, 1e\+06\]'),
-             ('sigma zero', {'sigma': 0.0}, r'sigma must be'),
-             ('sigma negative', {'sigma': -0.01}, r'sigma must be'),
-             ('measurement', {'measurement': 'lidar'}, r'measurement must be one of')]
+                     [0.0, 0.0, 1.0]]}, 'P'),
+             ('P shape', {'P': np.eye(2)}, 'P'),
+             ('P ragged', {'P': [[1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}, 'P'),
+             ('P with None', {'P': [[1, 0, 0], [0, None, 0], [0, 0, 1]]}, 'P'),
+             ('P masked', {'P': np.ma.masked_array(GOOD_P, mask=np.eye(3, dtype=bool))}, 'P'),
+             ('P tiny', {'P': GOOD_P * 1e-300}, 'P'),
+             ('P huge', {'P': GOOD_P * 1e300}, 'P'),
+             ('p_o shape', {'p_o': np.array([1.0, 2.0, 3.0])}, 'p_o'),
+             ('tiny p_o', {'p_o': GOOD_P_O * 1e-200, 'r': 0.1e-200}, 'p_o'),
+             ('huge p_o', {'p_o': GOOD_P_O * 1e200, 'r': 0.1e200}, 'p_o'),
+             ('r zero', {'r': 0.0}, 'r'),
+             ('r negative', {'r': -0.1}, 'r'),
+             ('r reaches leader', {'r': d_o}, 'r'),
+             ('r just below |p_o|', {'r': 0.999999 * d_o}, 'r'),
+             ('r below 1e-6 |p_o|', {'r': 0.9e-6 * d_o}, 'r'),
+             ('r None', {'r': None}, 'r'),
+             ('r bool', {'r': True}, 'r'),
+             ('sigma list', {'sigma': [1.0]}, 'sigma'),
+             ('sigma huge', {'sigma': 1e200}, 'sigma'),
+             ('sigma tiny', {'sigma': 1e-200}, 'sigma'),
+             ('sigma zero', {'sigma': 0.0}, 'sigma'),
+             ('sigma negative', {'sigma': -0.01}, 'sigma'),
+             ('measurement', {'measurement': 'lidar'}, 'measurement')]
     for bad in (math.nan, math.inf, -math.inf):
         for i, j in ((0, 0), (1, 2), (2, 2)):
             P = GOOD_P.copy()
-            P[i, j] = bad
-            P[j, i] = bad
-            cases.append((f'P[{i},{j}]={bad}', {'P': P}, r'P must be finite'))
+            P[i, j] = P[j, i] = bad
+            cases.append((f'P[{i},{j}]={bad}', {'P': P}, 'P'))
         for i in range(2):
             p_o = GOOD_P_O.copy()
             p_o[i] = bad
-            cases.append((f'p_o[{i}]={bad}', {'p_o': p_o}, r'p_o must be finite'))
-        cases.append((f'r={bad}', {'r': bad}, r'r must be'))
-        cases.append((f'sigma={bad}', {'sigma': bad}, r'sigma must be'))
+            cases.append((f'p_o[{i}]={bad}', {'p_o': p_o}, 'p_o'))
+        cases.append((f'r={bad}', {'r': bad}, 'r'))
+        cases.append((f'sigma={bad}', {'sigma': bad}, 'sigma'))
     return cases
 
 
-@pytest.mark.parametrize('label, overrides, message', bad_problem_cases(),
+@pytest.mark.parametrize('label, overrides, field', bad_problem_cases(),
                          ids=[case[0] for case in bad_problem_cases()])
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
-def test_problem_rejects_bad_input(label: str, overrides: dict, message: str, kind: str) -> None:
-    """Each bad input raises ValueError whose message starts with the parameter's name."""
+def test_problem_rejects_bad_input(label: str, overrides: dict, field: str, kind: str) -> None:
+    """Each bad input raises InvalidInput naming the field, from Problem and from solve()."""
     arguments = {'P': GOOD_P, 'p_o': GOOD_P_O, 'r': 0.3, 'sigma': 0.05, 'measurement': kind}
     arguments.update(overrides)
-    with pytest.raises(ValueError, match='^' + message):
+    with pytest.raises(InvalidInput) as refused:
         Problem(**arguments)
-    solve_arguments = dict(arguments)
-    measurement = solve_arguments.pop('measurement')
-    with pytest.raises(ValueError, match='^' + message):
-        solve(**solve_arguments, measurement=measurement, method='rq')
+    assert refused.value.name == field
+    measurement = arguments.pop('measurement')
+    with pytest.raises(InvalidInput) as refused:
+        solve(**arguments, measurement=measurement, method='rq')
+    assert refused.value.name == field
 
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
-def test_problem_accepts_every_real_number_type(kind: str) -> None:
-    """r and sigma as 0-d arrays, Fraction, Decimal or numpy scalars, and P as an object array
-    of Fractions or an unmasked masked array, give the answer of plain floats bit for bit."""
+def test_problem_accepts_numbers_of_any_numeric_type(kind: str) -> None:
+    """r and sigma as numpy scalars or 0-d arrays, P and p_o as lists, give the answer of
+    plain floats bit for bit."""
     reference = solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=kind, method='rq')
     variants = [{'r': np.array(0.3), 'sigma': np.array(0.05)},
-                {'r': Fraction(3, 10), 'sigma': Decimal('0.05')},
                 {'r': np.float64(0.3), 'sigma': np.float64(0.05)},
-                {'P': np.array([[Fraction(v) for v in row] for row in GOOD_P], dtype=object)},
-                {'P': np.ma.masked_array(GOOD_P), 'p_o': np.ma.masked_array(GOOD_P_O)}]
+                {'P': GOOD_P.tolist(), 'p_o': tuple(GOOD_P_O)}]
     for variant in variants:
         arguments = {'P': GOOD_P, 'p_o': GOOD_P_O, 'r': 0.3, 'sigma': 0.05, **variant}
         solution = solve(**arguments, measurement=kind, method='rq')
@@ -173,13 +140,13 @@ def test_rounding_level_asymmetry_is_averaged_per_pair() -> None:
             K = P @ H.T / S
             P = P - K @ S @ K.T
         P = P / np.abs(P).max()         # inside the admissible variances
-        assert cost.check_covariance(P)[1] == cost.check_covariance(0.5 * (P + P.T))[1]
+        np.testing.assert_array_equal(as_covariance('P', P), as_covariance('P', 0.5 * (P + P.T)))
     P = np.array([[1e4, 0.0, 0.0], [0.0, 1e4, 9e-7], [0.0, 9e-7, 1e-16]])
     for tolerated, factor in ((True, 1.0 + 5e-7), (False, 1.0 + 1e-5)):
         skewed = P.copy()
         skewed[2, 1] *= factor
         if not tolerated:
-            with pytest.raises(ValueError, match=r'^P must be symmetric'):
+            with pytest.raises(InvalidInput, match='^P '):
                 Problem(skewed, GOOD_P_O, 0.3, 0.05, BEARING)
             continue
         averaged = 0.5 * (skewed + skewed.T)
@@ -203,13 +170,13 @@ def test_positive_definite_exactly_agrees_with_exact_minors() -> None:
         e00, e01, e02, e11, e12, e22 = map(Fraction, entries)
         exact = bool(e00 > 0 and e00 * e11 - e01 * e01 > 0 and e00 * (e11 * e22 - e12 * e12)
                      - e01 * (e01 * e22 - e12 * e02) + e02 * (e01 * e12 - e11 * e02) > 0)
-        assert cost.positive_definite_exactly(entries) == exact, entries
-        disagreements_of_floats += cost.positive_definite_entries(entries) != exact
+        assert positive_definite_exactly(entries) == exact, entries
+        disagreements_of_floats += positive_definite_entries(entries) != exact
     assert disagreements_of_floats > 0
 
 
-def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
-    """Inputs aimed at the quick checks' edges: valid problems, and each one broken in one
+def edge_inputs(rng: np.random.Generator) -> list[dict]:
+    """Inputs at the checks' edges: valid problems, and each one broken in one
     place (NaN, infinity, an asymmetry within and beyond the averaging tolerance, variances
     and sigma at and beyond their bounds, r at its bounds, indefinite P, overflowing sums) or
     given in another type (integers, float32, big-endian, lists, numpy scalars)."""
@@ -261,52 +228,12 @@ def quick_check_inputs(rng: np.random.Generator) -> list[dict]:
     return cases
 
 
-def test_quick_checks_decide_like_the_thorough_ones(monkeypatch: pytest.MonkeyPatch) -> None:
-    """check_problem (quick checks first) accepts, converts and refuses exactly like
-    check_problem_thoroughly on 60 problems, each broken in ~50 ways aimed at the quick
-    checks' edges: the same values, or ValueError with the same message; and the quick checks
-    alone accept the valid float problems."""
-    thorough_calls = Counter()
-    thoroughly = cost.check_problem_thoroughly
-
-    def counted(*args: object) -> cost.Checked:
-        thorough_calls['calls'] += 1
-        return thoroughly(*args)  # type: ignore[arg-type]
-    monkeypatch.setattr(cost, 'check_problem_thoroughly', counted)
-    outcomes = Counter()
-    for case in quick_check_inputs(np.random.default_rng(SEED + 7)):
-        results = []
-        for check in (cost.check_problem, thoroughly):
-            try:
-                results.append(check(**case))
-            except ValueError as error:
-                results.append(str(error))
-            if check is cost.check_problem:
-                outcomes['quick alone'] += thorough_calls['calls'] == 0
-                thorough_calls.clear()
-        quick, thorough = results
-        if isinstance(thorough, str):
-            assert quick == thorough
-            outcomes['refused'] += 1
-            continue
-        assert not isinstance(quick, str), quick
-        for a, b in zip(quick, thorough):
-            assert type(a) is type(b)
-            np.testing.assert_array_equal(a, b)
-        assert quick[0] is not case['P'] and quick[1] is not case['p_o']   # copies
-        outcomes['accepted'] += 1
-    assert outcomes['accepted'] > 300 and outcomes['refused'] > 2000, outcomes
-    assert outcomes['quick alone'] >= 60 * 3, outcomes
-
-
 def test_batch_checks_each_problem_as_problem_does() -> None:
     """check_batch (ProblemBatch's validation) on batches of three valid problems and one case
-    of quick_check_inputs at index 2: it accepts what check_problem accepts, with the same
-    numbers (an averaged P included), and refuses the rest with 'problem 2 of the batch: '
-    and check_problem's own message; its vectorised checks never accept what check_problem
-    refuses."""
+    of edge_inputs at index 2: it accepts what check_problem accepts, with the same
+    numbers (an averaged P included), and refuses the rest naming the field of problem 2."""
     outcomes = Counter()
-    for case in quick_check_inputs(np.random.default_rng(SEED + 8)):
+    for case in edge_inputs(np.random.default_rng(SEED + 8)):
         kind = case['measurement']
         columns = [np.array([GOOD_P, GOOD_P, np.asarray(case['P'], dtype=float), GOOD_P]),
                    np.array([GOOD_P_O, GOOD_P_O, np.asarray(case['p_o'], dtype=float),
@@ -315,11 +242,10 @@ def test_batch_checks_each_problem_as_problem_does() -> None:
                    np.array([0.05, 0.05, float(case['sigma']), 0.05])]
         try:
             expected = cost.check_problem(*(column[2] for column in columns), kind)
-        except ValueError as error:
-            prefix = '' if kind not in (RANGE, BEARING) else 'problem 2 of the batch: '
-            with pytest.raises(ValueError) as refused:
+        except InvalidInput as error:
+            with pytest.raises(InvalidInput) as refused:
                 cost.check_batch(*columns, kind)
-            assert str(refused.value) == prefix + str(error)
+            assert refused.value.name in (error.name, f'{error.name} of problem 2')
             outcomes['refused'] += 1
             continue
         P, p_o, r, sigma = cost.check_batch(*columns, kind)
@@ -331,44 +257,28 @@ def test_batch_checks_each_problem_as_problem_does() -> None:
     assert outcomes['accepted'] > 300 and outcomes['refused'] > 2000, outcomes
 
 
-@pytest.mark.parametrize('label, arguments, message', [
-    ('single P', (GOOD_P, [GOOD_P_O], [0.3], [0.05]), r'P must have shape \(T, 3, 3\)'),
-    ('lengths', ([GOOD_P] * 3, [GOOD_P_O] * 2, [0.3] * 2, [0.05] * 2),
-     'P, p_o, r and sigma must hold one entry per problem, got 3, 2, 2 and 2'),
-    ('complex', ([GOOD_P], [GOOD_P_O], [0.3 + 1j], [0.05]), 'r must hold real numbers'),
-    ('boolean', ([GOOD_P], [GOOD_P_O], [0.3], np.array([True], dtype=object)),
-     'sigma must hold real numbers'),
-    ('text', ([GOOD_P], [GOOD_P_O], ['0.3'], [0.05]), 'r must hold real numbers'),
+@pytest.mark.parametrize('label, arguments, field', [
+    ('single P', (GOOD_P, [GOOD_P_O], [0.3], [0.05]), 'P'),
+    ('lengths', ([GOOD_P] * 3, [GOOD_P_O] * 2, [0.3] * 2, [0.05] * 2), 'P, p_o, r and sigma'),
+    ('complex', ([GOOD_P], [GOOD_P_O], [0.3 + 1j], [0.05]), 'r'),
+    ('None', ([GOOD_P], [GOOD_P_O], [None], [0.05]), 'r'),
     ('masked', ([GOOD_P], np.ma.masked_array([GOOD_P_O], mask=[[False, True]]), [0.3],
-                [0.05]), 'p_o has masked entries'),
-    # a reviewer's: booleans and strings in lists and object arrays were read as numbers
-    ('boolean in a list', ([GOOD_P], [GOOD_P_O], [0.3], [True]),
-     'sigma must hold real numbers, got a boolean'),
-    ('string in an object array', ([GOOD_P], [GOOD_P_O], np.array(['0.3'], dtype=object),
-                                   [0.05]), "r must hold real numbers, got '0.3' \\(str\\)"),
-    ('None', ([GOOD_P], [GOOD_P_O], [None], [0.05]), 'r must hold real numbers, got None'),
-    ('0-d boolean', ([GOOD_P], [GOOD_P_O], [0.3], [np.array(True)]),
-     'sigma must hold real numbers, got a boolean'),
-    ('generator', ((P for P in [GOOD_P]), [GOOD_P_O], [0.3], [0.05]),
-     'P must hold real numbers, got <generator'),
-    ('masked constant', ([GOOD_P], [GOOD_P_O], [np.ma.masked], [0.05]),
-     'r has masked entries'),
-    ('huge integer', ([GOOD_P], [GOOD_P_O], [10 ** 400], [0.05]),
-     'r holds a number beyond the range of doubles'),
-    ('measurement', ([GOOD_P], [GOOD_P_O], [0.3], [0.05], 'lidar'),
-     r"measurement must be one of \('range', 'bearing'\), got 'lidar'")])
-def test_problem_batch_refuses_bad_arrays(label: str, arguments: tuple, message: str) -> None:
-    """A ProblemBatch of malformed arrays is refused in one line naming the array; an empty
-    batch and one built with validate=False (the engine's) are accepted."""
-    with pytest.raises(ValueError, match='^' + message):
+                [0.05]), 'p_o'),
+    ('generator', ((P for P in [GOOD_P]), [GOOD_P_O], [0.3], [0.05]), 'P'),
+    ('sigma zero', ([GOOD_P], [GOOD_P_O], [0.3], [0.0]), 'sigma of problem 0'),
+    ('measurement', ([GOOD_P], [GOOD_P_O], [0.3], [0.05], 'lidar'), 'measurement')])
+def test_problem_batch_refuses_bad_arrays(label: str, arguments: tuple, field: str) -> None:
+    """A ProblemBatch of malformed arrays is refused naming the array; an empty batch and one
+    built with validate=False (the engine's) are accepted."""
+    with pytest.raises(InvalidInput) as refused:
         cost.ProblemBatch(*arguments[:4], *(arguments[4:] or (BEARING,)))
+    assert refused.value.name == field
     assert len(cost.ProblemBatch(np.zeros((0, 3, 3)), np.zeros((0, 2)), [], [], RANGE)) == 0
-    for r, sigma, refused in ((True, 0.05, 'r must be a real number'),
-                              ('0.3', 0.05, 'r must be a real number'),
-                              ([0.3, 0.3], 0.05, 'r must be a real number'),
-                              (0.3, 0.0, 'sigma must be a finite number > 0')):
-        with pytest.raises(ValueError, match='^' + refused):
+    for r, sigma, name in ((True, 0.05, 'r'), ([0.3, 0.3], 0.05, 'r'),
+                           (0.3, 0.0, 'sigma of problem 0')):
+        with pytest.raises(InvalidInput) as refused:
             cost.ProblemBatch.shared(np.array([GOOD_P, GOOD_P]), GOOD_P_O, r, sigma, RANGE)
+        assert refused.value.name == name
     unchecked = cost.ProblemBatch(-np.array([GOOD_P]), [GOOD_P_O], [5.0], [0.0], RANGE, False)
     assert unchecked.P[0, 0, 0] == -GOOD_P[0, 0]
 
@@ -411,28 +321,6 @@ def test_good_problem_is_accepted() -> None:
         assert problem.d_o == pytest.approx(math.sqrt(5.0), rel=1e-15)  # rounding only
 
 
-def test_common_float_inputs_take_the_quick_checks(monkeypatch: pytest.MonkeyPatch) -> None:
-    """numpy float scalars for r and sigma and unpickled float arrays (an equal but distinct
-    dtype object) are accepted by check_problem's quick checks, with the values the thorough
-    checks give; a big-endian array still goes the thorough way."""
-    thorough = cost.check_problem_thoroughly
-    reference = thorough(GOOD_P, GOOD_P_O, 0.3, 0.05, RANGE)
-
-    def refuse(*args: object) -> None:
-        raise AssertionError('the quick checks passed these inputs on')
-
-    monkeypatch.setattr(cost, 'check_problem_thoroughly', refuse)
-    P, p_o = pickle.loads(pickle.dumps((GOOD_P, GOOD_P_O)))
-    assert P.dtype is not np.dtype(float)           # the case: an equal, distinct dtype
-    for args in ((P, p_o, 0.3, 0.05), (GOOD_P, GOOD_P_O, np.float64(0.3), np.float64(0.05))):
-        checked = cost.check_problem(*args, RANGE)
-        assert type(checked[2]) is float and type(checked[3]) is float
-        assert checked[2:] == reference[2:]
-        assert np.array_equal(checked[0], reference[0]) and checked[0] is not args[0]
-    with pytest.raises(AssertionError, match='quick checks passed'):
-        cost.check_problem(GOOD_P.astype('>f8'), GOOD_P_O, 0.3, 0.05, RANGE)
-
-
 def test_solve_rejects_unknown_method_and_option() -> None:
     """solve() names the unknown method or option in its ValueError."""
     with pytest.raises(ValueError, match=r"^method must be one of .*'simplex'"):
@@ -443,19 +331,16 @@ def test_solve_rejects_unknown_method_and_option() -> None:
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method='gbs', spacing=0.1)
     with pytest.raises(ValueError, match=r"^method 'rq' accepts options .*unknown \['cell'\]"):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='rq', cell=0.1)
-    # a reviewer's: AttributeError from deep inside, or silently accepted
     with pytest.raises(ValueError, match=r'^rng must be a numpy.random.Generator .*got 3'):
         solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=BEARING, method='crm',
               rng=3)  # type: ignore[arg-type]
-    # a reviewer's: OverflowError or a message without the option's name
-    for method, option, value in (('mme', 'period', math.inf), ('mme', 'period', math.nan),
-                                  ('periodic', 'horizon', math.inf),
-                                  ('mme', 'period', np.float64(-math.inf)),
-                                  ('mme', 'period', 10 ** 400), ('gbs', 'cell', 10 ** 400)):
-        shortened = f'^{method} option {option} must be (an integer|a number) in .* got .{{1,50}}$'
-        with pytest.raises(ValueError, match=shortened):
+    for method, option, value in (('mme', 'period', math.inf), ('mme', 'period', 2.5),
+                                  ('periodic', 'horizon', math.inf), ('gbs', 'cell', math.nan),
+                                  ('ram', 'fallback', 1), ('gbs', 'cell', True)):
+        with pytest.raises(InvalidInput) as refused:
             solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=method,
                   **{option: value})
+        assert refused.value.name == f'{method} option {option}'
     for method in ('mme', 'periodic', 'rq'):
         with pytest.raises(ValueError, match=r"^context must be a PlanContext, got 'x'"):
             solve(GOOD_P, GOOD_P_O, 0.3, 0.05, measurement=RANGE, method=method,

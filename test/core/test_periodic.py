@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from formopt_ros.core import solve
-from formopt_ros.core.cost import weighted_trace
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.protocol import held_leader_motion, step_substeps
 from formopt_ros.core.scenario import LeaderPath, Scenario, Segment

@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 
 
@@ -17,7 +18,7 @@ def test_paper_scenarios() -> None:
     assert rng.leader.velocity(123, rng.dt) == (1.0, 0.0) and rng.leader.is_straight()
     assert rng.kinematics == 'euler'          # the paper simulates with its eq. (9)
     assert Scenario('range', (-1.0, -2.0), 0.2, 0.1).kinematics == 'exact'
-    assert Scenario('range', (-1.0, -2.0), 0.2, True).sigma == 1.0      # stored as a float
+    assert type(Scenario('range', (-1.0, -2.0), 0.2, 1).sigma) is float  # kept converted
 
 
 @pytest.mark.parametrize('overrides,field', [
@@ -26,12 +27,17 @@ def test_paper_scenarios() -> None:
     ({'sigma_v': -0.1}, 'sigma_v'), ({'p_o': (0.0, 0.0)}, 'p_o'),
     ({'sigma_omega_leader': -1.0}, 'sigma_omega_leader'), ({'kinematics': 'rk4'}, 'kinematics'),
     ({'p_o': (math.inf, 1.0)}, 'p_o'), ({'initial_covariance': (0.1, 0.1, 0.0)},
-                                        'initial_covariance')])
+                                        'initial_covariance'),
+    ({'sigma': True}, 'sigma'), ({'dt': True}, 'dt'), ({'sigma': 1e300}, 'sigma'),
+    ({'measurement': 'bearing', 'sigma': 4.0}, 'sigma'), ({'dt': 11.0}, 'dt'),
+    ({'p_o': (2e4, 0.0), 'r': 1.0}, 'p_o'), ({'sigma_v': '0.1x'}, 'sigma_v')])
 def test_bad_scenarios_name_the_field(overrides: dict, field: str) -> None:
+    """Each value out of its documented range (RANGES) is refused naming the field."""
     values = dict(measurement='range', p_o=(-1.0, -2.0), r=0.2, sigma=0.1)
     values.update(overrides)
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(InvalidInput) as refused:
         Scenario(**values)
+    assert refused.value.name == field
 
 
 def test_round_trip_through_json_and_differences() -> None:

@@ -8,7 +8,7 @@ import pytest
 
 from formopt_ros.core import Problem
 from formopt_ros.core.batched import run_lanes
-from formopt_ros.core.cost import weighted_trace
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import RANGE, propagate_state
 from formopt_ros.core.protocol import motion_commands
 from formopt_ros.core.scenario import LeaderPath, Scenario

@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 
-from formopt_ros.core.cost import weight_vector
+from formopt_ros.core.formulas import weight_vector
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import Scenario
 

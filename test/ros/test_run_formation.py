@@ -133,7 +133,7 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     (['--prefix', 'a'], "--prefix must look like /name or /name/name, got 'a'"),
     (['--prefix', '//a'], "--prefix must look like /name or /name/name, got '//a'"),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_loud_noise.yaml')],
-     "follower 'range': parameter 'range_sigma' must be a number in [1e-06, 1000]"),
+     'formation follower range: sigma must be a number in [0.001, 1000] m'),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_broken.yaml')],
      "cannot read the formation: while parsing a flow sequence"),
 ])

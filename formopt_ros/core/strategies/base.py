@@ -10,16 +10,15 @@ simulator or the nodes.
 """
 from __future__ import annotations
 
-import math
-import reprlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from formopt_ros.core.model import EXACT
+from formopt_ros.core.checks import as_bool, as_integer, as_real
 from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.model import EXACT
 from formopt_ros.core.strategies.certificate import exact_cost
 
 if TYPE_CHECKING:
@@ -211,34 +210,13 @@ class OptionSpec:
     high: float = 1.0
 
     def check(self, strategy: str, name: str, value: object) -> float | int | bool:
-        """The value as the option's type, or ValueError naming strategy, option and range."""
+        """The value as the option's type, or InvalidInput naming strategy and option."""
+        field = f'{strategy} option {name}'
         if isinstance(self.default, bool):
-            expected = f'true or false ({self.description})'
-        else:
-            kind = 'an integer' if isinstance(self.default, int) else 'a number'
-            expected = f'{kind} in [{self.low:g}, {self.high:g}] ({self.description})'
-        refused = ValueError(f'{strategy} option {name} must be {expected}, got '
-                             f'{reprlib.repr(value)}')
-        if isinstance(self.default, bool):
-            if not isinstance(value, (bool, np.bool_)):
-                raise refused
-            return bool(value)
-        numeric = (int, float, np.integer, np.floating)
-        if isinstance(value, bool) or not isinstance(value, numeric):
-            raise refused
-        try:
-            as_float = float(value)
-        except OverflowError:           # an integer beyond the doubles (10**400)
-            raise refused from None
-        number: float | int = as_float
+            return as_bool(field, value)
         if isinstance(self.default, int):
-            # int() of an infinite or NaN float raises OverflowError or ValueError itself
-            if not math.isfinite(as_float) or as_float != int(value):
-                raise refused
-            number = int(value)
-        if not (math.isfinite(number) and self.low <= number <= self.high):
-            raise refused
-        return number
+            return as_integer(field, value, int(self.low), int(self.high))
+        return as_real(field, value, self.low, self.high)
 
 
 class Strategy:

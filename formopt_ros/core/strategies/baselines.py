@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, ProblemBatch, monomials, weighted_sum
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.formulas import Entries, monomials, weighted_sum
 from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, OptionSpec, PlanContext, Solution, Strategy, make_solution)
@@ -205,7 +206,7 @@ def grid_argmax(grid: Grid, measurement: str, forms: tuple[Entries, Entries],
         h'Kh <= h_c'K h_c + 2 radius |(K h_c)_12| + radius^2 max(0, lambda_max(K_12,12)),
 
     so blocks where this bound is below -1e-9 lambda h_c'B h_c (room for rounding) are skipped.
-    Gains are evaluated with :func:`~formopt_ros.core.cost.weighted_sum` point by point, so a
+    Gains are evaluated with :func:`~formopt_ros.core.formulas.weighted_sum` point by point, so a
     batch and its single problems give bit-identical results.
 
     Args:

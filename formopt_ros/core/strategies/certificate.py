@@ -51,8 +51,9 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, ProblemBatch, positive_definite_entries
-from formopt_ros.core.linalg import EPS
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.formulas import Entries
+from formopt_ros.core.linalg import EPS, positive_definite_entries
 from formopt_ros.core.model import RANGE
 
 #: Certificate names (``Solution.certificate``).

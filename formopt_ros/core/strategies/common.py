@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, ProblemBatch, point_from_q
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.formulas import point_from_q
 from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import Solution, make_solution
 from formopt_ros.core.strategies.certificate import (

@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, weighted_trace
+from formopt_ros.core.cost import Problem
+from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (

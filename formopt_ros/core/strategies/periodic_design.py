@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from formopt_ros.core.cost import Problem, weight_vector, weighted_trace
+from formopt_ros.core.cost import Problem
+from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.model import (
     EXACT, ekf_update, measurement_jacobian, predict_measurement, propagate_state,
     transition_matrices)

@@ -70,7 +70,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, ProblemBatch
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.formulas import Entries
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.certificate import PROVED, certify

@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.cost import Entries, Problem, ProblemBatch, point_from_q, quotient_gain
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.formulas import Entries, point_from_q, quotient_gain
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
