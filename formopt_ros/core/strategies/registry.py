@@ -99,8 +99,9 @@ def parameter_names(strategies: dict[str, type[Strategy]]) -> set[str]:
 
 
 def discover(builtin: dict[str, type[Strategy]], entry_points: Iterable[Any] | None = None
-             ) -> tuple[dict[str, type[Strategy]], list[PluginProblem]]:
-    """The usable plugin strategies (sorted by name) and the problems of the others.
+             ) -> tuple[dict[str, type[Strategy]], list[PluginProblem], dict[str, str]]:
+    """The usable plugin strategies (sorted by name), the problems of the others and the
+    distribution ('name version') of each usable one.
 
     Args:
         builtin: the registered strategies (a plugin may not take their names).
@@ -115,6 +116,7 @@ def discover(builtin: dict[str, type[Strategy]], entry_points: Iterable[Any] | N
     for point in points:
         counts[point.name] = counts.get(point.name, 0) + 1
     found: dict[str, type[Strategy]] = {}
+    origins: dict[str, str] = {}
     problems = []
     for point in points:
         if counts[point.name] > 1:
@@ -130,9 +132,10 @@ def discover(builtin: dict[str, type[Strategy]], entry_points: Iterable[Any] | N
                                       parameter_names({**builtin, **found}))
                 if not reason:
                     found[point.name] = obj
+                    origins[point.name] = _distribution(point)
                     continue
         problems.append(PluginProblem(point.name, point.value, _distribution(point), reason))
-    return found, problems
+    return found, problems, origins
 
 
 def _distribution(point: Any) -> str:
@@ -148,6 +151,7 @@ class StrategyRegistry(MutableMapping[str, type[Strategy]]):
         self._builtin = dict(builtin)
         self._table: dict[str, type[Strategy]] | None = None
         self.problems: list[PluginProblem] = []
+        self._origins: dict[str, str] = {}
 
     @property
     def builtin(self) -> tuple[str, ...]:
@@ -156,7 +160,7 @@ class StrategyRegistry(MutableMapping[str, type[Strategy]]):
 
     def _all(self) -> dict[str, type[Strategy]]:
         if self._table is None:
-            plugins, self.problems = discover(self._builtin)
+            plugins, self.problems, self._origins = discover(self._builtin)
             self._table = {**self._builtin, **plugins}
             if os.environ.get(QUIET_ENV, '1') != '0':
                 for problem in self.problems:
@@ -167,10 +171,17 @@ class StrategyRegistry(MutableMapping[str, type[Strategy]]):
         """Names of the usable plugin strategies, sorted."""
         return tuple(name for name in self._all() if name not in self._builtin)
 
+    def origin(self, name: str) -> str:
+        """The distribution ('name version') a plugin strategy comes from; '' for the
+        built-in ones (and for names not registered)."""
+        self._all()
+        return self._origins.get(name, '')
+
     def rediscover(self) -> None:
         """Forget the plugins found so far; the next need looks again (after an install)."""
         self._table = None
         self.problems = []
+        self._origins = {}
 
     def __getitem__(self, name: str) -> type[Strategy]:
         if self._table is None and name in self._builtin:
