@@ -8,7 +8,9 @@ import json
 import logging
 import math
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -108,12 +110,28 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
             yield client
         return
     # a random dashboard port (no clash with another cluster); the parent has reported any
-    # broken plugin already: the workers stay quiet
-    with LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
-                      processes=True, host='127.0.0.1', dashboard_address=':0',
-                      silence_logs=logging.ERROR,
-                      env={QUIET_ENV: '0'}) as cluster, Client(cluster) as client:
+    # broken plugin already: the workers stay quiet; they are born ignoring SIGINT, so that
+    # Ctrl-C (sent to the whole process group) reaches only this process, which cancels the
+    # cells and closes the cluster, and no worker prints a traceback
+    with _ignoring_interrupts():
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+                               processes=True, host='127.0.0.1', dashboard_address=':0',
+                               silence_logs=logging.ERROR, env={QUIET_ENV: '0'})
+    with cluster, Client(cluster) as client:
         yield client
+
+
+@contextlib.contextmanager
+def _ignoring_interrupts() -> Iterator[None]:
+    """SIGINT ignored meanwhile (processes started then inherit it); in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = None,

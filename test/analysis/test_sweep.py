@@ -197,3 +197,34 @@ def test_a_separate_dask_cluster_gives_the_same_numbers(tmp_path: Path) -> None:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+
+
+def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_computes_the_rest(
+        tmp_path: Path) -> None:
+    """SIGINT to the command's process group (as Ctrl-C) once the bar shows a finished cell:
+    exit 130 with one line saying what is kept, no worker traceback; the same command again
+    computes only the other cells."""
+    import os
+    import signal
+    args = [sys.executable, '-m', 'formopt_ros.cli.sweep', '--r-fraction', '0.05,0.2',
+            '--sigma-scale', '0.5,1', '--strategies', 'ram,crm,mtf', '--trials', '4',
+            '--steps', '1000', '--workers', '2', '--no-figures', '--out', str(tmp_path / 'o')]
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    seen = b''
+    while b'| 1/12' not in seen:                 # the bar has counted one finished cell
+        chunk = os.read(process.stderr.fileno(), 4096)
+        assert chunk, seen.decode()
+        seen += chunk
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    text = (seen + err).decode()
+    assert process.returncode == 130, text
+    assert 'Traceback' not in text, text
+    kept = len(list((tmp_path / 'o' / 'cells').glob('*.json')))
+    assert 1 <= kept < 12
+    assert f'formopt-sweep: interrupted; {kept} of 12 cells are finished and kept' in text
+    again = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert f'12 cells ({12 - kept} computed, {kept} reused' in again.stdout
+    assert len(read_table(tmp_path / 'o' / 'sweep.csv')) == 12
