@@ -1,5 +1,5 @@
 """Plugin strategies: discovery through the entry-point group, options, the study and the
-report of a broken plugin (entry points made here; test/ros/test_plugins.py installs a real
+report of a broken plugin (entry points made here; test/ros/test_plugin_package.py installs a real
 package)."""
 from __future__ import annotations
 
