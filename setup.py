@@ -21,6 +21,7 @@ setup(
         'tools': ['matplotlib', 'tqdm'],
         'test': ['pytest', 'flake8', 'mypy'],
         'peers': ['casadi'],
+        'sweep': ['dask[distributed]>=2024.8', 'matplotlib', 'tqdm'],
     },
     zip_safe=True,
     maintainer='formopt_ros developers',
@@ -43,6 +44,7 @@ setup(
             'formopt-report = formopt_ros.cli.report:main',
             'formopt-bag = formopt_ros.cli.bag:main',
             'formopt-periodic = formopt_ros.cli.periodic:main',
+            'formopt-sweep = formopt_ros.cli.sweep:main',
         ],
     },
 )

@@ -18,18 +18,18 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
     'wire': ({'core', 'wire'}, {'numpy', 'yaml'}),
     'bag': ({'bag'}, {'mcap', 'rosbags', 'yaml'}),
     'analysis': ({'core', 'wire', 'bag', 'analysis'},
-                 {'numpy', 'scipy', 'matplotlib', 'casadi'}),
+                 {'numpy', 'scipy', 'matplotlib', 'casadi', 'dask'}),
     'ros': ({'core', 'wire', 'bag', 'ros'}, {'numpy', 'yaml', 'rclpy', 'rcl_interfaces',
                                              'builtin_interfaces', 'std_msgs', 'geometry_msgs',
                                              'nav_msgs', 'formopt_interfaces', 'tf2_msgs',
                                              'rosgraph_msgs', 'visualization_msgs',
                                              'diagnostic_msgs', 'sensor_msgs'}),
     'cli': ({'core', 'wire', 'bag', 'analysis', 'ros', 'cli'},
-            {'numpy', 'tqdm', 'rclpy', 'formopt_interfaces'}),
+            {'numpy', 'tqdm', 'rclpy', 'formopt_interfaces', 'dask'}),
 }
 #: Modules that must import without any ROS package loaded.
 ROS_FREE = ['core', 'wire', 'bag', 'analysis', 'cli.montecarlo', 'cli.bench', 'cli.report',
-            'cli.bag', 'cli.replay', 'cli.bench_ros', 'cli.periodic']
+            'cli.bag', 'cli.replay', 'cli.bench_ros', 'cli.periodic', 'cli.sweep']
 ROS_PACKAGES = ('rclpy', 'rosidl_runtime_py', 'rpyutils', 'std_msgs', 'geometry_msgs',
                 'nav_msgs', 'formopt_interfaces', 'builtin_interfaces', 'rcl_interfaces',
                 'tf2_msgs', 'rosgraph_msgs', 'visualization_msgs', 'diagnostic_msgs')

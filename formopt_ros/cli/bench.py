@@ -8,7 +8,8 @@ RQ optimum (every one must carry a proof; the table header says how many do).
 
 Methods:
 
-* ram, rq, mtf, crm, mme: ``solve(...)`` (input validation included);
+* ram, rq, mtf, crm, mme and the plugin strategies (docs/plugins.md): ``solve(...)`` (input
+  validation included; crm and the plugins get a generator seeded 0);
 * rq-loop: RQ as the simulator and the nodes call it each step, on a ``Problem`` built without
   validation (they validate their setting once per run);
 * rq-batch: RQ on ``--batch-size`` problems per call (default: all the problems of a kind in
@@ -50,7 +51,7 @@ import numpy as np
 
 from formopt_ros.analysis.peers import casadi_available, peer_methods
 from formopt_ros.cli.common import ArgumentParser, command, integer, name_list, new_file
-from formopt_ros.core import METHODS, Problem, solve
+from formopt_ros.core import METHODS, STRATEGIES, Problem, solve
 from formopt_ros.core.solver import DEFAULT_CONTEXT
 from formopt_ros.core.strategies import baselines
 from formopt_ros.core.cost import ProblemBatch
@@ -63,7 +64,8 @@ MISS_RTOL = 1e-9
 #: GBS cell of the one-off and cached rows, fraction of r (the library default).
 GBS_CELL = baselines.DEFAULT_GBS_CELL
 PEERS = ('slsqp', 'slsqp-8', 'ipopt', 'ipopt-tuned', 'ipopt-8')
-ALL_METHODS = (*METHODS, 'rq-loop', 'rq-batch', 'gbs-cached', *PEERS)
+EXTRA_METHODS = ('rq-loop', 'rq-batch', 'gbs-cached', *PEERS)
+ALL_METHODS = (*METHODS, *EXTRA_METHODS)
 DEFAULT_METHODS = ('ram', 'rq', 'rq-loop', 'rq-batch', 'gbs', 'gbs-cached', *PEERS)
 
 ProblemData = tuple[np.ndarray, np.ndarray, float, float]
@@ -110,7 +112,7 @@ def runners(kind: str, methods: Sequence[str]) -> dict[str, Runner]:
 def _solver(kind: str, method: str) -> Runner:
     def run(data: ProblemData) -> tuple[float, bool]:
         P, p_o, r, sigma = data
-        rng = np.random.default_rng(0) if method == 'crm' else None
+        rng = np.random.default_rng(0) if method == 'crm' or method not in METHODS else None
         solution = solve(P, p_o, r, sigma, measurement=kind, method=method, rng=rng)
         return solution.cost, solution.fallback is not None
     return run
@@ -282,8 +284,9 @@ def build_parser() -> ArgumentParser:
                         help='calls per problem of the (slow) peers (default: 1)')
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of the problem generator (default: 0)')
-    parser.add_argument('--methods', type=name_list(ALL_METHODS), default=list(DEFAULT_METHODS),
-                        help=f'comma-separated methods among {",".join(ALL_METHODS)} '
+    every = (*STRATEGIES, *EXTRA_METHODS)       # with the plugin strategies
+    parser.add_argument('--methods', type=name_list(every), default=list(DEFAULT_METHODS),
+                        help=f'comma-separated methods among {",".join(every)} '
                              f'(default: {",".join(DEFAULT_METHODS)})')
     parser.add_argument('--batch-size', type=integer(1, 10**7), default=None,
                         help='problems per call of rq-batch (default: all the problems of a '

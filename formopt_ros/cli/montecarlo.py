@@ -20,6 +20,7 @@ from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
+from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
     ENGINES, FLAG_RULE, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, memory_estimate,
@@ -46,8 +47,10 @@ def build_parser() -> ArgumentParser:
                         help='measurement steps per trial, 0.1 s each (default: 600)')
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of all random numbers; trial i uses (seed, i) (default: 0)')
-    parser.add_argument('--strategies', type=name_list(METHODS), default=list(METHODS),
-                        help=f'comma list among {",".join(METHODS)}, each once (default: all)')
+    names = tuple(STRATEGIES)                   # the built-in and the plugin strategies
+    parser.add_argument('--strategies', type=name_list(names), default=list(METHODS),
+                        help=f'comma list among {",".join(names)}, each once (default: the '
+                             f'built-in ones, {",".join(METHODS)})')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='worker processes; results do not depend on it (default: all '
                              'cores)')
@@ -56,6 +59,10 @@ def build_parser() -> ArgumentParser:
                         help=f'GBS grid spacing as a fraction of r, in [{MIN_GBS_CELL}, 1] '
                              f"(default: {STUDY_OPTIONS['gbs']['cell']}; the library default "
                              'is 0.005)')
+    parser.add_argument('--option', type=option_setting, action='append', default=[],
+                        metavar='STRATEGY.OPTION=VALUE',
+                        help="a strategy's option, e.g. gbs.cell=0.02 or a plugin's; repeat "
+                             'for several (values: numbers, true, false)')
     add_scenario_options(parser)
     parser.add_argument('--engine', choices=ENGINES, default='batched',
                         help='batched: all trials of a strategy advanced together (fast); '
@@ -68,9 +75,45 @@ def build_parser() -> ArgumentParser:
                         help='skip the PNG figures (faster, no matplotlib needed)')
     parser.add_argument('--allow-inconsistent', action='store_true',
                         help='print the "vs RAM" percentages of strategies flagged inconsistent '
-                             f'({FLAG_RULE}), marked as such; without it they are withheld '
+                             f"({FLAG_RULE.replace('%', '%%')}), marked as such; without it "
+                             'they are withheld '
                              '(summary.json flags them either way)')
     return parser
+
+
+def option_setting(text: str) -> tuple[str, str, float | int | bool]:
+    """argparse type: 'strategy.option=value' as (strategy, option, value); the value is an
+    integer, a number, true or false (the strategy checks its range)."""
+    name, _, value = text.partition('=')
+    strategy, _, option = name.strip().partition('.')
+    if not (strategy and option and value.strip()):
+        raise argparse.ArgumentTypeError(f'must be STRATEGY.OPTION=VALUE, e.g. gbs.cell=0.02, '
+                                         f'got {text!r}')
+    word = value.strip().lower()
+    parsed: float | int | bool
+    if word in ('true', 'false'):
+        parsed = word == 'true'
+    else:
+        try:
+            parsed = int(word)
+        except ValueError:
+            try:
+                parsed = float(word)
+            except ValueError:
+                raise argparse.ArgumentTypeError(
+                    f'{name.strip()}: the value must be a number, true or false, got '
+                    f'{value!r}') from None
+    return strategy, option.strip(), parsed
+
+
+def strategy_options(settings: list[tuple[str, str, float | int | bool]],
+                     base: dict[str, dict[str, object]] | None = None
+                     ) -> dict[str, dict[str, object]]:
+    """strategy -> options from ``--option`` settings, over ``base``."""
+    options = {name: dict(values) for name, values in (base or {}).items()}
+    for strategy, option, value in settings:
+        options.setdefault(strategy, {})[option] = value
+    return options
 
 
 def _progress(total: int, label: str):
@@ -280,8 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
     start = time.perf_counter()
     try:
-        configs = [StudyConfig(kind, args.trials, args.steps, args.seed, strategies,
-                               {'gbs': {'cell': args.gbs_cell}}, scenario_overrides(kind, args))
+        options = strategy_options(args.option, {'gbs': {'cell': args.gbs_cell}})
+        configs = [StudyConfig(kind, args.trials, args.steps, args.seed, strategies, options,
+                               scenario_overrides(kind, args))
                    for kind in kinds]
         if not args.allow_inconsistent:
             for config in configs:

@@ -7,17 +7,20 @@ from dataclasses import replace
 import numpy as np
 
 from formopt_ros.core.cost import Problem
-from formopt_ros.core.strategies import STRATEGIES, PlanContext, Solution, Strategy, make_strategy
+from formopt_ros.core.strategies import (
+    BUILTIN, STRATEGIES, PlanContext, Solution, Strategy, make_strategy)
 
-#: Names accepted by ``solve(method=...)``.
-METHODS = tuple(STRATEGIES)
+#: Names of the built-in strategies; ``solve(method=...)`` also accepts the plugin strategies of
+#: ``STRATEGIES``.
+METHODS = BUILTIN
 #: Context of a one-off problem: step 1, leader straight at 1 m/s.
 DEFAULT_CONTEXT = PlanContext()
 
 
 #: method -> the strategy object that serves option-less ``solve`` calls (stateless strategies
 #: only: one object may answer every problem).
-_SHARED: dict[str, Strategy] = {name: cls() for name, cls in STRATEGIES.items() if cls.stateless}
+_SHARED: dict[str, Strategy] = {
+    name: STRATEGIES[name]() for name in BUILTIN if STRATEGIES[name].stateless}
 
 
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:

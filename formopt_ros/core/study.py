@@ -24,11 +24,12 @@ from scipy.special import gammaincinv
 from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial
-from formopt_ros.core.strategies import STRATEGIES, make_strategy
+from formopt_ros.core.strategies import BUILTIN, STRATEGIES, make_strategy
 from formopt_ros.core.strategies.periodic import describe_design
 
-#: Names of every strategy, in the order of the paper's comparison.
-METHODS = tuple(STRATEGIES)
+#: Names of the built-in strategies, in the order of the paper's comparison: a study's default.
+#: A study also runs the plugin strategies of ``STRATEGIES`` it names.
+METHODS = BUILTIN
 #: Strategy options of the study where they differ from the library defaults: a GBS cell of
 #: 0.01 r (the library default is 0.005 r) keeps the study's grid search affordable.
 STUDY_OPTIONS: dict[str, dict[str, object]] = {'gbs': {'cell': 0.01}}
@@ -78,11 +79,12 @@ class StudyConfig:
             given, Iterable) or np.ndim(given) != 1 else tuple(given)   # a generator, once
         if not names:
             raise ValueError(f'strategies must be a non-empty sequence of names among '
-                             f'{METHODS} (ordered: a set has none), got {given!r}')
+                             f'{tuple(STRATEGIES)} (ordered: a set has none), got {given!r}')
         object.__setattr__(self, 'strategies', tuple(map(str, names)))
-        unknown = [s for s in self.strategies if s not in METHODS]
+        unknown = [s for s in self.strategies if s not in STRATEGIES]
         if unknown:
-            raise ValueError(f'strategies must be among {METHODS}, got unknown {unknown}')
+            raise ValueError(f'strategies must be among {tuple(STRATEGIES)}, got unknown '
+                             f'{unknown}')
         repeated = [s for i, s in enumerate(self.strategies) if s in self.strategies[:i]]
         if repeated:
             raise ValueError(f'strategies must be named once each, got {repeated} twice')
@@ -91,12 +93,13 @@ class StudyConfig:
                 for values in self.options.values()):
             raise ValueError(f'options must map strategy names to dicts of options, e.g. '
                              f"{{'gbs': {{'cell': 0.01}}}}, got {self.options!r}")
-        stray = [name for name in self.options if name not in METHODS]
+        stray = [name for name in self.options if name not in STRATEGIES]
         if stray:
-            raise ValueError(f'options are keyed by strategy names among {METHODS}, got '
-                             f'unknown {stray}')
+            raise ValueError(f'options are keyed by strategy names among {tuple(STRATEGIES)}, '
+                             f'got unknown {stray}')
+        named = (*METHODS, *(s for s in (*self.strategies, *self.options) if s not in METHODS))
         merged = {name: dict(STUDY_OPTIONS.get(name, {}), **self.options.get(name, {}))
-                  for name in METHODS}
+                  for name in dict.fromkeys(named)}
         for name, values in merged.items():
             make_strategy(name, **values)           # ValueError naming a bad option
         object.__setattr__(self, 'options', merged)
