@@ -134,7 +134,7 @@ def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
     (['--strategies', 'ram,nope'], "unknown 'nope'"),
     (['--r-fraction', '0.1,x'], 'must be a comma list of numbers'),
     (['--leader-path', 'circle'], 'circle: the values are straight, arc, s-curve'),
-    (['--r-fraction', '1.5'], 'r must be at most 0.999'),
+    (['--r-fraction', '1.5'], 'r must lie in [1e-06, 0.999] |p_o|'),
     (['--option', 'crm.speed=1'], "method 'crm' accepts options"),
     (['--heatmap', 'r_fraction,colour'], 'heatmap must name two axes'),
     (['--measurement', 'bearing', '--r-fraction', '0.6'], '--allow-inconsistent runs it'),

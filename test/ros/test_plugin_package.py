@@ -117,8 +117,8 @@ def test_discovery_and_options(ring: str) -> None:
     lines = result.stdout.splitlines()
     assert lines[0] == f"{[*BUILTIN, 'ring']} formopt-ring 0.1.0"
     assert lines[1] == "{'samples': 64, 'radius': 1.0}"
-    assert 'ValueError: ring option samples must be an integer in [3, 720] (points on the ' \
-           'circle), got 1' in result.stderr
+    assert 'ring option samples must be an integer in [3, 720]' in result.stderr and \
+        'got 1' in result.stderr
     help_text = command('formopt-montecarlo', '--help').stdout
     assert 'mtf,crm,mme,gbs,ram,rq,periodic,ring' in help_text.replace('\n', '').replace(' ', '')
 
@@ -203,7 +203,7 @@ def test_a_broken_plugin_is_named_and_hides_nothing(ring: str, tmp_path: Path) -
         assert warnings == [
             "formopt_ros: warning: strategy plugin 'badoptions' (formopt_ring_bad:BadOptions "
             f"{source}option 'samples': its default is refused: badoptions option samples must "
-            'be an integer in [3, 720] (points on the circle), got 1',
+            'be an integer in [3, 720], got 1',
             "formopt_ros: warning: strategy plugin 'missing' (formopt_broken_nowhere:Thing "
             f"{source}cannot be imported: ModuleNotFoundError: No module named "
             "'formopt_broken_nowhere'",
