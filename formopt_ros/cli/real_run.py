@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 from formopt_ros.core.scenario import Formation, FollowerSpec
@@ -39,7 +40,6 @@ def node_parameters(formation: Formation, index: int, leader_topic: str, start_t
     out = {node: {k: v for k, v in values.items() if k in names[node]} for node in REAL_NODES}
     out['field_sim'].update({'leader_odom_topic': leader_topic, 'publish_leader': index == 0,
                              'start_time': start_time, 'duration': duration})
-    out['field_sim'].pop('sigma_v_leader', None)
     for key, value in follower.real.items():
         for node in REAL_NODES:
             if key in names[node]:
@@ -47,7 +47,8 @@ def node_parameters(formation: Formation, index: int, leader_topic: str, start_t
     return out
 
 
-def check_real(formation: Formation, names: dict[str, set[str]], check: Any) -> str | None:
+def check_real(formation: Formation, names: dict[str, set[str]],
+               check: Callable[[str, str, Any], str | None]) -> str | None:
     """Why the formation's 'real' settings would fail a node (None: fine): unknown keys, keys
     run_formation sets, values the nodes' specs refuse (``check(node, name, value)``)."""
     for follower in formation.followers:
@@ -67,9 +68,10 @@ def check_real(formation: Formation, names: dict[str, set[str]], check: Any) -> 
 
 
 def run_real(formation: Formation, launcher: Any, out: Path, prefix: str, steps: int,
-             timeout: float, record: bool, names: dict[str, set[str]]) -> dict[str, Any]:
+             record: bool, names: dict[str, set[str]]) -> dict[str, Any]:
     """Start, supervise and stop the real-interface nodes; the summary's content (without
-    writing it). The run lasts ``steps`` measurement steps of the formation (2 dt each)."""
+    writing it). The run lasts ``steps`` measurement steps of the formation (2 dt each); a
+    node that ends before is a failure."""
     duration = steps * 2.0 * formation.dt
     leader_topic = f'{prefix}/{formation.leader_id}/odom'
     topics = ['/diagnostics', '/tf_static', leader_topic]
@@ -103,9 +105,6 @@ def run_real(formation: Formation, launcher: Any, out: Path, prefix: str, steps:
             if dead:
                 failure = f'{dead[0].name} exited with code {dead[0].process.poll()} before ' \
                           f'the run finished:\n{dead[0].tail()}'
-                break
-            if time.time() > start_time + duration + timeout:
-                failure = f'timeout after {timeout:g} s'
                 break
             time.sleep(0.05)
     except KeyboardInterrupt:

@@ -175,8 +175,8 @@ def run_real_formation(args: Any, formation: Formation, launcher: Launcher, out:
                        prefix: str, run_id: str) -> int:
     """A formation of followers with real interfaces (formopt_ros/cli/real_run.py)."""
     started = time.monotonic()
-    result = run_real(formation, launcher, out, prefix, args.steps, args.timeout,
-                      not args.no_record, real_names())
+    result = run_real(formation, launcher, out, prefix, args.steps, not args.no_record,
+                      real_names())
     wall = time.monotonic() - started
     summary = {**result, 'run_id': run_id, 'mode': 'realtime', 'steps_requested': args.steps,
                'wall_time_s': wall, 'formation': formation.to_dict()}
