@@ -28,10 +28,12 @@ G_i = [[k, 0, -c_y], [0, k, c_x], [-c_y, c_x, 1]] (k = |c|^2 - rho^2) for |p - c
 negative for |p - c| >= rho (range: the cone of the bearing interval, one form). If
 S = lambda B - A + sum_i mu_i G_i is positive definite for some mu >= 0, no feasible h has a
 gain of lambda or more. lambda = g(p) + rtol cost (rtol of GAP_RTOLS with rtol cost above the
-gain's rounding bound); the multipliers start from KKT (non-negative least squares of
-(g B - A) h + sum mu_i G_i h = 0 over the active circles) and, when that S is not proved,
-maximise the smallest eigenvalue of the Jacobi-scaled S (concave in mu). The test allows for
-the rounding of S's entries. With one active constraint the S-lemma makes this complete; with
+gain's rounding bound); the multipliers are KKT's (non-negative least squares of
+(g B - A) h + sum mu_i G_i h = 0 over the active circles: S h is about 0 at an optimum, which
+pins them down), then, one constraint at a time, 0 and the critical points of det(S + mu G_i)
+(complete for one constraint). The test allows for the rounding of S's entries; when the
+margin is positive but below that bound, it is repeated in exact rational arithmetic on the
+exact data (the circles' forms as the floats they are). With one active constraint the S-lemma makes this complete; with
 two (a corner, or one arc while another circle also bounds the set) it is sufficient only:
 when it fails, the answer is the best of the enumerated KKT points, named
 'all-critical-points', and the solution says so (``fallback`` 'enumeration').
@@ -44,7 +46,7 @@ from fractions import Fraction
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize, nnls
+from scipy.optimize import nnls
 
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.linalg import EPS
@@ -172,12 +174,6 @@ def s_lemma(A: np.ndarray, B: np.ndarray, forms: Sequence[np.ndarray], h: np.nda
                 trial[i] = value
                 if (found := margin(trial)) > best:
                     mu, best = trial, found
-        if not best > 0.0 and len(scaled_g):
-            start = np.sqrt(np.maximum(mu, 0.0)) + 1e-3
-            found = minimize(lambda y: -margin(y * y), start, method='Nelder-Mead',
-                             options={'xatol': 1e-13, 'fatol': 1e-18, 'maxiter': 800})
-            if -found.fun > best:
-                mu, best = found.x * found.x, -found.fun
         proved = best > 0.0
         if not proved and exact is not None:
             S = base + sum(m * G for m, G in zip(mu, scaled_g))
@@ -359,6 +355,9 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
         points = _bearing_candidates(problem, region)
     tol = 1e-12
     feasible = [p for p in points if all(map(math.isfinite, p)) and region.contains(p, tol)]
+    if problem.measurement == RANGE:    # an end's ray that rounding made miss: its nearest point
+        feasible += [q for p in points if all(map(math.isfinite, p))
+                     and not region.contains(p, tol) and (q := region.nearest(p)) is not None]
     if not feasible:                # rounding put every candidate outside: the nearest point
         nearest = region.nearest(problem.slot)
         feasible = [nearest if nearest is not None else problem.slot]
