@@ -90,7 +90,7 @@ class Region:
             out.append((0.0, 0.0, self.safety, False))
         return out
 
-    def contains(self, p: Sequence[float], rtol: float = FEASIBLE_RTOL) -> bool:
+    def contains(self, p: Sequence[float] | np.ndarray, rtol: float = FEASIBLE_RTOL) -> bool:
         """True when p (2,) (m) lies in the region, within rtol of its scale."""
         return _inside(self.circles(), float(p[0]), float(p[1]), rtol * self.scale)
 
@@ -105,7 +105,7 @@ class Region:
                         out.append(point)
         return out
 
-    def nearest(self, p: Sequence[float]) -> tuple[float, float] | None:
+    def nearest(self, p: Sequence[float] | np.ndarray) -> tuple[float, float] | None:
         """The point of the region nearest p (2,) (m), or None when the region is empty.
 
         The nearest point is p itself, the radial projection of p onto one bounding circle (the

@@ -241,5 +241,3 @@ def test_study_reports_speed_and_distance() -> None:
     for row in rows.values():
         assert 0.5 < row['min_leader_distance'] < 2.3
         assert row['peak_speed'] >= row['mean_speed']
-
-

@@ -33,10 +33,10 @@ gain's rounding bound); the multipliers are KKT's (non-negative least squares of
 pins them down), then, one constraint at a time, 0 and the critical points of det(S + mu G_i)
 (complete for one constraint). The test allows for the rounding of S's entries; when the
 margin is positive but below that bound, it is repeated in exact rational arithmetic on the
-exact data (the circles' forms as the floats they are). With one active constraint the S-lemma makes this complete; with
-two (a corner, or one arc while another circle also bounds the set) it is sufficient only:
-when it fails, the answer is the best of the enumerated KKT points, named
-'all-critical-points', and the solution says so (``fallback`` 'enumeration').
+exact data (the circles' forms as the floats they are). With one active constraint the
+S-lemma makes this complete; with two (a corner, or one arc while another circle also bounds
+the set) it is sufficient only: when it fails, the answer is the best of the enumerated KKT
+points, named 'all-critical-points', and the solution says so (``fallback`` 'enumeration').
 """
 from __future__ import annotations
 
@@ -46,7 +46,6 @@ from fractions import Fraction
 from typing import Any
 
 import numpy as np
-from scipy.optimize import nnls
 
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.linalg import EPS
@@ -140,6 +139,7 @@ def s_lemma(A: np.ndarray, B: np.ndarray, forms: Sequence[np.ndarray], h: np.nda
         (INTERIOR or BOUNDARY, details) when proved, else (NONE, details); details hold
         'certificate_gap' and 'certificate_multiplier' (the mu, a list).
     """
+    from scipy.optimize import nnls     # here: the nodes start without scipy.optimize
     d = 1.0 / np.sqrt(np.diag(B))
     scaled_a, scaled_b = A * np.outer(d, d), B * np.outer(d, d)
     scaled_g = [G * np.outer(d, d) for G in forms]
