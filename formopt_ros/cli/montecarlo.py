@@ -196,6 +196,16 @@ def describe_path(path: dict[str, Any]) -> str:
     return text
 
 
+def limits_text(scenario: dict[str, Any]) -> str:
+    """', speed limit 1.5 m/s, safety distance 0.3 m' for the limits set, else ''."""
+    text = ''
+    if scenario.get('max_speed') is not None:
+        text += f", speed limit {scenario['max_speed']:g} m/s"
+    if scenario.get('safety_distance'):
+        text += f", safety distance {scenario['safety_distance']:g} m"
+    return text
+
+
 def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -> str:
     """A short Markdown report with the summary table.
 
@@ -211,7 +221,8 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
              f"{summary['trials']} trials x {summary['steps']} steps, seed {summary['seed']}, "
              f"GBS cell {summary['gbs_cell']} r. Slot {scenario['p_o']} m, r = "
              f"{scenario['r']:.4g} m, sigma = {scenario['sigma']:.4g}, leader "
-             f"{describe_path(scenario['leader'])}, {scenario['kinematics']} kinematics. Steady "
+             f"{describe_path(scenario['leader'])}, {scenario['kinematics']} kinematics"
+             f"{limits_text(scenario)}. Steady "
              f"value: mean over the last {summary['steady_window']} steps; mean: over all "
              f'steps; vs RAM: relative difference. NEES band (95 %, 3 dof, trial mean): '
              f'[{lo:.3f}, {hi:.3f}].',
@@ -240,6 +251,15 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
                      f"{'FLAGGED' if name in flagged else 'yes'} | "
                      f"{1e3 * row['decision_time_s']:.3f} / "
                      f"{1e3 * row['decision_time_median_s']:.3f} | {row['fallback_steps']} |")
+    moving = {name: row for name, row in summary['strategies'].items() if 'mean_speed' in row}
+    if moving:
+        lines += ['', 'True follower motion (world frame; speed = distance between consecutive '
+                  'measurements / 2 dt; distance to the leader at the measurements):', '',
+                  '| strategy | mean speed [m/s] | steady mean speed [m/s] | peak speed [m/s] | '
+                  'min distance to leader [m] |', '|---|---|---|---|---|']
+        lines += [f"| {name.upper()} | {row['mean_speed']:.3f} | {row['steady_mean_speed']:.3f} "
+                  f"| {row['peak_speed']:.3f} | {row['min_leader_distance']:.3f} |"
+                  for name, row in moving.items()]
     rows = summary['strategies'].values()
     updates = summary['trials'] * summary['steps'] * len(summary['strategies'])
     gated = sum(r['gated_updates'] for r in rows)
@@ -268,6 +288,13 @@ def add_scenario_options(parser: ArgumentParser) -> None:
                         help="motion model of the truth and the EKF: euler (the paper's eq. 9, "
                              'with which its Sec. V simulates; default) or exact (arcs of '
                              'constant velocities, as the ROS nodes run)')
+    parser.add_argument('--max-speed', type=number(1e-3, 1e3), default=None,
+                        help="bound on the follower's mean world-frame speed over a measurement "
+                             'step, m/s: every strategy plans inside the disc it can reach '
+                             '(default: none, the paper)')
+    parser.add_argument('--safety-distance', type=number(0.0, 1e4), default=None,
+                        help='distance every planned point keeps from the leader, m (default: '
+                             'none, the paper)')
     paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
     paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
                        default='straight', help='straight, arc (--leader-yaw-rate) or s-curve '
@@ -306,6 +333,10 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         overrides['leader'] = path
     if args.kinematics != paper.kinematics:
         overrides['kinematics'] = args.kinematics
+    if getattr(args, 'max_speed', None) is not None:
+        overrides['max_speed'] = args.max_speed
+    if getattr(args, 'safety_distance', None):
+        overrides['safety_distance'] = args.safety_distance
     return overrides
 
 

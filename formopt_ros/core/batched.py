@@ -14,7 +14,9 @@ strategies in one stack (every (strategy, trial) a lane, so numpy's per-call cos
 * the strategy is asked once per step for all trials through ``Strategy.plan_batch`` when its
   class provides one (MTF, CRM, MME, GBS, RAM, RQ), else trial by trial through
   ``Strategy.plan``, with one strategy object, estimator view (posterior, history, exact
-  move-dependent prior) and random stream per trial, which is how a stateful strategy runs.
+  move-dependent prior) and random stream per trial, which is how a stateful strategy runs;
+  under a speed limit or a safety distance every strategy runs trial by trial, each planning
+  inside its own reachable set (:mod:`~formopt_ros.core.reach`).
 
 A test checks agreement with run_trial to 1e-9 for every strategy, both sensors and a turning
 leader; in practice the numbers are identical.
@@ -32,6 +34,7 @@ from formopt_ros.core.cost import ProblemBatch
 from formopt_ros.core.estimator import HISTORY_LENGTH, driven_prior, innovation_gate
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
+from formopt_ros.core.reach import reach_region
 from formopt_ros.core.protocol import SUBSTEPS, command_velocities, held_leader_motion, \
     step_substeps
 from formopt_ros.core.scenario import Scenario
@@ -89,8 +92,10 @@ class _PerTrialPlanner:
                 return driven_prior(s, x_t, P_t, target, leader)
 
             view = EstimatorView(x_t, P_t, self.histories[t], prior_for)
+            region = reach_region(s.p_o, s.r, x_t, leader, s.dt, s.kinematics, s.max_speed,
+                                  s.safety_distance)
             context = PlanContext(step, leader, self.rngs[t], view, s.dt, s.sigma_v,
-                                  s.sigma_omega, s.kinematics)
+                                  s.sigma_omega, s.kinematics, region)
             solution = timed_plan(strategy, problems.problem(t), context)
             p[t], times[t], fallback[t] = solution.p, solution.solve_time_s, \
                 solution.fallback is not None
@@ -141,7 +146,8 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
     for name in strategies:
         rngs.append([trial_streams(seed, trial)[1] for trial in trials])
         first = make_strategy(name, **options.get(name, {}))
-        planners.append(first if first.vectorised() else _PerTrialPlanner(
+        limited = s.max_speed is not None or s.safety_distance > 0.0
+        planners.append(first if first.vectorised() and not limited else _PerTrialPlanner(
             [first] + [make_strategy(name, **options.get(name, {})) for _ in range(T - 1)],
             s, rngs[-1]))
     waypoints = np.empty((S * T, steps, 2))

@@ -30,6 +30,7 @@ from formopt_ros.core.model import (
     ekf_update, normalized_estimation_error, propagate, transition_matrices)
 from formopt_ros.core.protocol import (
     MotionCommand, Timebase, held_leader_motion, motion_commands, predict_move)
+from formopt_ros.core.reach import reach_region
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.solver import timed_plan
 from formopt_ros.core.stepper import ReadyStep, StepAssembler
@@ -280,8 +281,10 @@ class EstimatorPlanner:
         problem = Problem(prior, self._slot, s.r, self.planning_sigma, s.measurement, False)
         view = EstimatorView(self.x, self.P, self.history,
                              lambda target: self.prior_for(target, leader))
+        region = reach_region(s.p_o, s.r, self.x, leader, s.dt, s.kinematics, s.max_speed,
+                              s.safety_distance)
         context = PlanContext(step, leader, self.rng, view, s.dt, s.sigma_v, s.sigma_omega,
-                              s.kinematics)
+                              s.kinematics, region)
         solution = timed_plan(self.strategy, problem, context)
         self._target = solution.p
         command = motion_commands(self.x, solution.p, s.dt, leader[0][0], leader[0][1],

@@ -45,6 +45,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     'duration': (1e-3, 1e6, 's'),
     'seed': (0, 2**31 - 1, ''),
     'trial': (0, 2**31 - 1, ''),
+    'max_speed': (1e-3, 1e3, 'm/s'),
+    'safety_distance': (0.0, 1e4, 'm'),
 }
 
 
@@ -197,6 +199,10 @@ class Scenario:
             as the estimator receives it, m/s and rad/s (0: known exactly, as in the paper).
         kinematics: 'exact' (arcs of constant velocities) or 'euler' (the paper's eq. 9, as
             its Sec. V simulates), for the truth and the EKF alike.
+        max_speed: bound on the follower's mean world-frame speed over a measurement step,
+            m/s (None: none, the paper's protocol); every strategy plans inside the disc it
+            can reach (:mod:`formopt_ros.core.reach`).
+        safety_distance: distance to keep from the leader, m (0: none, the paper's).
     """
 
     measurement: str
@@ -211,6 +217,8 @@ class Scenario:
     sigma_v_leader: float = 0.0
     sigma_omega_leader: float = 0.0
     kinematics: str = EXACT
+    max_speed: float | None = None
+    safety_distance: float = 0.0
 
     def __post_init__(self) -> None:
         kind = as_choice('measurement', self.measurement, MEASUREMENT_KINDS)
@@ -226,8 +234,16 @@ class Scenario:
             LeaderPath.from_dict(self.leader)}
         for name in ('dt', 'sigma_v', 'sigma_omega', 'sigma_v_leader', 'sigma_omega_leader'):
             values[name] = ranged(name, getattr(self, name))
+        max_speed = self.max_speed
+        if max_speed is not None and not (isinstance(max_speed, (int, float))
+                                          and not isinstance(max_speed, bool)
+                                          and max_speed == math.inf):
+            max_speed = ranged('max_speed', max_speed)
+        values['max_speed'] = None if max_speed is None or max_speed == math.inf else max_speed
+        values['safety_distance'] = ranged('safety_distance', self.safety_distance)
         for name, value in values.items():
             object.__setattr__(self, name, value)
+        check_limits(self)
 
     @classmethod
     def paper(cls, measurement: str, **overrides: Any) -> 'Scenario':
@@ -285,6 +301,45 @@ class Scenario:
             if not same:
                 out.append((key, a, b))
         return out
+
+
+def slowest_speed_in_disc(p_o: tuple[float, float], r: float, speed: float,
+                          yaw_rate: float) -> float:
+    """The least world-frame speed (m/s) of a point held fixed in the leader frame inside the
+    disc |p - p_o| <= r while the leader drives (speed m/s, yaw_rate rad/s): a point p moves
+    at (v - omega y, omega x), of length |omega| times its distance from the instantaneous
+    centre of rotation (0, v / omega); |v| when the leader drives straight."""
+    if yaw_rate == 0.0:
+        return abs(speed)
+    distance = math.hypot(p_o[0], p_o[1] - speed / yaw_rate)
+    return abs(yaw_rate) * max(0.0, distance - r)
+
+
+def check_limits(scenario: 'Scenario') -> None:
+    """Refuse limits no follower can meet, naming the field: a safety distance that leaves no
+    point of the slot's disc, a speed limit below the least speed at which any point of the
+    disc keeps pace with the leader (for the leader's extreme motions)."""
+    s = scenario
+    d_o = math.hypot(*s.p_o)
+    if s.safety_distance >= d_o + s.r:
+        raise InvalidInput('safety_distance', f'{s.safety_distance:g} m leaves no point of the '
+                           f"slot's disc (it reaches {d_o + s.r:.6g} m from the leader): use "
+                           f'less than {d_o + s.r:.6g} m')
+    if s.max_speed is None:
+        return
+    path = s.leader
+    if path.kind == 'segments':
+        motions = [(g.speed, g.yaw_rate) for g in path.segments]
+    elif path.kind == 's-curve':
+        motions = [(path.speed, path.amplitude), (path.speed, -path.amplitude)]
+    else:
+        motions = [(path.speed, path.yaw_rate)]
+    need = max(slowest_speed_in_disc(s.p_o, s.r, v, w) for v, w in motions)
+    if s.max_speed < need:
+        raise InvalidInput('max_speed', f'{s.max_speed:g} m/s is below {need:.6g} m/s, the '
+                           "least world-frame speed at which a point of the slot's disc keeps "
+                           "pace with the leader's motion (the follower would fall behind its "
+                           f'disc for good): use at least {need:.6g} m/s')
 
 
 def _flatten(data: Any, prefix: str = '') -> dict[str, Any]:

@@ -9,6 +9,7 @@ import numpy as np
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.strategies import (
     BUILTIN, STRATEGIES, PlanContext, Solution, Strategy, make_strategy)
+from formopt_ros.core.strategies.region import plan_within
 
 #: Names of the built-in strategies; ``solve(method=...)`` also accepts the plugin strategies of
 #: ``STRATEGIES``.
@@ -24,13 +25,16 @@ _SHARED: dict[str, Strategy] = {
 
 
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
-    """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``.
+    """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``;
+    with a reachable set in ``context.region``, the answer restricted to it
+    (:func:`~.strategies.region.plan_within`).
 
     A record whose time is unset is new (:func:`~.strategies.base.make_solution` made it for
     this call) and is stamped in place; a record already timed (one a strategy returned
     before) is copied first."""
     start = time.perf_counter()
-    solution = strategy.plan(problem, context)
+    solution = strategy.plan(problem, context) if context.region is None else plan_within(
+        strategy, problem, context)
     elapsed = time.perf_counter() - start
     if solution.solve_time_s:
         return solution.with_solve_time(elapsed)

@@ -23,7 +23,8 @@ from scipy.special import gammaincinv
 
 from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.scenario import Scenario
-from formopt_ros.core.simulation import TrialResult, run_trial
+from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.simulation import TrialResult, leader_poses, run_trial
 from formopt_ros.core.strategies import BUILTIN, STRATEGIES, make_strategy
 from formopt_ros.core.strategies.periodic import describe_design
 
@@ -134,6 +135,10 @@ class StrategyRecord:
     max_nis: np.ndarray            # (trials,) largest normalised innovation squared
     gated: np.ndarray              # (trials,) updates refused by the innovation gate
     example: TrialResult | None = None
+    #: (trials, steps - 1) true world-frame speed between consecutive measurements, m/s
+    speed: np.ndarray | None = None
+    #: (trials,) least true distance to the leader at the measurements, m
+    min_distance: np.ndarray | None = None
 
 
 @dataclass
@@ -303,12 +308,33 @@ def _collect(results: list[StudyResult],
         record.gated[trial] = out.gated.sum()
         if out.fallback is not None:
             record.fallback[trial] = out.fallback
+        speed, distance = follower_motion(result.scenario, out.truth)
+        if record.speed is None:
+            record.speed = np.full((config.trials, len(speed)), np.nan)
+            record.min_distance = np.full(config.trials, np.nan)
+        assert record.min_distance is not None
+        record.speed[trial], record.min_distance[trial] = speed, distance.min()
         if trial == 0:
             record.example = out
     if progress:
         progress(len(runs))
     pending[id(result)] -= 1
     return result if pending[id(result)] == 0 else None
+
+
+def follower_motion(scenario: Scenario, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(speed (steps - 1,), m/s; distance to the leader (steps,), m) of a true follower track
+    ``truth`` (steps, 3) (poses in the leader frame at each measurement): the world positions
+    are the leader's pose (:func:`~.simulation.leader_poses`, dead reckoning of its path)
+    composed with the relative position, and the speed is the distance between consecutive
+    ones over the measurement step's 2 dt (the world-frame mean speed over the step)."""
+    leader = leader_poses(scenario, len(truth))
+    c, s = np.cos(leader[:, 2]), np.sin(leader[:, 2])
+    world = leader[:, :2] + np.stack([c * truth[:, 0] - s * truth[:, 1],
+                                      s * truth[:, 0] + c * truth[:, 1]], axis=1)
+    step = SUBSTEPS * scenario.dt
+    return (np.hypot(*np.diff(world, axis=0).T) / step,
+            np.hypot(truth[:, 0], truth[:, 1]))
 
 
 def nees_band(trials: int, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:
@@ -345,6 +371,7 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'max_innovation_nis': float(record.max_nis.max()),
             'gated_updates': int(record.gated.sum()),
             'fallback_steps': int(record.fallback.sum()),
+            **_motion_summary(record, window),
         }
     flagged = {name: reason for name, row in strategies.items()
                if (reason := inconsistency(row, (lo, hi)))}
@@ -355,6 +382,17 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies,
             'notes': dict(result.notes), 'ok': not flagged,
             'consistency': {'rule': FLAG_RULE, 'flagged': flagged}}
+
+
+def _motion_summary(record: StrategyRecord, window: int) -> dict[str, float]:
+    """Mean, steady mean and peak true follower speed (m/s) and the least distance to the
+    leader (m) of a record (:func:`follower_motion`); empty without tracks."""
+    if record.speed is None or record.min_distance is None or not record.speed.size:
+        return {}
+    return {'mean_speed': float(np.nanmean(record.speed)),
+            'steady_mean_speed': float(np.nanmean(record.speed[:, -window:])),
+            'peak_speed': float(np.nanmax(record.speed)),
+            'min_leader_distance': float(np.nanmin(record.min_distance))}
 
 
 def inconsistency(row: dict[str, Any], band: tuple[float, float]) -> str:

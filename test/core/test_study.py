@@ -194,7 +194,9 @@ def test_command_writes_outputs_and_figures(tmp_path, capsys: pytest.CaptureFixt
                                                  'mean_trace', 'nees_mean', 'nees_in_band',
                                                  'decision_time_s', 'decision_time_median_s',
                                                  'max_innovation_nis', 'gated_updates',
-                                                 'fallback_steps'}
+                                                 'fallback_steps', 'mean_speed',
+                                                 'steady_mean_speed', 'peak_speed',
+                                                 'min_leader_distance'}
     assert summary['strategies']['ram']['gated_updates'] == 0
     assert summary['scenario']['r'] == pytest.approx(0.1 * 5 ** 0.5, rel=1e-12)
     assert len((out / 'steps.csv').read_text().splitlines()) == 31

@@ -19,6 +19,7 @@ import numpy as np
 from formopt_ros.core.checks import as_bool, as_integer, as_real
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.model import EXACT
+from formopt_ros.core.reach import Region
 from formopt_ros.core.strategies.certificate import exact_cost
 
 if TYPE_CHECKING:
@@ -140,6 +141,8 @@ class PlanContext:
         dt: sub-step length, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
         kinematics: the motion model, 'exact' or 'euler' (core/model.py).
+        region: the reachable set of the step (speed limit, safety distance), or None for the
+            whole disc (the paper's protocol); see :mod:`formopt_ros.core.reach`.
     """
 
     step: int = 1
@@ -150,6 +153,7 @@ class PlanContext:
     sigma_v: float = 0.2
     sigma_omega: float = 0.1
     kinematics: str = EXACT
+    region: Region | None = None
 
     @property
     def leader_straight(self) -> bool:
