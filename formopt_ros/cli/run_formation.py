@@ -79,7 +79,7 @@ def run(args: Any) -> int:
         fail(PROG, f"--{'mode lockstep' if args.mode == 'lockstep' else 'respawn'}: followers "
                    'with real interfaces run in real time and are not respawned')
     try:
-        check_id('--run-id', args.run_id) if args.run_id else None
+        check_id('--run-id', args.run_id, frame=False) if args.run_id else None
     except ValueError as error:
         fail(PROG, str(error))
     run_id = args.run_id or f'run_{uuid.uuid4().hex[:12]}'
