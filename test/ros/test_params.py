@@ -45,7 +45,7 @@ MISUSE = [
      "parameter 'chunk_size' must be an integer in [1024, 67108864]"),
     ('estimator_planner', ['-p', 'leader_id:=a b'], "parameter 'leader_id' must be a name of"),
     ('follower_sim', ['-p', 'follower_id:=x/y'], "parameter 'follower_id' must be a name of"),
-    ('follower_sim', ['-p', 'follower_id:=odom'], "parameter 'follower_id' must not be a reserved"),
+    ('follower_sim', ['-p', 'follower_id:=odom'], "'follower_id' must not be a reserved"),
     ('estimator_planner', ['-p', 'leader_id:=a__b'], "parameter 'leader_id' must not contain"),
     ('leader_sim', ['-p', 'segment_durations:=[]'], 'got a value without a type'),
 ]
