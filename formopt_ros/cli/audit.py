@@ -36,7 +36,7 @@ def expected_counts(prefix: str, leader: dict[str, Any] | None,
             published = estimator['message_counts']['published']
             for key in ('estimate', 'waypoint', 'status', 'markers'):
                 out[resolve(ns, BY_KEY[key])] = published[key]
-            out[resolve(ns, BY_KEY['description'])] = 1
+            out[resolve(ns, BY_KEY['description'])] = published.get('description', 1)
             out[tf] += published['tf']
             out[diagnostics] += published['diagnostics']
     if out.get(clock) == 0:

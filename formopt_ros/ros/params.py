@@ -21,6 +21,11 @@ from formopt_ros.core.checks import InvalidInput, as_bool, as_choice, as_integer
 
 #: Parameters rclpy declares itself; never reported as unknown.
 ROS_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
+#: Parameters rclpy declares mutable that a running node cannot honour when changed, and why
+#: (refused in a set-parameters callback: rclpy owns their descriptors).
+FIXED_WHILE_RUNNING = {
+    'use_sim_time': 'the clock of a running node cannot change source (its inputs and timers '
+                    'would jump between wall and simulated time); restart the node with it'}
 
 
 class ParameterError(ValueError):
@@ -257,7 +262,25 @@ def declare(node: Node, specs: list[Param],
         value = node.get_parameter(spec.name).value
         values[spec.name] = spec.check(list(value) if isinstance(spec.default, list)
                                        and value is not None else value)
+    node.add_on_set_parameters_callback(lambda parameters: _fixed_result(node, parameters))
     return values
+
+
+def refuse_fixed(node: Node, parameters: list[Parameter]) -> str | None:
+    """The reason to refuse a change of a parameter fixed while the node runs
+    (:data:`FIXED_WHILE_RUNNING`), None when there is none (setting its current value is
+    accepted)."""
+    for parameter in parameters:
+        reason = FIXED_WHILE_RUNNING.get(parameter.name)
+        if reason and node.has_parameter(parameter.name) and \
+                parameter.value != node.get_parameter(parameter.name).value:
+            return f"parameter '{parameter.name}' cannot be changed while the node runs: {reason}"
+    return None
+
+
+def _fixed_result(node: Node, parameters: list[Parameter]) -> SetParametersResult:
+    reason = refuse_fixed(node, parameters)
+    return SetParametersResult(successful=reason is None, reason=reason or '')
 
 
 def validate_on_set(node: Node, specs: list[Param],
@@ -265,11 +288,15 @@ def validate_on_set(node: Node, specs: list[Param],
     """Validate run-time ``ros2 param set`` of mutable parameters, then hand them to ``apply``.
 
     ``apply`` gets {name: value} of the accepted change and returns a reason to refuse it (or
-    None); read-only parameters are refused by rclpy itself.
+    None); read-only parameters are refused by rclpy itself, use_sim_time and the other
+    :data:`FIXED_WHILE_RUNNING` here (before ``apply`` sees any part of the change).
     """
     by_name = {spec.name: spec for spec in specs}
 
     def on_set(parameters: list[Parameter]) -> SetParametersResult:
+        fixed = refuse_fixed(node, parameters)
+        if fixed:
+            return SetParametersResult(successful=False, reason=fixed)
         change = {}
         for parameter in parameters:
             spec = by_name.get(parameter.name)

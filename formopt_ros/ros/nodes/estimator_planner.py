@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
+from concurrent.futures import Future
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -32,6 +35,7 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
+from formopt_ros.wire.description import StrategyChange
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
@@ -98,11 +102,15 @@ class EstimatorPlannerNode(Node):
         self.last_diagnostics = 0.0
         self.last_markers = -math.inf
         self.watch_reported = False
+        #: a strategy being designed off the executor: (future of the design's seconds, the
+        #: strategy, the step at the request); the current strategy plans meanwhile
+        self.pending: tuple[Future, Any, int] | None = None
+        self.strategy_changes: list[dict[str, Any]] = []
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
         self.published = {key: 0 for key in ('estimate', 'waypoint', 'status', 'markers', 'tf',
-                                             'diagnostics')}
+                                             'diagnostics', 'description')}
         self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
         if state is not None:
             self._restore(state)
@@ -131,6 +139,7 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.guard = follower_guard(self, self.description, self.leader_id, 'description',
                                     'sim_description', ('follower_odom', 'measurement', 'truth'))
+        self.published['description'] = 1                # announced by the guard
         validate_on_set(self, PARAMS, self.on_set)
         steady_timer(self, 0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, "
@@ -139,8 +148,9 @@ class EstimatorPlannerNode(Node):
 
     # --- run-time parameter changes ----------------------------------------------------------
     def on_set(self, change: dict[str, Any]) -> str | None:
-        """Accept a new strategy or strategy option (validated, applied from the next step) and
-        the timing parameters; refuse anything that does not build a strategy."""
+        """Accept a new strategy or strategy option (validated here; designed off the executor,
+        see :meth:`_design`) and the timing parameters; refuse anything that does not build a
+        strategy."""
         values = {**self.params, **change}
         if any(name == 'strategy' or name.startswith(f"{values['strategy']}_")
                for name in change):
@@ -149,12 +159,67 @@ class EstimatorPlannerNode(Node):
                                          **strategy_options(values['strategy'], values))
             except ValueError as error:
                 return str(error)
-            strategy.prepare(self.scenario)
-            self.session.estimator.strategy = strategy
-            self.get_logger().info(f'strategy now {strategy!r} (from step '
-                                   f'{self.session.step + 2})')
+            self._design(strategy)
         self.params.update(change)
         return None
+
+    def _design(self, strategy: Any) -> None:
+        """Prepare ``strategy`` (e.g. PERIODIC's cycle design, 10-20 s) on a daemon thread: the
+        executor keeps serving inputs and the current strategy keeps planning; the new one
+        takes over in :meth:`_take_ready` (a later request supersedes this one)."""
+        future: Future = Future()
+        scenario = self.scenario
+
+        def work() -> None:
+            started = time.monotonic()
+            try:
+                strategy.prepare(scenario)
+            except Exception as error:          # reported by _take_ready, the node goes on
+                future.set_exception(error)
+                return
+            future.set_result(time.monotonic() - started)
+
+        if self.pending is not None:
+            self.get_logger().warning(f'strategy {self.pending[1]!r} superseded before it was '
+                                      'ready')
+        self.pending = (future, strategy, self.session.step)
+        threading.Thread(target=work, name='strategy-design', daemon=True).start()
+        self.get_logger().info(f'preparing strategy {strategy!r} off the executor; '
+                               f'{self.session.estimator.strategy.name} plans until it is ready')
+
+    def _take_ready(self) -> None:
+        """Switch to the pending strategy once its design is done (after the run started and
+        before it ends); the change (step, old, new) goes to the log, the summary and, with a
+        new latched description, the bag."""
+        if self.pending is None or not self.pending[0].done() or not self.started or \
+                self.session.finished:
+            return
+        future, strategy, requested = self.pending
+        self.pending = None
+        old = self.session.estimator.strategy.name
+        error = future.exception()
+        if error is not None:
+            self.get_logger().error(f'strategy {strategy!r} not taken, its preparation failed: '
+                                    f'{type(error).__name__}: {error}; {old} goes on')
+            return
+        step = self.session.step
+        self.session.estimator.strategy = strategy
+        change = StrategyChange(step, strategy.name, dict(strategy.settings))
+        self.strategy_changes.append({'step': step, 'from': old, 'to': strategy.name,
+                                      'options': dict(strategy.settings),
+                                      'requested_at_step': requested,
+                                      'prepared_in_s': round(future.result(), 3)})
+        self._describe(replace(self.description, strategy_changes=(
+            *self.description.strategy_changes, change)))
+        self.get_logger().info(f'strategy {old} -> {strategy!r} after step {step} (requested '
+                               f'at step {requested}, prepared in {future.result():.2f} s); it '
+                               f'plans from step {step + 2}')
+
+    def _describe(self, description: Description) -> None:
+        """Publish the run description again (latched): the same run, with its changes."""
+        self.description = description
+        self.guard.reannounce(description.to_json())
+        self.published['description'] += 1
 
     # --- inputs ----------------------------------------------------------------------------
     def _now_ns(self) -> int | None:
@@ -193,6 +258,7 @@ class EstimatorPlannerNode(Node):
     def _advance(self) -> None:
         if self.finished:
             return
+        self._take_ready()
         outcomes = self.session.advance()
         if outcomes:
             self.last_plan = outcomes[-1].plan
@@ -211,7 +277,8 @@ class EstimatorPlannerNode(Node):
     def _state(self) -> dict[str, Any]:
         return {'session': self.session, 'last_plan': self.last_plan,
                 'solve_times': self.solve_times, 'received': self.received,
-                'published': self.published}
+                'published': self.published, 'strategy_changes': self.strategy_changes,
+                'description': self.description.to_json()}
 
     def _restore(self, state: dict[str, Any]) -> None:
         """Continue a run from a checkpoint: lockstep exactly (the peers repeat what was lost);
@@ -220,6 +287,10 @@ class EstimatorPlannerNode(Node):
         self.last_plan = state['last_plan']
         self.solve_times = state['solve_times']
         self.received, self.published = state['received'], state['published']
+        self.published.setdefault('description', 0)
+        self.strategy_changes = state.get('strategy_changes', [])
+        if 'description' in state:
+            self.description = Description.from_json(state['description'])
         gap = time.time() - (self.checkpoint.saved_at or time.time())
         if not self.lockstep:
             self.session.assembler.open_gap(self.get_clock().now().nanoseconds)
@@ -272,6 +343,7 @@ class EstimatorPlannerNode(Node):
         and /diagnostics every status_period."""
         now = time.monotonic()
         self.guard.check()
+        self._take_ready()
         if not self.finished and not self.started:
             if self.gate.ready() and self.guard.ready():
                 self.started = True
@@ -356,6 +428,9 @@ class EstimatorPlannerNode(Node):
             'resumed': self.resumed,
             'follower_id': self.follower_id,
             'strategy': estimator.strategy.name,
+            'strategies': self.description.strategies(),
+            'strategy_changes': self.strategy_changes,
+            'strategy_pending': None if self.pending is None else self.pending[1].name,
             'measurement': self.scenario.measurement,
             'mode': self.params['mode'],
             'seed': self.run.spec.seed,
