@@ -48,9 +48,9 @@ def audit_recording(out: Path, prefix: str, leader: dict[str, Any] | None,
                     followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]],
                     restarted: bool) -> tuple[dict[str, Any], str]:
     """The recording's entry of summary.json and the failure it shows ('' if none): the
-    recorder's write error (naming the file), messages a node published and the recorder misses, or messages no node of this run published
-    (another run in the domain; not judged after a restart, which publishes again what it sent
-    after its last checkpoint)."""
+    recorder's write error (naming the file), messages a node published and the recorder
+    misses, or messages no node of this run published (another run in the domain; not judged
+    after a restart, which publishes again what it sent after its last checkpoint)."""
     counts_file = out / 'recorder_counts.json'
     written = json.loads(counts_file.read_text()) if counts_file.exists() else {}
     recorded = written.get('counts', {})
