@@ -19,8 +19,9 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from formopt_ros.core.estimator import EstimatorSession, StepOutcome, StepPlan
-from formopt_ros.core.protocol import Timebase
+from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.core.simulation import trial_streams
+from formopt_ros.core.stepper import StepAssembler
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
@@ -36,6 +37,7 @@ from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_sum
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
 from formopt_ros.wire.description import StrategyChange
+from formopt_ros.wire.messages import foreign_run
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
@@ -53,6 +55,11 @@ SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
+#: A rejoining estimator's prior (see :meth:`EstimatorPlannerNode._rejoin`): the estimate
+#: restarts at the slot, heading 0, with covariance REJOIN_INFLATION * P_1|1 + diag(r^2, r^2, 0):
+#: the run's start uncertainty with twice its standard deviations, plus the disc of radius r
+#: around the slot in which every waypoint lies (where the follower may be, unknown).
+REJOIN_INFLATION = 4.0
 
 
 class EstimatorPlannerNode(Node):
@@ -95,6 +102,7 @@ class EstimatorPlannerNode(Node):
         self.exit_code = 0
         self.error = ''
         self.resumed: dict[str, Any] | None = None
+        self.rejoined: dict[str, Any] | None = None
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
@@ -234,18 +242,25 @@ class EstimatorPlannerNode(Node):
     def on_follower_odom(self, msg: Odometry) -> None:
         """One sub-step of the follower's odometry."""
         self.received['follower_odom'] += 1
+        if self._left_behind(self._stamp_step(msg), 'follower odometry'):
+            return
         self._refused('follower_odom', inputs.feed_odometry(
             self.session, 'follower', msg, self.follower_id, self._now_ns()))
 
     def on_leader_odom(self, msg: Odometry) -> None:
         """One sub-step of the leader's odometry."""
         self.received['leader_odom'] += 1
+        if self._left_behind(self._stamp_step(msg), 'leader odometry'):
+            return
         self._refused('leader_odom', inputs.feed_odometry(
             self.session, 'leader', msg, self.leader_id, self._now_ns()))
 
     def on_measurement(self, msg: Measurement) -> None:
         """One range or bearing measurement."""
         self.received['measurement'] += 1
+        if foreign_run(msg, self.params['run_id']) is None and \
+                self._left_behind(int(msg.step), 'measurement'):
+            return
         self._refused('measurement', inputs.feed_measurement(
             self.session, msg, self.follower_id, self._now_ns(), self.params['run_id']))
 
@@ -253,6 +268,49 @@ class EstimatorPlannerNode(Node):
         """Ground truth, for evaluation only (NEES, summary), matched to a step by its stamp."""
         self.received['truth'] += 1
         inputs.feed_truth(self.session, msg)
+
+    # --- rejoin ----------------------------------------------------------------------------
+    def _stamp_step(self, msg: Any) -> int | None:
+        """The step of a lockstep odometry message, from its stamp (None off the grid)."""
+        substep = self.timebase.substep_ending_at(
+            msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        return None if substep is None else substep // SUBSTEPS + 1
+
+    def _left_behind(self, step: int | None, source: str) -> bool:
+        """Lockstep: a started estimator that processed no step and resumed no checkpoint (a
+        restart without one) and hears of step 2 or later was left behind by its peers:
+        rejoin at that step. True for an input of a step up to the rejoin step (the peers'
+        repeat of it: dropped, counted in the summary's ``rejoined``)."""
+        if step is None or not self.lockstep:
+            return False
+        if self.rejoined is None and self.resumed is None and self.started and \
+                self.session.step == 0 and step >= 2:
+            self._rejoin(step, source)
+        if self.rejoined is not None and step <= self.rejoined['at_step']:
+            self.rejoined['dropped_inputs'] += 1
+            return True
+        return False
+
+    def _rejoin(self, step: int, source: str) -> None:
+        """Continue the run after the peers' step ``step``: the next step is step + 1, the
+        estimate re-initialised at the slot with the inflated prior of :data:`REJOIN_INFLATION`
+        (the estimate of the steps missed is lost); says so in the log, diagnostics, summary."""
+        scenario, session = self.scenario, self.session
+        leader = scenario.leader.velocity(step_substeps(step)[-1], scenario.dt)
+        session.assembler = StepAssembler(True, self.timebase, leader, next_step=step + 1)
+        x, P = scenario.initial_estimate()
+        P = REJOIN_INFLATION * P + np.diag([scenario.r ** 2, scenario.r ** 2, 0.0])
+        estimator = session.estimator
+        estimator.state, estimator.covariance = x, P
+        self.rejoined = {'at_step': step, 'heard_from': source,
+                         'prior_covariance_diagonal': np.diag(P).tolist(), 'dropped_inputs': 0}
+        self.get_logger().warning(
+            f'rejoining the run at step {step} (heard from the {source}; no checkpoint): the '
+            f'estimate restarts at the slot with covariance diag {np.diag(P).round(6).tolist()}'
+            f' (the prior x {REJOIN_INFLATION:g} + r^2); steps 1-{step} are not estimated here')
+        self.last_plan = session.plan_next()
+        self._send(self.last_plan)
+        self.last_progress = time.monotonic()
 
     # --- processing ------------------------------------------------------------------------
     def _advance(self) -> None:
@@ -376,6 +434,8 @@ class EstimatorPlannerNode(Node):
         watch = self.session.watch
         stalled = time.monotonic() - self.last_progress
         level, message = 'OK', f'step {self.session.step}'
+        if self.rejoined is not None:
+            message += f" (rejoined at step {self.rejoined['at_step']}, no checkpoint)"
         if not (np.all(np.isfinite(estimator.x)) and np.all(np.isfinite(estimator.P))):
             level, message = 'ERROR', 'the estimate is not finite'
         elif self.error:
@@ -408,7 +468,8 @@ class EstimatorPlannerNode(Node):
                 **counters.as_dict(), 'seconds_since_progress': round(stalled, 3),
                 'consistency': watch.verdict().level,
                 'inconsistent_steps': watch.counters['inconsistent_steps'],
-                'gating_steps': watch.counters['gating_steps']})
+                'gating_steps': watch.counters['gating_steps'],
+                'rejoined_at_step': self.rejoined['at_step'] if self.rejoined else 0})
 
     # --- end of run --------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
@@ -426,6 +487,7 @@ class EstimatorPlannerNode(Node):
             'run_id': self.params['run_id'],
             'steps': self.session.step,
             'resumed': self.resumed,
+            'rejoined': self.rejoined,
             'follower_id': self.follower_id,
             'strategy': estimator.strategy.name,
             'strategies': self.description.strategies(),
