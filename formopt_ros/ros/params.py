@@ -187,7 +187,8 @@ def parse_value(name: str, text: str) -> Any:
     """The value of ``-p name:=text`` as ``--ros-args`` parses it: YAML whose plain scalars are
     typed by rcl's rules (:func:`rcl_scalar`: 1e-2 is a number, y a boolean), quoted or !!str
     scalars strings, a flow sequence of one type a list, [] None (no type); ParameterError
-    otherwise."""
+    otherwise. Integers beside floats ([0, 0.1]) pass, though rcl refuses them: the specs make
+    them floats and run_formation passes them on as such ([0.0, 0.1])."""
     import yaml
     try:
         events = list(yaml.parse(text))
@@ -210,9 +211,10 @@ def parse_value(name: str, text: str) -> Any:
             and isinstance(body[-1], yaml.SequenceEndEvent)
             and all(isinstance(e, yaml.ScalarEvent) for e in body[1:-1])):
         items = [scalar(e) for e in body[1:-1]]
-        if len({type(item) for item in items}) > 1:
+        kinds = {float if type(item) is int else type(item) for item in items}
+        if len(kinds) > 1:
             raise ParameterError(f"parameter '{name}': {text!r} mixes types (rcl takes one "
-                                 'type per list: write 1.0, not 1, beside 2.5)')
+                                 'type per list)')
         return items or None
     raise ParameterError(f"parameter '{name}': {text!r} is not a value or a list of values "
                          '(rcl takes no mappings or nested lists)')
