@@ -186,7 +186,7 @@ def test_strategy_changes_round_trip_and_old_descriptions_read() -> None:
     import json
 
     from formopt_ros.core.scenario import Scenario
-    from formopt_ros.wire.description import RunDescription, StrategyChange
+    from formopt_ros.wire.description import StrategyChange
     plain = RunDescription('f1', Scenario.paper('range'), 'ram', {'cell': 0.01}, seed=3)
     assert 'strategy_changes' not in json.loads(plain.to_json())
     changed = RunDescription('f1', Scenario.paper('range'), 'mtf', strategy_changes=(
