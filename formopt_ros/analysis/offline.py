@@ -4,7 +4,8 @@ The bag's odometry, measurements and truth are fed, in recorded (log-time) order
 same functions the estimator node calls (:mod:`formopt_ros.wire.inputs`) into the same
 :class:`~formopt_ros.core.estimator.EstimatorSession`, so a lockstep bag is reproduced exactly
 (the inputs are matched by their stamps) and a realtime bag as the recorder saw the arrivals
-(the estimator may have seen another order).
+(the estimator may have seen another order). A strategy changed mid-run (the description's
+``strategy_changes``) takes over at the step it took over in the node.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from formopt_ros.core.model import state_difference
 from formopt_ros.core.simulation import trial_streams
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire import inputs
+from formopt_ros.wire.description import RunDescription, StrategyChange
 from formopt_ros.wire.messages import estimate_values, header_ns
 
 
@@ -31,7 +33,7 @@ class OfflineResult:
     follower_id: str
     steps: int
     recorded_steps: int
-    strategy: str
+    strategy: str                   # every strategy used, '+'-joined in order
     measurement: str
     mode: str
     legacy: bool
@@ -114,6 +116,7 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
                                       description.mode == 'lockstep', description.steps)
     plans = {1: session.plan_next().solution.p}
     outcomes: list[StepOutcome] = []
+    changes = list(description.strategy_changes)
     lockstep = description.mode == 'lockstep'
     for log_time, kind, msg in _inputs(recording, follower):
         now = None if lockstep else log_time
@@ -126,6 +129,8 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
         else:
             inputs.feed_measurement(session, msg, description.follower_id, now,
                                     description.run_id)
+        while changes and changes[0].step <= session.step:
+            session.estimator.strategy = _prepared(recording, description, changes.pop(0))
         for outcome in session.advance():
             outcomes.append(outcome)
             if outcome.plan is not None:
@@ -144,7 +149,18 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
     waypoint = max((float(np.max(np.abs(plans[s] - chosen[s]))) for s in common),
                    default=None)
     return OfflineResult(description.follower_id, len(outcomes), len(recorded),
-                         description.strategy, description.scenario.measurement,
+                         '+'.join(description.strategies()), description.scenario.measurement,
                          description.mode, follower.legacy, state, covariance, waypoint,
                          stamps if lockstep else 0, [o.x for o in outcomes],
                          [o.P for o in outcomes], session.watch.summary())
+
+
+def _prepared(recording: Recording, description: RunDescription, change: StrategyChange) -> Any:
+    """The strategy of a mid-run change, prepared for the run's scenario."""
+    try:
+        strategy = make_strategy(change.strategy, **change.options)
+    except ValueError as error:
+        raise BagError(f'{recording.bag.path}: strategy change at step {change.step}: '
+                       f'{error}') from None
+    strategy.prepare(description.scenario)
+    return strategy

@@ -168,5 +168,9 @@ def reconstruct_description(recording: Recording,
 
 
 def with_overrides(description: RunDescription, **overrides: Any) -> RunDescription:
-    """The description with the given fields replaced (None values are ignored)."""
-    return replace(description, **{k: v for k, v in overrides.items() if v is not None})
+    """The description with the given fields replaced (None values are ignored); a strategy
+    or options given replace the recorded mid-run strategy changes too (one strategy)."""
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if 'strategy' in given or 'options' in given:
+        given.setdefault('strategy_changes', ())
+    return replace(description, **given)

@@ -14,6 +14,7 @@ from formopt_ros.bag import BagError
 from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.protocol import SUBSTEPS, Timebase
 from formopt_ros.core.study import nees_band, steady_window
+from formopt_ros.wire.description import RunDescription
 from formopt_ros.wire.messages import estimate_values, header_ns, pose_values
 from formopt_ros.wire.jsonfile import write_json
 
@@ -90,8 +91,17 @@ def load_run(recording: Recording, follower: FollowerRecording) -> Run:
                      if np.all(np.isfinite(truth[i])) else math.nan for i in range(n)])
     return Run(steps, SUBSTEPS * steps * scenario.dt, estimate, covariance,
                np.array([row[3] for row in rows]), truth, leader, way, nees,
-               description.strategy, scenario.measurement, scenario.slot, scenario.r,
+               strategies_used(description, statuses), scenario.measurement, scenario.slot,
+               scenario.r,
                scenario.dt, statuses[-1])
+
+
+def strategies_used(description: RunDescription, statuses: list[Any]) -> str:
+    """Every strategy of the run, '+'-joined in order of first use: the description's (with
+    its mid-run changes) and those the statuses name (bags recorded before the changes were
+    described)."""
+    names = description.strategies() + [str(s.strategy) for s in statuses if s.strategy]
+    return '+'.join(dict.fromkeys(names))
 
 
 def make_report(recording: Recording, out: Path, trajectory_steps: int = 40,
@@ -171,6 +181,7 @@ def _follower_summary(recording: Recording, run: Run,
         'missing_steps': len(missing),
         'missing_ranges': step_ranges(missing),
         'strategy': run.strategy,
+        'strategy_changes': [c.to_dict() for c in follower.description.strategy_changes],
         'measurement': run.measurement,
         'slot_m': [float(v) for v in run.p_o],
         'r_m': run.r,

@@ -36,7 +36,7 @@ def expected_counts(prefix: str, leader: dict[str, Any] | None,
             published = estimator['message_counts']['published']
             for key in ('estimate', 'waypoint', 'status', 'markers'):
                 out[resolve(ns, BY_KEY[key])] = published[key]
-            out[resolve(ns, BY_KEY['description'])] = 1
+            out[resolve(ns, BY_KEY['description'])] = published.get('description', 1)
             out[tf] += published['tf']
             out[diagnostics] += published['diagnostics']
     if out.get(clock) == 0:
@@ -47,12 +47,13 @@ def expected_counts(prefix: str, leader: dict[str, Any] | None,
 def audit_recording(out: Path, prefix: str, leader: dict[str, Any] | None,
                     followers: dict[str, tuple[dict[str, Any] | None, dict[str, Any] | None]],
                     restarted: bool) -> tuple[dict[str, Any], str]:
-    """The recording's entry of summary.json and the failure it shows ('' if none): messages
-    a node published and the recorder misses, or messages no node of this run published
-    (another run in the domain; not judged after a restart, which publishes again what it sent
-    after its last checkpoint)."""
+    """The recording's entry of summary.json and the failure it shows ('' if none): the
+    recorder's write error (naming the file), messages a node published and the recorder
+    misses, or messages no node of this run published (another run in the domain; not judged
+    after a restart, which publishes again what it sent after its last checkpoint)."""
     counts_file = out / 'recorder_counts.json'
-    recorded = json.loads(counts_file.read_text())['counts'] if counts_file.exists() else {}
+    written = json.loads(counts_file.read_text()) if counts_file.exists() else {}
+    recorded = written.get('counts', {})
     expected = expected_counts(prefix, leader, followers)
     missing = {topic: n - recorded.get(topic, 0) for topic, n in expected.items()
                if recorded.get(topic, 0) < n}
@@ -60,9 +61,12 @@ def audit_recording(out: Path, prefix: str, leader: dict[str, Any] | None,
              if n > expected.get(topic, 0)}
     complete = bool(recorded) and not missing
     recording = {'path': str(out / 'run.mcap'), 'counts': recorded, 'expected': expected,
-                 'complete': complete, 'missing': missing, 'extra': extra}
+                 'complete': complete, 'missing': missing, 'extra': extra,
+                 'error': written.get('error')}
     failure = ''
-    if not complete:
+    if written.get('error'):              # e.g. a full disk: the recorder names the file
+        failure = f"the recorder failed: {written['error']}"
+    elif not complete:
         failure = f'the recording misses messages: {missing or "no counts"}'
     elif extra and not restarted:
         failure = (f'the recording holds messages that no node of this run published: '

@@ -187,7 +187,7 @@ def prepare_out(out: Path) -> Path:
 def check_id_ok(part: str) -> bool:
     """True for a namespace part that is a valid id."""
     try:
-        check_id('prefix', part)
+        check_id('prefix', part, frame=False)
         return True
     except ValueError:
         return False

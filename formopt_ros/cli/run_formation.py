@@ -79,7 +79,7 @@ def run(args: Any) -> int:
         fail(PROG, f"--{'mode lockstep' if args.mode == 'lockstep' else 'respawn'}: followers "
                    'with real interfaces run in real time and are not respawned')
     try:
-        check_id('--run-id', args.run_id) if args.run_id else None
+        check_id('--run-id', args.run_id, frame=False) if args.run_id else None
     except ValueError as error:
         fail(PROG, str(error))
     run_id = args.run_id or f'run_{uuid.uuid4().hex[:12]}'
@@ -102,9 +102,12 @@ def run(args: Any) -> int:
             failure = 'interrupted before the run was summarised' \
                 if isinstance(error, KeyboardInterrupt) else f'cannot run the nodes: {error}'
             launcher.stop(launcher.processes)
-            write_json(out / 'summary.json', {
-                'ok': False, 'failure': failure, 'run_id': run_id,
-                'exit_codes': {p.name: p.code for p in launcher.processes}})
+            try:
+                write_json(out / 'summary.json', {
+                    'ok': False, 'failure': failure, 'run_id': run_id,
+                    'exit_codes': {p.name: p.code for p in launcher.processes}})
+            except OSError as again:                # e.g. the disk is full
+                failure += f'; cannot write {out / "summary.json"}: {again.strerror or again}'
             print(f'{PROG}: error: {failure}', file=sys.stderr)
             return 1
 
@@ -219,7 +222,8 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
         recording, problem = audit_recording(out, prefix, leader.summary(), {
             f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()},
             any(p.restarts for p in launcher.processes))
-        failure = failure or problem
+        # the recorder's own write error (a full disk) names the file: it comes first
+        failure = problem if recording.get('error') else failure or problem
     steps = min((r['steps'] for r in followers.values()), default=0)
     summary: dict[str, Any] = {
         'ok': not failure, 'failure': failure or None, 'run_id': run_id, 'mode': args.mode,

@@ -361,14 +361,34 @@ def _flatten(data: Any, prefix: str = '') -> dict[str, Any]:
 
 #: A robot id: a ROS name token (it is the robot's namespace and the stem of its frames).
 _ID = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+#: Longest robot id, bytes: the longest file name derived from an id,
+#: '<id>.follower_estimator.json.tmp' (28 bytes more), stays far under the 255 bytes of a file
+#: name, and a topic '<prefix>/<id>/sim_description' under the DDS name limit (256).
+ID_MAX_LENGTH = 64
+#: Frame names an id may not take (the robot's body frame is its id): the REP 105 frames and
+#: the frames of the run (wire/topics.py: the odometry frame and the leaves under a robot).
+RESERVED_FRAMES = ('odom', 'map', 'world', 'earth', 'base_link', 'base_footprint', 'truth',
+                   'estimate', 'uwb', 'camera')
 
 
-def check_id(what: str, value: object) -> str:
-    """``value`` if it is a valid robot id (letters, digits, underscores; a letter first), else
-    InvalidInput naming ``what``."""
+def check_id(what: str, value: object, frame: bool = True) -> str:
+    """``value`` if it is a valid robot id, else InvalidInput naming ``what`` and the rule.
+
+    The rules: letters, digits and underscores, a letter first (a ROS name token), no '__'
+    (ROS reserves it), at most :data:`ID_MAX_LENGTH` characters (file names derive from ids),
+    and, when ``frame`` (the id names a frame), none of :data:`RESERVED_FRAMES`.
+    """
     if not isinstance(value, str) or not _ID.match(value):
         raise InvalidInput(what, 'must be a name of letters, digits and underscores starting '
                                  f'with a letter (it becomes a ROS namespace), got {value!r}')
+    if '__' in value:
+        raise InvalidInput(what, f"must not contain '__' (ROS reserves it), got {value!r}")
+    if len(value) > ID_MAX_LENGTH:
+        raise InvalidInput(what, f'must be at most {ID_MAX_LENGTH} characters (file names '
+                                 f'derive from it), got {len(value)}: {value[:20]!r}...')
+    if frame and value in RESERVED_FRAMES:
+        raise InvalidInput(what, f'must not be a reserved frame name '
+                                 f"({', '.join(RESERVED_FRAMES)}), got {value!r}")
     return value
 
 
@@ -548,5 +568,5 @@ def _pair(name: str, value: object) -> tuple[object, object]:
     return value[0], value[1]
 
 
-__all__ = ['BEARING', 'Formation', 'FollowerSpec', 'LeaderPath', 'PATH_KINDS', 'RANGE',
-           'Scenario', 'Segment', 'check_id']
+__all__ = ['BEARING', 'Formation', 'FollowerSpec', 'ID_MAX_LENGTH', 'LeaderPath', 'PATH_KINDS',
+           'RANGE', 'RESERVED_FRAMES', 'Scenario', 'Segment', 'check_id']

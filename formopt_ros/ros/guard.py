@@ -88,6 +88,14 @@ class RunGuard:
         self.description_pub.publish(self.description_message)
         self.readers = readers
 
+    def reannounce(self, description: str) -> None:
+        """Publish an updated description of the same run (e.g. with a strategy change) on the
+        latched topic of :meth:`announce`: late subscribers and the bag get the latest."""
+        self.description_message = conversions.description(
+            self.node.get_clock().now().to_msg(), self.description_message.run_id,
+            self.node.get_fully_qualified_name(), description)
+        self.description_pub.publish(self.description_message)
+
     def expect(self, topic: str, compare: Compare) -> None:
         """Subscribe to the latched description on ``topic`` and compare it when it comes."""
         self.expected.append(topic)

@@ -9,12 +9,20 @@ from __future__ import annotations
 
 from rclpy.node import Node
 
+from formopt_ros.core.checks import InvalidInput
+from formopt_ros.core.scenario import check_id
+from formopt_ros.ros.params import ParameterError
 from formopt_ros.wire.topics import BY_KEY, resolve
 
 
 def robot_id(node: Node, default: str) -> str:
-    """The last part of the node's namespace ('/run7/f1' -> 'f1'), or ``default`` at the root."""
-    return node.get_namespace().rstrip('/').rpartition('/')[2] or default
+    """The last part of the node's namespace ('/run7/f1' -> 'f1'), or ``default`` at the root;
+    ParameterError when that part is not a valid id (e.g. a reserved frame name)."""
+    value = node.get_namespace().rstrip('/').rpartition('/')[2] or default
+    try:
+        return check_id('the robot id taken from the namespace', value)
+    except InvalidInput as error:
+        raise ParameterError(str(error)) from None
 
 
 def formation_prefix(node: Node) -> str:

@@ -3,6 +3,9 @@ validated the same way in every node, and the documented config files generated 
 from __future__ import annotations
 
 import difflib
+import math
+import re
+import sys
 import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,6 +21,11 @@ from formopt_ros.core.checks import InvalidInput, as_bool, as_choice, as_integer
 
 #: Parameters rclpy declares itself; never reported as unknown.
 ROS_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
+#: Parameters rclpy declares mutable that a running node cannot honour when changed, and why
+#: (refused in a set-parameters callback: rclpy owns their descriptors).
+FIXED_WHILE_RUNNING = {
+    'use_sim_time': 'the clock of a running node cannot change source (its inputs and timers '
+                    'would jump between wall and simulated time); restart the node with it'}
 
 
 class ParameterError(ValueError):
@@ -130,14 +138,86 @@ def _number(value: float | None) -> str:
     return f'{value:g}'
 
 
+#: rcl's plain scalars that are booleans (rcl_yaml_param_parser, get_value).
+_TRUE = {'Y', 'y', 'yes', 'Yes', 'YES', 'true', 'True', 'TRUE', 'on', 'On', 'ON'}
+_FALSE = {'N', 'n', 'no', 'No', 'NO', 'false', 'False', 'FALSE', 'off', 'Off', 'OFF'}
+#: What C strtoll(text, base 0) reads whole: decimal, 0x hexadecimal, 0 octal.
+_INTEGER = re.compile(r'^\s*([+-]?)(0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)$')
+#: What C strtod reads whole: decimal with exponent, hexadecimal with p exponent, inf, nan.
+_DECIMAL = re.compile(r'^\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$')
+_HEXADECIMAL = re.compile(r'^\s*[+-]?0[xX]([0-9a-fA-F]+\.?[0-9a-fA-F]*|\.[0-9a-fA-F]+)'
+                          r'([pP][+-]?\d+)?$')
+_SPECIAL = re.compile(r'^\s*[+-]?(inf|infinity|nan)$', re.IGNORECASE)
+_YAML_SPECIAL = {f'{sign}.{word}' for sign in ('', '+', '-')
+                 for word in ('inf', 'Inf', 'INF')} | {'.nan', '.NaN', '.NAN'}
+
+
+def rcl_scalar(text: str) -> bool | int | float | str:
+    """A plain (unquoted, untagged) YAML scalar typed the way rcl's parameter parser types it:
+    its booleans (y, yes, on, true, ... in three cases), then what C strtoll with base 0 reads
+    whole (42, +7, 0x1F, 010 is 8), then what strtod reads whole (1e-2, 1E3, .5, +1.0, 5.,
+    0x1p3, inf, nan, .inf, -.Inf, .nan), else the text; a number out of the int64 range is
+    read as a float, one out of the double range (1e400, 1e-400) stays text (strtod's ERANGE).
+    """
+    if text in _TRUE or text in _FALSE:
+        return text in _TRUE
+    match = _INTEGER.match(text)
+    if match:
+        digits = match.group(2)
+        base = 16 if digits[:2] in ('0x', '0X') else 8 if digits[0] == '0' else 10
+        number = int(digits, base) * (-1 if match.group(1) == '-' else 1)
+        if -2**63 <= number < 2**63:
+            return number
+    if text in _YAML_SPECIAL:
+        return float(text.replace('.', '', 1))
+    if _SPECIAL.match(text):
+        return float(text)
+    if _DECIMAL.match(text) or _HEXADECIMAL.match(text):
+        stripped = text.strip()
+        value = float.fromhex(stripped) if _HEXADECIMAL.match(text) else float(stripped)
+        mantissa = re.split('[eEpP]', stripped.lower().replace('0x', '', 1))[0]
+        if math.isinf(value) or (abs(value) < sys.float_info.min
+                                 and mantissa.strip('+-.0') != ''):
+            return text                      # strtod's ERANGE: rcl keeps the text
+        return value
+    return text
+
+
 def parse_value(name: str, text: str) -> Any:
-    """The value of ``-p name:=text`` as ``--ros-args`` parses it (YAML); ParameterError when
-    it is not YAML."""
+    """The value of ``-p name:=text`` as ``--ros-args`` parses it: YAML whose plain scalars are
+    typed by rcl's rules (:func:`rcl_scalar`: 1e-2 is a number, y a boolean), quoted or !!str
+    scalars strings, a flow sequence of one type a list, [] None (no type); ParameterError
+    otherwise. Integers beside floats ([0, 0.1]) pass, though rcl refuses them: the specs make
+    them floats and run_formation passes them on as such ([0.0, 0.1])."""
     import yaml
     try:
-        return yaml.safe_load(text)
+        events = list(yaml.parse(text))
     except yaml.YAMLError:
         raise ParameterError(f"parameter '{name}': {text!r} is not a YAML value") from None
+    body = [e for e in events if not isinstance(
+        e, (yaml.StreamStartEvent, yaml.StreamEndEvent, yaml.DocumentStartEvent,
+            yaml.DocumentEndEvent))]
+
+    def scalar(event: Any) -> Any:
+        if event.style in ("'", '"') or event.tag in ('!!str', 'tag:yaml.org,2002:str'):
+            return event.value
+        if event.value == '':
+            raise ParameterError(f"parameter '{name}': {text!r} has no value")
+        return rcl_scalar(event.value)
+
+    if len(body) == 1 and isinstance(body[0], yaml.ScalarEvent):
+        return scalar(body[0])
+    if (len(body) >= 2 and isinstance(body[0], yaml.SequenceStartEvent)
+            and isinstance(body[-1], yaml.SequenceEndEvent)
+            and all(isinstance(e, yaml.ScalarEvent) for e in body[1:-1])):
+        items = [scalar(e) for e in body[1:-1]]
+        kinds = {float if type(item) is int else type(item) for item in items}
+        if len(kinds) > 1:
+            raise ParameterError(f"parameter '{name}': {text!r} mixes types (rcl takes one "
+                                 'type per list)')
+        return items or None
+    raise ParameterError(f"parameter '{name}': {text!r} is not a value or a list of values "
+                         '(rcl takes no mappings or nested lists)')
 
 
 def declare(node: Node, specs: list[Param],
@@ -184,7 +264,25 @@ def declare(node: Node, specs: list[Param],
         value = node.get_parameter(spec.name).value
         values[spec.name] = spec.check(list(value) if isinstance(spec.default, list)
                                        and value is not None else value)
+    node.add_on_set_parameters_callback(lambda parameters: _fixed_result(node, parameters))
     return values
+
+
+def refuse_fixed(node: Node, parameters: list[Parameter]) -> str | None:
+    """The reason to refuse a change of a parameter fixed while the node runs
+    (:data:`FIXED_WHILE_RUNNING`), None when there is none (setting its current value is
+    accepted)."""
+    for parameter in parameters:
+        reason = FIXED_WHILE_RUNNING.get(parameter.name)
+        if reason and node.has_parameter(parameter.name) and \
+                parameter.value != node.get_parameter(parameter.name).value:
+            return f"parameter '{parameter.name}' cannot be changed while the node runs: {reason}"
+    return None
+
+
+def _fixed_result(node: Node, parameters: list[Parameter]) -> SetParametersResult:
+    reason = refuse_fixed(node, parameters)
+    return SetParametersResult(successful=reason is None, reason=reason or '')
 
 
 def validate_on_set(node: Node, specs: list[Param],
@@ -192,11 +290,15 @@ def validate_on_set(node: Node, specs: list[Param],
     """Validate run-time ``ros2 param set`` of mutable parameters, then hand them to ``apply``.
 
     ``apply`` gets {name: value} of the accepted change and returns a reason to refuse it (or
-    None); read-only parameters are refused by rclpy itself.
+    None); read-only parameters are refused by rclpy itself, use_sim_time and the other
+    :data:`FIXED_WHILE_RUNNING` here (before ``apply`` sees any part of the change).
     """
     by_name = {spec.name: spec for spec in specs}
 
     def on_set(parameters: list[Parameter]) -> SetParametersResult:
+        fixed = refuse_fixed(node, parameters)
+        if fixed:
+            return SetParametersResult(successful=False, reason=fixed)
         change = {}
         for parameter in parameters:
             spec = by_name.get(parameter.name)

@@ -27,6 +27,25 @@ def _load(text: str, expected: str) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
+class StrategyChange:
+    """A strategy that took over mid-run (``ros2 param set`` of the strategy or an option).
+
+    Attributes:
+        step: measurement steps completed when it took over; it plans the waypoints of steps
+            step + 2 on (the waypoint of step + 1 was already sent).
+        strategy: its name; options: its settings (defaults filled in).
+    """
+
+    step: int
+    strategy: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly form."""
+        return {'step': self.step, 'strategy': self.strategy, 'options': dict(self.options)}
+
+
+@dataclass(frozen=True)
 class RunDescription:
     """One follower's run.
 
@@ -39,6 +58,9 @@ class RunDescription:
         steps: measurement steps of the run (0: until stopped).
         run_id: identity of the run ('' when not set).
         leader_id: the leader (its namespace and frame).
+        strategy_changes: strategies that took over mid-run, in order (``strategy`` and
+            ``options`` are the first one's); the estimator publishes the description again
+            with each change.
     """
 
     follower_id: str
@@ -51,14 +73,23 @@ class RunDescription:
     steps: int = 0
     run_id: str = ''
     leader_id: str = 'leader'
+    strategy_changes: tuple[StrategyChange, ...] = ()
 
     def to_json(self) -> str:
-        """The JSON text published in RunDescription.description."""
-        return json.dumps({
-            'format': FORMAT, 'run_id': self.run_id, 'leader_id': self.leader_id,
-            'follower_id': self.follower_id, 'mode': self.mode, 'strategy': self.strategy,
-            'options': self.options, 'seed': self.seed, 'trial': self.trial,
-            'steps': self.steps, 'scenario': self.scenario.to_dict()}, sort_keys=True)
+        """The JSON text published in RunDescription.description ('strategy_changes' only
+        when there are some: the text of a run without changes is the same as before)."""
+        data = {'format': FORMAT, 'run_id': self.run_id, 'leader_id': self.leader_id,
+                'follower_id': self.follower_id, 'mode': self.mode, 'strategy': self.strategy,
+                'options': self.options, 'seed': self.seed, 'trial': self.trial,
+                'steps': self.steps, 'scenario': self.scenario.to_dict()}
+        if self.strategy_changes:
+            data['strategy_changes'] = [c.to_dict() for c in self.strategy_changes]
+        return json.dumps(data, sort_keys=True)
+
+    def strategies(self) -> list[str]:
+        """Every strategy the run used, in order of first use."""
+        names = [self.strategy] + [c.strategy for c in self.strategy_changes]
+        return list(dict.fromkeys(names))
 
     def leader_view(self) -> 'LeaderDescription':
         """What this follower's run assumes about its leader."""
@@ -76,7 +107,11 @@ class RunDescription:
                        strategy=str(data['strategy']), options=dict(data.get('options', {})),
                        seed=int(data['seed']), trial=int(data['trial']), mode=str(data['mode']),
                        steps=int(data['steps']), run_id=str(data.get('run_id', '')),
-                       leader_id=str(data.get('leader_id', 'leader')))
+                       leader_id=str(data.get('leader_id', 'leader')),
+                       strategy_changes=tuple(
+                           StrategyChange(int(c['step']), str(c['strategy']),
+                                          dict(c.get('options', {})))
+                           for c in data.get('strategy_changes', [])))
         except (KeyError, TypeError) as error:
             raise ValueError(f'run description lacks or mangles {error}') from None
 

@@ -75,3 +75,28 @@ def test_leader_path_velocities() -> None:
         LeaderPath('segments')
     with pytest.raises(ValueError, match="kind 'arc'"):
         LeaderPath('straight', yaw_rate=0.1)
+
+
+@pytest.mark.parametrize('value, rule', [
+    ('a__b', "'__'"), ('f' * 65, 'at most 64 characters'), ('odom', 'reserved frame'),
+    ('base_link', 'reserved frame'), ('world', 'reserved frame'), ('1a', 'letters, digits'),
+    ('a b', 'letters, digits')])
+def test_ids_at_the_door_name_the_id_and_the_rule(value: str, rule: str) -> None:
+    """An id with '__', longer than ID_MAX_LENGTH or a reserved frame name is refused."""
+    from formopt_ros.core.scenario import FollowerSpec, check_id
+    with pytest.raises(InvalidInput) as refused:
+        check_id('follower id', value)
+    assert refused.value.name == 'follower id' and rule in refused.value.reason
+    with pytest.raises(InvalidInput):
+        FollowerSpec(value, Scenario.paper('range'))
+
+
+def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
+    """64 characters pass; the longest derived file name stays under 255 bytes."""
+    from formopt_ros.core.scenario import ID_MAX_LENGTH, check_id
+    longest = 'f' * ID_MAX_LENGTH
+    assert check_id('follower id', longest) == longest
+    for node in ('estimator_planner', 'follower_estimator', 'follower_sim', 'field_sim'):
+        for suffix in ('json.tmp', 'pkl.tmp', 'log'):
+            assert len(f'{longest}.{node}.{suffix}'.encode()) < 255
+    assert check_id('run id', 'odom', frame=False) == 'odom'     # not a frame

@@ -23,6 +23,8 @@ import rclpy
 from formopt_interfaces.msg import PlannerStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import qos
@@ -365,3 +367,17 @@ class NodeProcess:
 def init(extra: list[str] | None = None) -> None:
     """rclpy.init for this process (the formation nodes get their arguments one by one)."""
     rclpy.init(args=['--ros-args', *(extra or [])] if extra else None)
+
+
+def set_parameters(run: Any, node: Any, values: dict[str, Any],
+                   atomically: bool = False) -> list[Any]:
+    """Set parameters through the node's own service, as ros2 param set does (one result per
+    parameter; ``atomically``: all or none, one result)."""
+    client = AsyncParameterClient(run.probe, node.get_fully_qualified_name())
+    assert run.spin_until(client.services_are_ready, 10.0)
+    parameters = [Parameter(k, value=v) for k, v in values.items()]
+    future = client.set_parameters_atomically(parameters) if atomically else \
+        client.set_parameters(parameters)
+    assert run.spin_until(future.done, 10.0)
+    result = future.result()
+    return [result.result] if atomically else list(result.results)

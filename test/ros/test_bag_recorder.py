@@ -168,3 +168,61 @@ def test_records_a_topic_found_in_the_graph(recorder_process, ros_init, tmp_path
     topic = f'{PREFIX}/chatter'
     assert loaded.channels[topic].type == 'std_msgs/msg/String'
     assert [m.data for _, m in loaded.decode(topic)] == [f'hello {i}' for i in range(20)]
+
+
+def test_a_full_disk_names_the_file_and_the_run_still_summarises(
+        formation_in_process, tmp_path: Path, monkeypatch) -> None:
+    """ENOSPC on the 30th message (simulated in the writer): the recorder stops with exit
+    code 1 and an error naming the .mcap and ENOSPC (log, counts file); run_formation's
+    summary.json names it as the run's failure."""
+    import errno
+    from types import SimpleNamespace
+
+    from formopt_ros.bag.writer import BagWriter
+    from formopt_ros.cli.run_formation import write_summary
+    from formopt_ros.core.scenario import Formation as Plan
+    from formopt_ros.core.scenario import FollowerSpec, Scenario
+    from formopt_ros.ros.nodes.recorder import Recorder
+    write = BagWriter.write
+    written = []
+
+    def full(self, topic, data, log_time, publish_time=None) -> None:
+        if len(written) >= 29:
+            raise OSError(errno.ENOSPC, 'No space left on device')
+        written.append(topic)
+        write(self, topic, data, log_time, publish_time)
+
+    monkeypatch.setattr(BagWriter, 'write', full)
+    out = tmp_path / 'run'
+    formation = formation_in_process(20)
+    recorder = Recorder(['--ros-args', '-r', f'__ns:={PREFIX}', '-p',
+                         f'output_path:={out / "run.mcap"}', '-p',
+                         f'counts_path:={out / "recorder_counts.json"}'])
+    formation.executor.add_node(recorder)
+    assert spin_until(formation.executor, lambda: recorder.finished, DEADLINE)
+    assert recorder.exit_code == 1 and sum(recorder.counts.values()) == 29
+    assert str(out / 'run.mcap') in recorder.error and 'ENOSPC' in recorder.error
+    formation.run(DEADLINE)
+    recorder.close()
+    formation.executor.remove_node(recorder)
+    recorder.destroy_node()
+    counts = json.loads((out / 'recorder_counts.json').read_text())
+    assert counts['error'] == recorder.error and counts['total'] == 29
+
+    def process(name: str, summary: dict | None, code: int) -> SimpleNamespace:
+        return SimpleNamespace(name=name, code=code, restarts=[], summary=lambda: summary,
+                               tail=lambda: '')
+    estimator = process('follower.estimator_planner', formation.estimator.summary(), 0)
+    sim = process('follower.follower_sim', formation.follower.summary(), 0)
+    leader = process('leader_sim', formation.leader.summary(), 0)
+    rec = process('recorder', None, 1)
+    plan = Plan('leader', (FollowerSpec('follower', Scenario.paper('range')),))
+    args = SimpleNamespace(steps=20, mode='lockstep')
+    launcher = SimpleNamespace(processes=[rec, leader, sim, estimator])
+    code = write_summary(args, plan, out, launcher, leader, {'follower': (sim, estimator)}, rec,
+                         'recorder exited with code 1 before the run finished', 1.0, PREFIX,
+                         'run_x')
+    summary = json.loads((out / 'summary.json').read_text())
+    assert code == 1 and not summary['ok']
+    assert str(out / 'run.mcap') in summary['failure'] and 'ENOSPC' in summary['failure']
+    assert summary['recording']['error'] == recorder.error

@@ -216,6 +216,38 @@ def test_lockstep_restarts_resume_exactly(formation, tmp_path: Path) -> None:
     assert run.leader.summary()['resumed']['from_step'] >= 30
 
 
+def test_an_estimator_restarted_without_checkpoint_rejoins(formation) -> None:
+    """Lockstep, no checkpoint: the estimator killed after step 15 comes back at step 0 and
+    sends the waypoint of step 1; follower_sim and leader_sim count and name it stale, the
+    follower repeats its last step and the estimator rejoins there with the inflated prior,
+    finishes the run (no hang) and says so in its summary and diagnostics."""
+    from formopt_ros.ros.nodes.estimator_planner import REJOIN_INFLATION
+    steps = 60
+    run = formation({'measurement': 'range', 'strategy': 'ram', 'seed': SEED, 'steps': steps,
+                     'resend_timeout': 0.3})
+    assert run.spin_until(lambda: run.estimator.session.step >= 15, 30.0)
+    run.restart('estimator_planner', down=0.2)
+    assert run.run(timeout=60.0), f'stalled at {run.estimator.session.step}'
+    summary = run.estimator.summary()
+    rejoined = summary['rejoined']
+    assert summary['ok'] and summary['steps'] == steps and summary['resumed'] is None
+    assert 16 <= rejoined['at_step'] < steps and rejoined['heard_from'] == 'follower odometry'
+    assert rejoined['dropped_inputs'] >= SUBSTEPS + 1         # the repeated step's inputs
+    scenario = node_scenario('range')
+    expected = REJOIN_INFLATION * scenario.initial_covariance[0] + scenario.r ** 2
+    assert rejoined['prior_covariance_diagonal'][0] == pytest.approx(expected, rel=1e-12)
+    assert run.follower.summary()['counters']['stale_waypoints'] >= 1
+    assert run.leader.summary()['stale_waypoints'] >= 1
+    statuses = run.probe.step_statuses()
+    assert statuses[-1].step == steps and statuses[-1].rejected_odometry == 0
+    diagnostic = run.estimator.diagnostic()
+    assert f"rejoined at step {rejoined['at_step']}" in diagnostic.message
+    session = run.estimator.session
+    nees = normalized_estimation_error(run.follower.truth.x, session.estimator.x,
+                                       session.estimator.P)
+    assert math.isfinite(nees) and nees < 20.0, nees
+
+
 def test_realtime_restarts_recover(formation, tmp_path: Path) -> None:
     """Realtime: the estimator is down 0.6 s (the odometry it missed becomes hold sub-steps),
     later the follower is down 0.6 s (it resumes its true pose, parked meanwhile); the run

@@ -10,10 +10,8 @@ import numpy as np
 import pytest
 import yaml
 from formopt_interfaces.msg import PlannerStatus
-from harness.ros import PREFIX, topic
+from harness.ros import PREFIX, set_parameters, topic
 from rcl_interfaces.msg import ParameterType
-from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 
 from formopt_ros.core.protocol import Timebase
 from formopt_ros.core.simulation import run_formation
@@ -88,15 +86,6 @@ def test_turning_leader_and_clock(formation, tmp_path: Path) -> None:
         run.estimator.get_clock().now().nanoseconds
     assert run.leader.get_clock().now().nanoseconds == end
     assert run.probe.get_clock().now().nanoseconds != end         # no use_sim_time there
-
-
-def set_parameters(run: Any, node: Any, values: dict[str, Any]) -> list[Any]:
-    """Set parameters through the node's own service, as ros2 param set does."""
-    client = AsyncParameterClient(run.probe, node.get_fully_qualified_name())
-    assert run.spin_until(client.services_are_ready, 10.0)
-    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
-    assert run.spin_until(future.done, 10.0)
-    return list(future.result().results)
 
 
 def test_parameters_read_only_or_validated_on_set(formation) -> None:

@@ -45,6 +45,8 @@ MISUSE = [
      "parameter 'chunk_size' must be an integer in [1024, 67108864]"),
     ('estimator_planner', ['-p', 'leader_id:=a b'], "parameter 'leader_id' must be a name of"),
     ('follower_sim', ['-p', 'follower_id:=x/y'], "parameter 'follower_id' must be a name of"),
+    ('follower_sim', ['-p', 'follower_id:=odom'], "'follower_id' must not be a reserved"),
+    ('estimator_planner', ['-p', 'leader_id:=a__b'], "parameter 'leader_id' must not contain"),
     ('leader_sim', ['-p', 'segment_durations:=[]'], 'got a value without a type'),
 ]
 
@@ -112,3 +114,64 @@ def test_outputs_through_a_broken_link_are_refused_at_start(node_process, tmp_pa
     assert process.wait(timeout=60.0) == 2, process.stderr
     assert "parameter 'checkpoint_path': cannot write" in process.stderr
     assert 'Traceback' not in process.stderr and not (tmp_path / 'missing').exists()
+
+
+NOTATIONS = ['1e-2', '1E3', '.5', '+1.0', '5.', '-.Inf', '.nan', '0x10', '010', '08', 'y', 'Off',
+             'tRue', '1e400', '1_000', "'0.5'", '!!str 1', '[1e-2, 2E-2]', 'null']
+
+
+def rcl_value(text: str) -> object:
+    """The value rcl gives a node for ``-p x:=text`` (or the exception's type name)."""
+    import rclpy
+    from rclpy.node import Node
+    context = rclpy.Context()
+    try:
+        rclpy.init(args=['--ros-args', '-p', f'x:={text}'], context=context)
+        node = Node('notation_probe', context=context)
+        value = node._parameter_overrides['x'].value
+        node.destroy_node()
+        return list(value) if isinstance(value, (list, tuple)) or hasattr(value, 'tolist') \
+            else value
+    except Exception as error:                 # rcl refuses some lists
+        return type(error).__name__
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.parametrize('text', NOTATIONS + ['[a, 1]'])
+def test_p_values_are_typed_the_way_rcl_types_them(text: str) -> None:
+    """parse_value (run_formation's -p) gives the value and type rcl gives the node."""
+    import math
+
+    from formopt_ros.ros.params import parse_value
+    expected = rcl_value(text)
+    try:
+        mine = parse_value('x', text)
+    except ParameterError:
+        assert expected == 'RCLError'
+        return
+    assert type(mine) is type(expected)
+    assert mine == expected or (math.isnan(mine) and math.isnan(expected))
+
+
+def test_scientific_notation_reaches_preflight_and_node_alike(ros_init) -> None:
+    """-p dt:=2E-2 and repeat_segments:=y: run_formation's preflight and leader_sim both take
+    0.02 s and True."""
+    from harness.ros import node_args
+
+    from formopt_ros.cli.preflight import check_extras
+    from formopt_ros.ros.nodes.leader_sim import LeaderSim
+    assert check_extras({'dt': '2E-2', 'repeat_segments': 'y', 'sigma_v': '.5e-1'}) == {
+        'dt': 0.02, 'repeat_segments': True, 'sigma_v': 0.05}
+    # rcl refuses [0, 0.1] (two types); the spec makes it floats, passed on as rcl takes them
+    from formopt_ros.cli.supervisor import format_value
+    yaw_rates = check_extras({'segment_yaw_rates': '[0, 1e-1]'})['segment_yaw_rates']
+    assert rcl_value('[0, 1e-1]') == 'RCLError' and yaw_rates == [0.0, 0.1]
+    assert rcl_value(format_value(yaw_rates)) == [0.0, 0.1]
+    ros_init()
+    node = LeaderSim(node_args('leader_sim', 'leader', {}) + [
+        '-p', 'dt:=2E-2', '-p', 'repeat_segments:=y'])
+    try:
+        assert node.params['dt'] == 0.02 and node.params['repeat_segments'] is True
+    finally:
+        node.destroy_node()

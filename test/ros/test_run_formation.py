@@ -386,6 +386,9 @@ def test_paths_with_yaml_characters_stay_inside_the_output_folder(
     ('[{id: a, sensor: range, slot: [-1, -2]}, {id: b, sensor: range, slot: [-1, -2]}]',
      "followers 'a' and 'b' share the slot [-1.0, -2.0]"),
     ('[{id: a, sensor: range, slot: [-1, -2], id: b}]', "key 'id' is given twice"),
+    ('[{id: a__b, sensor: range, slot: [-1, -2]}]', "must not contain '__'"),
+    ('[{id: odom, sensor: range, slot: [-1, -2]}]', 'must not be a reserved frame name'),
+    (f"[{{id: {'f' * 65}, sensor: range, slot: [-1, -2]}}]", 'at most 64 characters'),
 ])
 def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, followers: str,
                                                              text: str) -> None:

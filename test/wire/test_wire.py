@@ -167,3 +167,31 @@ def test_twist_noise_takes_plausible_covariances_only(variances: tuple, expected
     covariance[0], covariance[35] = variances
     noise = twist_noise(Msg(twist=Msg(covariance=covariance)))
     assert noise == (pytest.approx(expected) if expected else None)
+
+
+def test_the_frames_of_a_run_are_reserved_ids() -> None:
+    """No robot id can take a frame name of the run (a TF cycle: id 'odom')."""
+    from formopt_ros.core.scenario import RESERVED_FRAMES
+    from formopt_ros.wire.topics import ODOM_FRAME, follower_frames, real_frames
+    leaves = {name.rpartition('/')[2] for frames in (follower_frames('x'),
+                                                     real_frames('x', 'range'),
+                                                     real_frames('x', 'bearing'))
+              for name in frames.values()} - {'x'}
+    assert {ODOM_FRAME} | leaves <= set(RESERVED_FRAMES)
+
+
+def test_strategy_changes_round_trip_and_old_descriptions_read() -> None:
+    """A description with a mid-run change reads back equal and names both strategies; one
+    without changes writes the same JSON as before (no key), so old bags read unchanged."""
+    import json
+
+    from formopt_ros.core.scenario import Scenario
+    from formopt_ros.wire.description import StrategyChange
+    plain = RunDescription('f1', Scenario.paper('range'), 'ram', {'cell': 0.01}, seed=3)
+    assert 'strategy_changes' not in json.loads(plain.to_json())
+    changed = RunDescription('f1', Scenario.paper('range'), 'mtf', strategy_changes=(
+        StrategyChange(17, 'periodic', {'period': 3}), StrategyChange(40, 'mtf')))
+    again = RunDescription.from_json(changed.to_json())
+    assert again == changed and again.strategies() == ['mtf', 'periodic']
+    assert again.strategy_changes[0].step == 17
+    assert RunDescription.from_json(plain.to_json()).strategy_changes == ()

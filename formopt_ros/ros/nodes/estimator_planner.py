@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
+from concurrent.futures import Future
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -16,8 +19,9 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from formopt_ros.core.estimator import EstimatorSession, StepOutcome, StepPlan
-from formopt_ros.core.protocol import Timebase
+from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.core.simulation import trial_streams
+from formopt_ros.core.stepper import StepAssembler
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
@@ -32,6 +36,8 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
+from formopt_ros.wire.description import StrategyChange
+from formopt_ros.wire.messages import foreign_run
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
@@ -49,6 +55,11 @@ SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
+#: A rejoining estimator's prior (see :meth:`EstimatorPlannerNode._rejoin`): the estimate
+#: restarts at the slot, heading 0, with covariance REJOIN_INFLATION * P_1|1 + diag(r^2, r^2, 0):
+#: the run's start uncertainty with twice its standard deviations, plus the disc of radius r
+#: around the slot in which every waypoint lies (where the follower may be, unknown).
+REJOIN_INFLATION = 4.0
 
 
 class EstimatorPlannerNode(Node):
@@ -91,6 +102,7 @@ class EstimatorPlannerNode(Node):
         self.exit_code = 0
         self.error = ''
         self.resumed: dict[str, Any] | None = None
+        self.rejoined: dict[str, Any] | None = None
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
@@ -98,11 +110,15 @@ class EstimatorPlannerNode(Node):
         self.last_diagnostics = 0.0
         self.last_markers = -math.inf
         self.watch_reported = False
+        #: a strategy being designed off the executor: (future of the design's seconds, the
+        #: strategy, the step at the request); the current strategy plans meanwhile
+        self.pending: tuple[Future, Any, int] | None = None
+        self.strategy_changes: list[dict[str, Any]] = []
         self.solve_times: list[float] = []
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
         self.published = {key: 0 for key in ('estimate', 'waypoint', 'status', 'markers', 'tf',
-                                             'diagnostics')}
+                                             'diagnostics', 'description')}
         self.checkpoint, state = open_checkpoint(self, p, self.description.to_json())
         if state is not None:
             self._restore(state)
@@ -131,6 +147,7 @@ class EstimatorPlannerNode(Node):
                                  qos.SUBSCRIBED)
         self.guard = follower_guard(self, self.description, self.leader_id, 'description',
                                     'sim_description', ('follower_odom', 'measurement', 'truth'))
+        self.published['description'] = 1                # announced by the guard
         validate_on_set(self, PARAMS, self.on_set)
         steady_timer(self, 0.05, self.on_timer)
         self.get_logger().info(f"estimator_planner ready ({p['mode']}, "
@@ -139,8 +156,9 @@ class EstimatorPlannerNode(Node):
 
     # --- run-time parameter changes ----------------------------------------------------------
     def on_set(self, change: dict[str, Any]) -> str | None:
-        """Accept a new strategy or strategy option (validated, applied from the next step) and
-        the timing parameters; refuse anything that does not build a strategy."""
+        """Accept a new strategy or strategy option (validated here; designed off the executor,
+        see :meth:`_design`) and the timing parameters; refuse anything that does not build a
+        strategy."""
         values = {**self.params, **change}
         if any(name == 'strategy' or name.startswith(f"{values['strategy']}_")
                for name in change):
@@ -149,12 +167,67 @@ class EstimatorPlannerNode(Node):
                                          **strategy_options(values['strategy'], values))
             except ValueError as error:
                 return str(error)
-            strategy.prepare(self.scenario)
-            self.session.estimator.strategy = strategy
-            self.get_logger().info(f'strategy now {strategy!r} (from step '
-                                   f'{self.session.step + 2})')
+            self._design(strategy)
         self.params.update(change)
         return None
+
+    def _design(self, strategy: Any) -> None:
+        """Prepare ``strategy`` (e.g. PERIODIC's cycle design, 10-20 s) on a daemon thread: the
+        executor keeps serving inputs and the current strategy keeps planning; the new one
+        takes over in :meth:`_take_ready` (a later request supersedes this one)."""
+        future: Future = Future()
+        scenario = self.scenario
+
+        def work() -> None:
+            started = time.monotonic()
+            try:
+                strategy.prepare(scenario)
+            except Exception as error:          # reported by _take_ready, the node goes on
+                future.set_exception(error)
+                return
+            future.set_result(time.monotonic() - started)
+
+        if self.pending is not None:
+            self.get_logger().warning(f'strategy {self.pending[1]!r} superseded before it was '
+                                      'ready')
+        self.pending = (future, strategy, self.session.step)
+        threading.Thread(target=work, name='strategy-design', daemon=True).start()
+        self.get_logger().info(f'preparing strategy {strategy!r} off the executor; '
+                               f'{self.session.estimator.strategy.name} plans until it is ready')
+
+    def _take_ready(self) -> None:
+        """Switch to the pending strategy once its design is done (after the run started and
+        before it ends); the change (step, old, new) goes to the log, the summary and, with a
+        new latched description, the bag."""
+        if self.pending is None or not self.pending[0].done() or not self.started or \
+                self.session.finished:
+            return
+        future, strategy, requested = self.pending
+        self.pending = None
+        old = self.session.estimator.strategy.name
+        error = future.exception()
+        if error is not None:
+            self.get_logger().error(f'strategy {strategy!r} not taken, its preparation failed: '
+                                    f'{type(error).__name__}: {error}; {old} goes on')
+            return
+        step = self.session.step
+        self.session.estimator.strategy = strategy
+        change = StrategyChange(step, strategy.name, dict(strategy.settings))
+        self.strategy_changes.append({'step': step, 'from': old, 'to': strategy.name,
+                                      'options': dict(strategy.settings),
+                                      'requested_at_step': requested,
+                                      'prepared_in_s': round(future.result(), 3)})
+        self._describe(replace(self.description, strategy_changes=(
+            *self.description.strategy_changes, change)))
+        self.get_logger().info(f'strategy {old} -> {strategy!r} after step {step} (requested '
+                               f'at step {requested}, prepared in {future.result():.2f} s); it '
+                               f'plans from step {step + 2}')
+
+    def _describe(self, description: Description) -> None:
+        """Publish the run description again (latched): the same run, with its changes."""
+        self.description = description
+        self.guard.reannounce(description.to_json())
+        self.published['description'] += 1
 
     # --- inputs ----------------------------------------------------------------------------
     def _now_ns(self) -> int | None:
@@ -169,18 +242,25 @@ class EstimatorPlannerNode(Node):
     def on_follower_odom(self, msg: Odometry) -> None:
         """One sub-step of the follower's odometry."""
         self.received['follower_odom'] += 1
+        if self._left_behind(self._stamp_step(msg), 'follower odometry'):
+            return
         self._refused('follower_odom', inputs.feed_odometry(
             self.session, 'follower', msg, self.follower_id, self._now_ns()))
 
     def on_leader_odom(self, msg: Odometry) -> None:
         """One sub-step of the leader's odometry."""
         self.received['leader_odom'] += 1
+        if self._left_behind(self._stamp_step(msg), 'leader odometry'):
+            return
         self._refused('leader_odom', inputs.feed_odometry(
             self.session, 'leader', msg, self.leader_id, self._now_ns()))
 
     def on_measurement(self, msg: Measurement) -> None:
         """One range or bearing measurement."""
         self.received['measurement'] += 1
+        if foreign_run(msg, self.params['run_id']) is None and \
+                self._left_behind(int(msg.step), 'measurement'):
+            return
         self._refused('measurement', inputs.feed_measurement(
             self.session, msg, self.follower_id, self._now_ns(), self.params['run_id']))
 
@@ -189,10 +269,54 @@ class EstimatorPlannerNode(Node):
         self.received['truth'] += 1
         inputs.feed_truth(self.session, msg)
 
+    # --- rejoin ----------------------------------------------------------------------------
+    def _stamp_step(self, msg: Any) -> int | None:
+        """The step of a lockstep odometry message, from its stamp (None off the grid)."""
+        substep = self.timebase.substep_ending_at(
+            msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        return None if substep is None else substep // SUBSTEPS + 1
+
+    def _left_behind(self, step: int | None, source: str) -> bool:
+        """Lockstep: a started estimator that processed no step and resumed no checkpoint (a
+        restart without one) and hears of step 2 or later was left behind by its peers:
+        rejoin at that step. True for an input of a step up to the rejoin step (the peers'
+        repeat of it: dropped, counted in the summary's ``rejoined``)."""
+        if step is None or not self.lockstep:
+            return False
+        if self.rejoined is None and self.resumed is None and self.started and \
+                self.session.step == 0 and step >= 2:
+            self._rejoin(step, source)
+        if self.rejoined is not None and step <= self.rejoined['at_step']:
+            self.rejoined['dropped_inputs'] += 1
+            return True
+        return False
+
+    def _rejoin(self, step: int, source: str) -> None:
+        """Continue the run after the peers' step ``step``: the next step is step + 1, the
+        estimate re-initialised at the slot with the inflated prior of :data:`REJOIN_INFLATION`
+        (the estimate of the steps missed is lost); says so in the log, diagnostics, summary."""
+        scenario, session = self.scenario, self.session
+        leader = scenario.leader.velocity(step_substeps(step)[-1], scenario.dt)
+        session.assembler = StepAssembler(True, self.timebase, leader, next_step=step + 1)
+        x, P = scenario.initial_estimate()
+        P = REJOIN_INFLATION * P + np.diag([scenario.r ** 2, scenario.r ** 2, 0.0])
+        estimator = session.estimator
+        estimator.state, estimator.covariance = x, P
+        self.rejoined = {'at_step': step, 'heard_from': source,
+                         'prior_covariance_diagonal': np.diag(P).tolist(), 'dropped_inputs': 0}
+        self.get_logger().warning(
+            f'rejoining the run at step {step} (heard from the {source}; no checkpoint): the '
+            f'estimate restarts at the slot with covariance diag {np.diag(P).round(6).tolist()}'
+            f' (the prior x {REJOIN_INFLATION:g} + r^2); steps 1-{step} are not estimated here')
+        self.last_plan = session.plan_next()
+        self._send(self.last_plan)
+        self.last_progress = time.monotonic()
+
     # --- processing ------------------------------------------------------------------------
     def _advance(self) -> None:
         if self.finished:
             return
+        self._take_ready()
         outcomes = self.session.advance()
         if outcomes:
             self.last_plan = outcomes[-1].plan
@@ -211,7 +335,8 @@ class EstimatorPlannerNode(Node):
     def _state(self) -> dict[str, Any]:
         return {'session': self.session, 'last_plan': self.last_plan,
                 'solve_times': self.solve_times, 'received': self.received,
-                'published': self.published}
+                'published': self.published, 'strategy_changes': self.strategy_changes,
+                'description': self.description.to_json()}
 
     def _restore(self, state: dict[str, Any]) -> None:
         """Continue a run from a checkpoint: lockstep exactly (the peers repeat what was lost);
@@ -220,6 +345,10 @@ class EstimatorPlannerNode(Node):
         self.last_plan = state['last_plan']
         self.solve_times = state['solve_times']
         self.received, self.published = state['received'], state['published']
+        self.published.setdefault('description', 0)
+        self.strategy_changes = state.get('strategy_changes', [])
+        if 'description' in state:
+            self.description = Description.from_json(state['description'])
         gap = time.time() - (self.checkpoint.saved_at or time.time())
         if not self.lockstep:
             self.session.assembler.open_gap(self.get_clock().now().nanoseconds)
@@ -272,6 +401,7 @@ class EstimatorPlannerNode(Node):
         and /diagnostics every status_period."""
         now = time.monotonic()
         self.guard.check()
+        self._take_ready()
         if not self.finished and not self.started:
             if self.gate.ready() and self.guard.ready():
                 self.started = True
@@ -304,6 +434,8 @@ class EstimatorPlannerNode(Node):
         watch = self.session.watch
         stalled = time.monotonic() - self.last_progress
         level, message = 'OK', f'step {self.session.step}'
+        if self.rejoined is not None:
+            message += f" (rejoined at step {self.rejoined['at_step']}, no checkpoint)"
         if not (np.all(np.isfinite(estimator.x)) and np.all(np.isfinite(estimator.P))):
             level, message = 'ERROR', 'the estimate is not finite'
         elif self.error:
@@ -336,7 +468,8 @@ class EstimatorPlannerNode(Node):
                 **counters.as_dict(), 'seconds_since_progress': round(stalled, 3),
                 'consistency': watch.verdict().level,
                 'inconsistent_steps': watch.counters['inconsistent_steps'],
-                'gating_steps': watch.counters['gating_steps']})
+                'gating_steps': watch.counters['gating_steps'],
+                'rejoined_at_step': self.rejoined['at_step'] if self.rejoined else 0})
 
     # --- end of run --------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
@@ -354,8 +487,12 @@ class EstimatorPlannerNode(Node):
             'run_id': self.params['run_id'],
             'steps': self.session.step,
             'resumed': self.resumed,
+            'rejoined': self.rejoined,
             'follower_id': self.follower_id,
             'strategy': estimator.strategy.name,
+            'strategies': self.description.strategies(),
+            'strategy_changes': self.strategy_changes,
+            'strategy_pending': None if self.pending is None else self.pending[1].name,
             'measurement': self.scenario.measurement,
             'mode': self.params['mode'],
             'seed': self.run.spec.seed,

@@ -88,7 +88,7 @@ class FollowerSim(Node):
         self.step_messages: list[tuple[str, Any]] = []   # the step in progress
         self.cache: list[tuple[str, Any]] = []           # the last executed step
         self.substep_in_step = 0
-        self.counters = {'rejected_waypoints': 0, 'foreign_waypoints': 0,
+        self.counters = {'rejected_waypoints': 0, 'foreign_waypoints': 0, 'stale_waypoints': 0,
                          'rejected_odometry': 0, 'missed_cycles': 0, 'repeated_steps': 0,
                          'parked_substeps': 0}
         self.published = {'odometry': 0, 'measurement': 0, 'truth': 0, 'tf': 0}
@@ -175,6 +175,18 @@ class FollowerSim(Node):
             self.counters['repeated_steps'] += 1
             for key, item in self.cache:
                 self._publish(key, item)
+            return
+        if 0 < msg.step < self.executed:
+            # an estimator restarted without a checkpoint: the repeat of the last executed
+            # step tells it where the run is (it rejoins there)
+            self.counters['stale_waypoints'] = self.counters.get('stale_waypoints', 0) + 1
+            self.throttle.warn('stale', f'waypoint of step {msg.step}, a step left behind (step '
+                                        f'{self.executed} executed): its estimator restarted?'
+                                        + (f' repeating step {self.executed}' if self.lockstep
+                                           else ''))
+            if self.lockstep:
+                for key, item in self.cache:
+                    self._publish(key, item)
             return
         if msg.step <= self.executed or (self.pending is not None
                                          and msg.step <= self.pending.step):

@@ -63,6 +63,7 @@ class LeaderSim(Node):
         self.cache: list[tuple[int, Odometry, tuple[float, float, float]]] = []
         self.published = {'odometry': 0, 'clock': 0, 'tf': 0}
         self.foreign_waypoints = 0
+        self.stale_waypoints = 0
         self.finished = False
         self.exit_code = 0
         self.error = ''
@@ -164,6 +165,14 @@ class LeaderSim(Node):
         if msg.step == self.served_step and msg.step <= self.requested[follower]:
             self._publish(self.cache)
             return
+        if 0 < msg.step < self.served_step:
+            # the follower's estimator restarted without a checkpoint; its follower_sim repeats
+            # its last step (the estimator rejoins there), the other followers need no repeat
+            self.stale_waypoints += 1
+            self.throttle.warn('stale', f'waypoint of step {msg.step} on {follower}, a step '
+                                        f'left behind (step {self.served_step} served): its '
+                                        'estimator restarted?')
+            return
         self.requested[follower] = max(self.requested[follower], int(msg.step))
         self.serve()
 
@@ -195,6 +204,7 @@ class LeaderSim(Node):
         return {'ok': not self.error, 'error': self.error or None,
                 'run_id': self.params['run_id'], 'resumed': self.resumed,
                 'foreign_waypoints': self.foreign_waypoints,
+                'stale_waypoints': self.stale_waypoints,
                 'leader_id': self.leader_id, 'served_steps': self.served_step,
                 'substeps': self.substep, 'published': dict(self.published),
                 'final_pose': list(self.pose)}

@@ -1,6 +1,7 @@
 """recorder: records the formation's topics, raw CDR, into one rosbag2-compatible MCAP file."""
 from __future__ import annotations
 
+import errno
 import sys
 import time
 from pathlib import Path
@@ -49,7 +50,8 @@ class Recorder(Node):
     receive time (node clock), publish_time the header stamp when the type has a header.
     A timer closes the current chunk every ``flush_period`` s, so a killed recorder loses at
     most that much (``formopt-bag repair`` recovers the rest); SIGINT or SIGTERM
-    finalizes the file.
+    finalizes the file. A write error (a full disk: ENOSPC) stops the recording: the error
+    names the file, goes to the log and the counts file, and the node exits with code 1.
     """
 
     def __init__(self, cli_args: list[str] | None = None) -> None:
@@ -67,6 +69,9 @@ class Recorder(Node):
         self.pending: list[str] = []          # resolved names whose type is still unknown
         self.sources: list[tuple] = []        # (subscription, topic, type)
         self.closed = False
+        self.finished = False
+        self.exit_code = 0
+        self.error = ''
         leader, followers = p['leader_id'], tuple(p['followers'])
         if p['formation_file']:
             try:
@@ -144,23 +149,42 @@ class Recorder(Node):
 
     def on_message(self, topic: str, type_name: str, data: bytes) -> None:
         """Append one raw message; the first one registers the topic's channel."""
-        if self.closed:
+        if self.closed or self.error:
             return
         now = self.get_clock().now().nanoseconds
-        if topic not in self.writer.channels:
-            infos = [i for i in self.get_publishers_info_by_topic(topic)
-                     if i.topic_type == type_name]
-            hashes = [str(i.topic_type_hash) for i in infos]
-            self.writer.add_channel(topic, type_name,
-                                    qos_yaml(qos.offered_qos(i.qos_profile) for i in infos),
-                                    next((h for h in hashes if h != 'INVALID'), ''))
-        self.writer.write(topic, data, now)            # publish_time: the header stamp
+        try:
+            if topic not in self.writer.channels:
+                infos = [i for i in self.get_publishers_info_by_topic(topic)
+                         if i.topic_type == type_name]
+                hashes = [str(i.topic_type_hash) for i in infos]
+                self.writer.add_channel(topic, type_name,
+                                        qos_yaml(qos.offered_qos(i.qos_profile) for i in infos),
+                                        next((h for h in hashes if h != 'INVALID'), ''))
+            self.writer.write(topic, data, now)            # publish_time: the header stamp
+        except OSError as error:
+            self._failed(error, f'writing a message of {topic}')
+            return
         self.counts[topic] += 1
+
+    def _failed(self, error: OSError, doing: str) -> None:
+        """Stop recording after a write error; the error names the file and the errno."""
+        if self.error:
+            return
+        code = errno.errorcode.get(error.errno or 0, 'unknown errno')
+        self.error = (f'cannot write {self.writer.path}: {error.strerror or error} ({code}) '
+                      f'while {doing}; recording stopped after '
+                      f'{sum(self.counts.values())} messages')
+        self.exit_code = 1
+        self.finished = True
+        self.get_logger().error(self.error)
 
     def on_flush(self) -> None:
         """Close the current chunk so that a kill loses at most one flush period."""
-        if not self.closed:
-            self.writer.flush()
+        if not self.closed and not self.error:
+            try:
+                self.writer.flush()
+            except OSError as error:
+                self._failed(error, 'flushing a chunk')
 
     def drain(self, budget: float = 1.0) -> int:
         """Write the messages that arrived but were not taken yet (for at most budget s)."""
@@ -184,15 +208,23 @@ class Recorder(Node):
             return
         drained = self.drain()
         self.closed = True
-        self.writer.close()
+        try:
+            self.writer.close()
+        except OSError as error:
+            self._failed(error, 'finalizing the file (formopt-bag repair recovers the chunks '
+                                'written)')
         total = sum(self.counts.values())
         self.get_logger().info(f'recorded {total} messages to {self.writer.path} '
                                f'({drained} taken at shutdown): '
                                + ', '.join(f'{t} {n}' for t, n in self.counts.items()))
         path = self.params['counts_path']
         if path:
-            write_json(path, {'output_path': str(self.writer.path), 'total': total,
-                              'counts': self.counts})
+            try:
+                write_json(path, {'output_path': str(self.writer.path), 'total': total,
+                                  'counts': self.counts, 'error': self.error or None})
+            except OSError as error:
+                self.get_logger().error(f'cannot write the counts to {path}: '
+                                        f'{error.strerror or error}')
 
 
 SUMMARY = ('Records the formation topics, raw CDR, into one rosbag2-compatible MCAP file that '
