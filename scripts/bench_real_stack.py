@@ -65,7 +65,7 @@ def real_run(folder: Path, path: dict, seed: int, steps: int, domain: int, radio
     summary = json.loads((out / 'summary.json').read_text())
     if result.returncode != 0:
         print(f'run failed: {summary["failure"]}', file=sys.stderr)
-    follower = summary['followers']['uwb']
+    follower = summary['followers']['ranger']
     return {**follower['tracking'], 'ok': summary['ok'],
             'unreachable': follower['unreachable_targets'], 'plans': follower['plans'],
             **{f'p99_{kind}': value['p99'] for kind, value in follower['handling_ms'].items()}}

@@ -31,7 +31,7 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['ok'] and summary['interfaces'] == 'real', summary['failure']
-    assert set(summary['followers']) == {'uwb', 'camera'}
+    assert set(summary['followers']) == {'ranger', 'seer'}
     for follower_id, result_of in summary['followers'].items():
         tracking = result_of['tracking']
         assert tracking['count'] > 40 and tracking['mean_nees'] < 6.0 and \
@@ -39,9 +39,9 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
         assert not any(result_of['refused'].values()), result_of['refused']
         assert result_of['plans'] > 60
     counts = json.loads((out / 'recorder_counts.json').read_text())['counts']
-    assert counts['/leader/odom'] == summary['followers']['uwb']['field_sim']['sent'][
+    assert counts['/leader/odom'] == summary['followers']['ranger']['field_sim']['sent'][
         'leader_odom'] > 300
-    assert counts['/camera/bearing'] == summary['followers']['camera']['field_sim']['sent'][
+    assert counts['/seer/bearing'] == summary['followers']['seer']['field_sim']['sent'][
         'bearing']
 
 
