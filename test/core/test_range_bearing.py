@@ -158,7 +158,7 @@ def test_scenario_fields() -> None:
 
 
 @pytest.mark.parametrize('every', [1, 3])
-@pytest.mark.parametrize('strategy', ['mtf', 'crm', 'mme'])
+@pytest.mark.parametrize('strategy', ['rq', 'gbs', 'mtf', 'crm', 'mme', 'periodic'])
 def test_batched_engine_equals_run_trial(strategy: str, every: int) -> None:
     """run_trials equals run_trial for a range-bearing follower (bearing every step and every
     3rd), to 1e-9 (in practice bit for bit), with a turning leader segment."""
@@ -178,3 +178,9 @@ def test_batched_engine_equals_run_trial(strategy: str, every: int) -> None:
                                        atol=1e-9, err_msg=name)
         assert np.all(np.isnan(ref.measurements[:, 1]) == [k % every != 0 for k in
                                                             range(1, steps + 1)])
+
+
+def test_ram_does_not_apply() -> None:
+    """RAM refuses a range-bearing problem with a ValueError naming the measurement."""
+    with pytest.raises(ValueError, match="range-bearing"):
+        run_trial(Scenario.paper(RANGE_BEARING), 'ram', SEED, 0, 1)
