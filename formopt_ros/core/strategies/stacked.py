@@ -14,9 +14,10 @@ Taylor's theorem with |D h_d| <= 1/d, |D^2 h_d| <= 3/d^2, |D h_beta| <= 1/d^2,
 
 and the linear term's minimum over cell and disc is at least the larger of its minima over the
 square and over the disc. The bound is of second order in rho, so cells near a minimum are
-pruned once rho^2 is below the tolerance and the search ends after some twenty halvings. Cells
-are split in four until every remaining lower bound is within ``RTOL`` of the best feasible
-cost found (the projections of the cell centres on the disc); the certificate's gap is that
+pruned once rho^2 is below the tolerance and the search ends after a few levels. Cells are
+split in SPLIT x SPLIT until every remaining lower bound is within ``RTOL`` of the best
+feasible cost found (the projections of the cell centres on the disc; ``LOOSE_RTOL`` where the
+cell budget would not allow RTOL); the certificate's gap is that
 tolerance plus a rounding margin (``ROUNDING`` times the cost, for the Joseph-form evaluation;
 an estimate, not a proof). The search is capped at ``MAX_CELLS`` cells; a search that hits
 the cap is not certified and says so (``Solution.fallback = 'grid'``).
@@ -39,8 +40,10 @@ RTOL = 1e-10
 ROUNDING = 1e-12
 #: Gap (relative to the cost) up to which an answer counts as certified.
 CERTIFIED_GAP = 1e-9
+#: Tolerance the search falls back to when closing to RTOL would exceed its cell budget.
+LOOSE_RTOL = 5e-10
 #: Cells processed at most (a search beyond it falls back: uncertified, best point found).
-MAX_CELLS = 100_000
+MAX_CELLS = 200_000
 #: Cells per side of the first grid over the disc's bounding square.
 FIRST_GRID = 8
 #: Each cell kept is split into SPLIT x SPLIT cells.
@@ -225,6 +228,8 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
                              k[:, :count])
         margin = ROUNDING * abs(best)
         keep = lower < best - rtol * abs(best) - margin
+        if cells + SPLIT * SPLIT * int(keep.sum()) > max_cells:    # budget tight: close to
+            keep = lower < best - LOOSE_RTOL * abs(best) - margin   # the looser tolerance
         if not keep.all():
             floor = min(floor, float(lower[~keep].min()))
         cx, cy = cx[keep], cy[keep]
