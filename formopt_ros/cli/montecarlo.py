@@ -16,7 +16,7 @@ import numpy as np
 from formopt_ros.cli.common import (
     ArgumentParser, command, fail, integer, name_list, new_folder, number)
 from formopt_ros.core.domain import check_domain
-from formopt_ros.core.estimator import INNOVATION_GATE
+from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
     SENSOR_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
@@ -265,7 +265,9 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
     updates = summary['trials'] * summary['steps'] * len(summary['strategies'])
     gated = sum(r['gated_updates'] for r in rows)
     largest = max(r['max_innovation_nis'] for r in rows)
-    lines += ['', f'Innovation gate ({INNOVATION_GATE:g}): {gated} of {updates} updates '
+    gate = f'{INNOVATION_GATE:g}' if summary['measurement'] != RANGE_BEARING else \
+        f'2 dof: {INNOVATION_GATE_2:.4g}; 1 dof: {INNOVATION_GATE:g}'
+    lines += ['', f'Innovation gate ({gate}): {gated} of {updates} updates '
               f'refused; largest normalised innovation squared {largest:.3g}.']
     lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
     if flagged:
@@ -419,8 +421,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     strategies = tuple(args.strategies)
-    kinds = {'both': MEASUREMENT_KINDS, 'all': SENSOR_KINDS}.get(args.measurement,
-                                                               (args.measurement,))
+    kinds = {'both': MEASUREMENT_KINDS, 'all': SENSOR_KINDS}.get(
+        args.measurement, (args.measurement,))
     start = time.perf_counter()
     try:
         options = strategy_options(args.option, {'gbs': {'cell': args.gbs_cell}})

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from formopt_ros.core.cost import ProblemBatch
+from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.estimator import (
     HISTORY_LENGTH, driven_prior, innovation_gate, planning_problem, stacked_innovation_gate)
 from formopt_ros.core.formulas import weighted_trace
@@ -82,7 +82,8 @@ class _PerTrialPlanner:
                                                    for _ in strategies]
 
     def plan(self, step: int, leader: tuple[tuple[float, float], ...], x: np.ndarray,
-             P: np.ndarray, problems: ProblemBatch, p: np.ndarray, times: np.ndarray,
+             P: np.ndarray, problems: 'ProblemBatch | _PlanningProblems', p: np.ndarray,
+             times: np.ndarray,
              fallback: np.ndarray) -> None:
         s = self.scenario
         for t, strategy in enumerate(self.strategies):
@@ -111,7 +112,7 @@ class _PlanningProblems:
     def __init__(self, scenario: Scenario, step: int, prior: np.ndarray) -> None:
         self.scenario, self.step, self.prior = scenario, step, prior
 
-    def problem(self, t: int) -> object:
+    def problem(self, t: int) -> Problem:
         return planning_problem(self.scenario, self.step, self.prior[t])
 
 
@@ -174,16 +175,14 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
         prior = driven_prior(s, x, P, slot, leader)
         p = np.empty((S * T, 2))
         for planner, lane, lane_rngs in zip(planners, lanes, rngs):
-            if stacked:
-                problems: ProblemBatch | _PlanningProblems = _PlanningProblems(s, k + 1,
-                                                                               prior[lane])
-            else:
-                problems = ProblemBatch.shared(prior[lane], slot, s.r, s.sigma, s.measurement,
-                                               validate=False)
+            problems = None if stacked else ProblemBatch.shared(
+                prior[lane], slot, s.r, s.sigma, s.measurement, validate=False)
             if isinstance(planner, _PerTrialPlanner):
-                planner.plan(k + 1, leader, x[lane], P[lane], problems, p[lane],
+                planner.plan(k + 1, leader, x[lane], P[lane],
+                             problems or _PlanningProblems(s, k + 1, prior[lane]), p[lane],
                              decision_time[lane, k], fallback[lane, k])
                 continue
+            assert problems is not None             # range-bearing plans trial by trial
             start = time.perf_counter()
             plan = planner.plan_batch(problems, BatchContext(k + 1, leader, lane_rngs, s.dt,
                                                              s.sigma_v, s.sigma_omega,

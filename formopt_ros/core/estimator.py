@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -221,14 +221,15 @@ class UpdateResult:
     """What one measurement did to the filter.
 
     Attributes:
-        innovation: z - h(x), m or rad (wrapped for bearing).
+        innovation: z - h(x), m or rad (wrapped for bearing); [d, beta] residuals (2,) of a
+            stacked range-bearing update.
         nis: normalised innovation squared nu^2 / S (before any inflation).
         used: False when the innovation gate refused the measurement.
         inflation: factor applied to P before a re-opening update (1: none).
         weight: Huber's weight of the measurement (1: full; below 1: down-weighted).
     """
 
-    innovation: float
+    innovation: float | np.ndarray
     nis: float
     used: bool
     inflation: float = 1.0
@@ -254,19 +255,20 @@ def driven_prior(scenario: Scenario, x: np.ndarray, P: np.ndarray, target: np.nd
 
 
 def planning_problem(scenario: Scenario, step: int, prior: np.ndarray,
-                     sigma: float | None = None) -> Problem | StackedProblem:
+                     sigma: float | None = None) -> Problem:
     """The planner's problem of measurement step ``step`` with prior covariance ``prior``
     (3, 3) (not validated: the scenario is): a :class:`~formopt_ros.core.cost.Problem` of the
     scenario's kind, for 'range-bearing' a :class:`~formopt_ros.core.stacked.StackedProblem`,
     or a range Problem at a step without a bearing. ``sigma``: the (range) noise the planner
-    assumes (default the scenario's)."""
+    assumes (default the scenario's). (Typed as Problem: a StackedProblem has the attributes and
+    methods of one that the strategies use.)"""
     s = scenario
     sigma = s.sigma if sigma is None else sigma
     if s.measurement != RANGE_BEARING:
         return Problem(prior, s.slot, s.r, sigma, s.measurement, False)
     if not s.bearing_at(step):
         return Problem(prior, s.slot, s.r, sigma, RANGE, False)
-    return StackedProblem(prior, s.slot, s.r, sigma, s.sigma_bearing, False)
+    return cast(Problem, StackedProblem(prior, s.slot, s.r, sigma, s.sigma_bearing, False))
 
 
 class EstimatorPlanner:
@@ -426,9 +428,9 @@ class EstimatorPlanner:
         if math.isnan(d) or math.isnan(beta):
             if math.isnan(d) and math.isnan(beta):
                 raise ValueError(f'measurement of step {step} has neither range nor bearing')
-            single = (RANGE, d, variances[0]) if math.isnan(beta) else (BEARING, beta,
-                                                                         variances[1])
-            return self.update(step, single[1], single[2], kind=single[0])
+            if math.isnan(beta):
+                return self.update(step, d, variances[0], kind=RANGE)
+            return self.update(step, beta, variances[1], kind=BEARING)
         z_pair = np.array([d, beta])
         x, P, innovation, S = ekf_update_stacked(self.state, self.covariance, z_pair, variances)
         nis, use, inflation = stacked_innovation_gate(innovation, S, variances,

@@ -201,6 +201,6 @@ def run_formation(formation: Formation, steps: int) -> dict[str, TrialResult]:
             for f in formation.followers}
 
 
-__all__ = ['DRAWS_PER_STEP', 'draws_per_step', 'received', 'SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult',
-           'initial_truth', 'leader_poses', 'run_formation', 'run_trial', 'trial_streams',
-           'true_measurement', 'true_motion']
+__all__ = ['DRAWS_PER_STEP', 'SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult',
+           'draws_per_step', 'initial_truth', 'leader_poses', 'received', 'run_formation',
+           'run_trial', 'trial_streams', 'true_measurement', 'true_motion']

@@ -65,8 +65,8 @@ def test_stacked_update_equals_the_standard_and_information_forms() -> None:
         H = measurement_jacobian(RANGE_BEARING, x)
         S_ref = H @ P @ H.T + np.diag(variances)
         standard = P - P @ H.T @ np.linalg.solve(S_ref, H @ P)
-        information = np.linalg.inv(np.linalg.inv(P) + H.T @ np.diag(1 / np.array(variances))
-                                     @ H)
+        information = np.linalg.inv(np.linalg.inv(P)
+                                    + H.T @ np.diag(1 / np.array(variances)) @ H)
         scale = np.abs(P).max()
         np.testing.assert_allclose(P_post, standard, rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(P_post, information, rtol=0, atol=1e-9 * scale)
@@ -122,8 +122,8 @@ def test_stacked_gate_levels_and_reopening() -> None:
         nis, use, inflation = stacked_innovation_gate(nu, S, variances, 3)
         assert use and inflation > 1.0
         S_inflated = inflation * (S - np.diag(variances)) + np.diag(variances)
-        assert float(nu @ np.linalg.solve(S_inflated, nu)) == pytest.approx(REOPEN_NIS_2,
-                                                                          rel=1e-9)
+        reopened = float(nu @ np.linalg.solve(S_inflated, nu))
+        assert reopened == pytest.approx(REOPEN_NIS_2, rel=1e-9)
 
 
 def test_estimator_uses_one_sensor_when_the_other_is_missing() -> None:
@@ -176,8 +176,8 @@ def test_batched_engine_equals_run_trial(strategy: str, every: int) -> None:
                      'weighted_trace', 'innovation_nis'):
             np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=0,
                                        atol=1e-9, err_msg=name)
-        assert np.all(np.isnan(ref.measurements[:, 1]) == [k % every != 0 for k in
-                                                            range(1, steps + 1)])
+        missing = [k % every != 0 for k in range(1, steps + 1)]
+        assert np.all(np.isnan(ref.measurements[:, 1]) == missing)
 
 
 def test_ram_does_not_apply() -> None:

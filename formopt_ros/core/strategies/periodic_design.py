@@ -35,7 +35,7 @@ import numpy as np
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.model import (
-    EXACT, RANGE, RANGE_BEARING, ekf_update, ekf_update_stacked, measurement_jacobian,
+    EXACT, RANGE_BEARING, ekf_update, ekf_update_stacked, measurement_jacobian,
     predict_measurement, propagate_state, transition_matrices)
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move

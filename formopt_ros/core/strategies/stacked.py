@@ -1,4 +1,6 @@
-"""Certified optimum of the range-bearing problem: branch and bound over the disc (docs/range_bearing.md).
+"""Certified optimum of the range-bearing problem: branch and bound over the disc.
+
+See docs/range_bearing.md.
 
 Each square cell (centre c, half-width w, radius rho = w sqrt 2) gets a lower bound of the cost
 over the cell from the convexity of F(I) = tr(W (P^-1 + I)^-1 W) in the information
@@ -99,7 +101,8 @@ def posterior_terms(problem: StackedProblem, x: np.ndarray, y: np.ndarray
     # derivatives of the xy parts: d h_d / dx = (y^2, -xy) / d^3, d h_d / dy = (-xy, x^2) / d^3,
     # d h_b / dx = (2xy, y^2 - x^2) / d^4, d h_b / dy = (y^2 - x^2, -2xy) / d^4
     xy, yy_xx = x * y, y * y - x * x
-    gx = 2.0 * ((gd0 * y * y - gd1 * xy) / (d3 * r_d) + (gb0 * 2.0 * xy + gb1 * yy_xx) / (d4 * r_b))
+    gx = 2.0 * ((gd0 * y * y - gd1 * xy) / (d3 * r_d) + (gb0 * 2.0 * xy + gb1 * yy_xx)
+                / (d4 * r_b))
     gy = 2.0 * ((-gd0 * xy + gd1 * x * x) / (d3 * r_d) + (gb0 * yy_xx - gb1 * 2.0 * xy)
                 / (d4 * r_b))
     g_xy = np.sqrt(g00 * g00 + 2.0 * g01 * g01 + g11 * g11)       # Frobenius >= spectral norm
