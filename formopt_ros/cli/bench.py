@@ -50,7 +50,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -143,13 +143,14 @@ def _stacked(method: str) -> Runner:
     strategy = make_strategy(name, **({'cell': GBS_CELL} if name == 'gbs' else {}))
 
     def run(data: ProblemData) -> tuple[float, bool]:
-        P, p_o, r, (sigma_d, sigma_b) = data  # type: ignore[misc]
+        P, p_o, r, sigmas = data
+        sigma_d, sigma_b = cast(tuple[float, float], sigmas)
         if method == 'gbs':
             baselines._GRID_CACHE.clear()
         problem = StackedProblem(P, p_o, r, sigma_d, sigma_b, method != 'rq-loop')
         context = DEFAULT_CONTEXT if name != 'crm' else \
             replace(DEFAULT_CONTEXT, rng=np.random.default_rng(0))
-        solution = strategy.plan(problem, context)  # type: ignore[arg-type]
+        solution = strategy.plan(cast(Problem, problem), context)
         return solution.cost, solution.fallback is not None
     return run
 
@@ -157,9 +158,10 @@ def _stacked(method: str) -> Runner:
 def _reference(kind: str, data: ProblemData) -> Any:
     """The certified optimum of a problem (RQ; for range-bearing its branch and bound)."""
     if kind == RANGE_BEARING:
-        P, p_o, r, (sigma_d, sigma_b) = data  # type: ignore[misc]
-        return make_strategy('rq').plan(StackedProblem(P, p_o, r, sigma_d, sigma_b),
-                                        DEFAULT_CONTEXT)
+        P, p_o, r, sigmas = data
+        sigma_d, sigma_b = cast(tuple[float, float], sigmas)
+        problem = cast(Problem, StackedProblem(P, p_o, r, sigma_d, sigma_b))
+        return make_strategy('rq').plan(problem, DEFAULT_CONTEXT)
     return solve(*data, measurement=kind, method='rq')
 
 
