@@ -486,6 +486,9 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
     missing = sorted({'id', 'sensor', 'slot'} - set(item))
     if missing:
         raise InvalidInput(f'formation follower {name}', f'lacks the keys {missing}')
+    if item['sensor'] == RANGE_BEARING:
+        raise InvalidInput(f'formation follower {name} sensor', 'range-bearing runs in the '
+                           'simulator and the study (formopt-montecarlo), not yet on ROS')
     try:
         base = Scenario.paper(item['sensor'], p_o=item['slot'])
         sigma_v, sigma_omega = _pair('odometry_noise', item.get(

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,3 +185,16 @@ def test_ram_does_not_apply() -> None:
     """RAM refuses a range-bearing problem with a ValueError naming the measurement."""
     with pytest.raises(ValueError, match="range-bearing"):
         run_trial(Scenario.paper(RANGE_BEARING), 'ram', SEED, 0, 1)
+
+
+def test_formation_file_refuses_range_bearing_until_ros_supports_it() -> None:
+    """A formation file with a range-bearing follower is refused with a message naming the
+    follower and where it does run (the simulator and the study)."""
+    import yaml
+    from formopt_ros.core.scenario import Formation
+    path = Path(__file__).resolve().parents[2] / 'config' / 'formation_fig4.yaml'
+    with open(path, encoding='utf-8') as handle:
+        data = yaml.safe_load(handle)['formation']
+    data['followers'][0]['sensor'] = RANGE_BEARING
+    with pytest.raises(InvalidInput, match='range-bearing runs in the simulator'):
+        Formation.from_dict(data)
