@@ -26,6 +26,28 @@ def _colour(name: str) -> str:
     return COLOURS.get(name, _PALETTE[sum(map(ord, name)) % len(_PALETTE)])
 
 
+def sensor_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path,
+                  title: str) -> Path:
+    """Mean tr(W P W) over time of one follower with different sensors (label -> (steps,)
+    m^2), log scale: range-only, bearing-only and range+bearing side by side."""
+    fig, ax = plt.subplots(figsize=(8, 5))
+    styles = {'range-only': 'tab:blue', 'bearing-only': 'tab:orange', 'range+bearing': 'k'}
+    for label, values in traces.items():
+        sensor, _, strategy = label.rpartition(' ')
+        ax.plot(time, values, label=label, color=styles.get(sensor, None),
+                linestyle='--' if strategy == 'periodic' else '-', linewidth=1.2)
+    ax.set_yscale('log')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('mean tr(W P W) [m$^2$]')
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(loc='upper right')
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def trace_figure(time: np.ndarray, traces: dict[str, np.ndarray], path: Path, title: str,
                  zoom: tuple[str, ...] = ('ram', 'rq', 'gbs', 'periodic')) -> Path:
     """Mean tr(W P W) over time per strategy, log scale, with a zoomed inset of ``zoom``.

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import sys
 import time
@@ -15,8 +16,9 @@ import numpy as np
 from formopt_ros.cli.common import (
     ArgumentParser, command, fail, integer, name_list, new_folder, number)
 from formopt_ros.core.domain import check_domain
-from formopt_ros.core.estimator import INNOVATION_GATE
-from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS
+from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
+from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
+    SENSOR_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
@@ -24,11 +26,17 @@ from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
     ENGINES, FLAG_RULE, METHODS, STUDY_OPTIONS, StudyConfig, StudyResult, memory_estimate,
-    nees_band, run_studies, summarize)
+    nees_band, run_studies, steady_window, summarize)
 from formopt_ros.wire.jsonfile import write_json
 
 FIGURE_NAMES = {'range': 'fig5_range_weighted_trace.png',
-                'bearing': 'fig6_bearing_weighted_trace.png'}
+                'bearing': 'fig6_bearing_weighted_trace.png',
+                RANGE_BEARING: 'range_bearing_weighted_trace.png'}
+#: Sensor titles of the figures and reports.
+TITLES = {'range': 'range-only', 'bearing': 'bearing-only', RANGE_BEARING: 'range+bearing'}
+#: The optimiser's runs of the three sensors at one slot: OUT/sensors/ (figure and summary).
+COMPARISON_FOLDER = 'sensors'
+COMPARISON_STRATEGIES = ('rq', 'periodic')
 
 
 def build_parser() -> ArgumentParser:
@@ -39,8 +47,17 @@ def build_parser() -> ArgumentParser:
                     'Motion Strategies for Localization in Leader-Follower Formations": every '
                     'strategy on the same random numbers, summary.json, per-step CSV, the '
                     "paper's Figs. 4-6 and a NEES plot per measurement kind.")
-    parser.add_argument('--measurement', choices=(*MEASUREMENT_KINDS, 'both'), default='both',
-                        help='which follower sensor to simulate (default: both)')
+    parser.add_argument('--measurement', choices=(*MEASUREMENT_KINDS, 'both', RANGE_BEARING,
+                                                  'all'), default='both',
+                        help='which follower sensor to simulate: both = range and bearing, '
+                             'range-bearing = both sensors on one follower (the range '
+                             "follower's slot; RAM does not apply and is left out), all = the "
+                             'three; with range-bearing, RQ and PERIODIC also run range-only '
+                             'and bearing-only at its slot for the sensor comparison in '
+                             'OUT/sensors (default: both)')
+    parser.add_argument('--bearing-every', type=integer(1, 10**6), default=1,
+                        help='range-bearing: the bearing arrives every k-th step, the range '
+                             'every step (default: 1)')
     parser.add_argument('--trials', type=integer(1, 100_000), default=50,
                         help='Monte Carlo trials per strategy (default: 50)')
     parser.add_argument('--steps', type=integer(1, 10_000_000), default=600,
@@ -163,10 +180,11 @@ def _figures(result: StudyResult, out: Path, time_s: np.ndarray, mean_trace: dic
     from formopt_ros.analysis import figures
     config, scenario = result.config, result.scenario
     kind = config.measurement
+    title = TITLES[kind]
     figures.trace_figure(time_s, mean_trace, out / FIGURE_NAMES[kind],
-                         f'{kind}-only: mean weighted trace over {config.trials} trials')
+                         f'{title}: mean weighted trace over {config.trials} trials')
     figures.nees_figure(time_s, mean_nees, nees_band(config.trials), out / 'nees.png',
-                        f'{kind}-only: trial-averaged NEES ({config.trials} trials)')
+                        f'{title}: trial-averaged NEES ({config.trials} trials)')
     shown = [n for n in ('ram', 'gbs', 'mme', 'rq', 'periodic') if n in result.records][:3]
     if 'periodic' in result.records and 'periodic' not in shown:
         shown.append('periodic')
@@ -183,7 +201,7 @@ def _figures(result: StudyResult, out: Path, time_s: np.ndarray, mean_trace: dic
             'waypoints': example.waypoints[:n], 'p_o': scenario.slot, 'r': scenario.r}]}
     if panels:
         figures.trajectory_figure(panels, out / 'fig4_trajectories.png',
-                                  f'{kind}-only, trial 0, first {n} steps')
+                                  f'{title}, trial 0, first {n} steps')
 
 
 def describe_path(path: dict[str, Any]) -> str:
@@ -216,11 +234,14 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
     lo, hi = summary['nees_band']
     flagged = summary.get('consistency', {}).get('flagged', {})
     scenario = summary['scenario']
-    lines = [f"# Monte Carlo, {summary['measurement']}-only",
+    lines = [f"# Monte Carlo, {TITLES.get(summary['measurement'], summary['measurement'])}",
              '',
              f"{summary['trials']} trials x {summary['steps']} steps, seed {summary['seed']}, "
              f"GBS cell {summary['gbs_cell']} r. Slot {scenario['p_o']} m, r = "
-             f"{scenario['r']:.4g} m, sigma = {scenario['sigma']:.4g}, leader "
+             f"{scenario['r']:.4g} m, sigma = {scenario['sigma']:.4g}"
+             + (f", sigma_bearing = {scenario['sigma_bearing']:.4g} rad, bearing every "
+                f"{scenario['bearing_every']} step(s)" if 'sigma_bearing' in scenario else '')
+             + ', leader '
              f"{describe_path(scenario['leader'])}, {scenario['kinematics']} kinematics"
              f"{limits_text(scenario)}. Steady "
              f"value: mean over the last {summary['steady_window']} steps; mean: over all "
@@ -264,7 +285,9 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
     updates = summary['trials'] * summary['steps'] * len(summary['strategies'])
     gated = sum(r['gated_updates'] for r in rows)
     largest = max(r['max_innovation_nis'] for r in rows)
-    lines += ['', f'Innovation gate ({INNOVATION_GATE:g}): {gated} of {updates} updates '
+    gate = f'{INNOVATION_GATE:g}' if summary['measurement'] != RANGE_BEARING else \
+        f'2 dof: {INNOVATION_GATE_2:.4g}; 1 dof: {INNOVATION_GATE:g}'
+    lines += ['', f'Innovation gate ({gate}): {gated} of {updates} updates '
               f'refused; largest normalised innovation squared {largest:.3g}.']
     lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
     if flagged:
@@ -328,6 +351,10 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         overrides['r'] = args.r_fraction * paper.d_o
     if args.sigma_scale is not None:
         overrides['sigma'] = args.sigma_scale * paper.sigma
+        if kind == RANGE_BEARING:
+            overrides['sigma_bearing'] = args.sigma_scale * paper.sigma_bearing
+    if kind == RANGE_BEARING and getattr(args, 'bearing_every', 1) != 1:
+        overrides['bearing_every'] = args.bearing_every
     path = leader_path(args)
     if path != paper.leader:
         overrides['leader'] = path
@@ -338,6 +365,80 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, 'safety_distance', None):
         overrides['safety_distance'] = args.safety_distance
     return overrides
+
+
+def kind_strategies(kind: str, strategies: tuple[str, ...]) -> tuple[str, ...]:
+    """The strategies a study of ``kind`` runs: all given, but RAM (the paper's scalar method)
+    not for range-bearing."""
+    if kind != RANGE_BEARING or 'ram' not in strategies:
+        return strategies
+    rest = tuple(s for s in strategies if s != 'ram')
+    print('formopt-montecarlo: note: range-bearing leaves RAM out (the paper\'s method for one '
+          'scalar measurement does not apply; RQ solves it by branch and bound)')
+    return rest
+
+
+def comparison_configs(configs: list[StudyConfig], strategies: tuple[str, ...]
+                       ) -> list[StudyConfig]:
+    """For a range-bearing study: range-only and bearing-only studies of the same follower
+    (its slot, r, leader, kinematics, each sensor's noise) with the optimiser and PERIODIC
+    (those of COMPARISON_STRATEGIES the run has), for the sensor comparison."""
+    both = next((c for c in configs if c.measurement == RANGE_BEARING), None)
+    chosen = tuple(s for s in COMPARISON_STRATEGIES if s in strategies)
+    if both is None or not chosen:
+        return []
+    scenario = both.make_scenario()
+    out = []
+    for kind, sigma in (('range', scenario.sigma), ('bearing', scenario.sigma_bearing)):
+        overrides = {'p_o': scenario.p_o, 'r': scenario.r, 'sigma': sigma,
+                     'leader': scenario.leader, 'kinematics': scenario.kinematics}
+        out.append(StudyConfig(kind, both.trials, both.steps, both.seed, chosen, both.options,
+                               overrides))
+    return out
+
+
+def write_comparison(out: Path, results: list[StudyResult], figures: bool) -> None:
+    """OUT/sensors: summary.json (steady and mean tr(W P W), NEES in band, per sensor and
+    strategy) and sensors_weighted_trace.png (mean tr(W P W) over time of each sensor)."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, Any] = {}
+    traces: dict[str, np.ndarray] = {}
+    for result in results:
+        kind = result.config.measurement
+        summary = summarize(result)
+        for name in COMPARISON_STRATEGIES:
+            if name in summary['strategies']:
+                row = summary['strategies'][name]
+                rows[f'{TITLES[kind]} {name}'] = {
+                    key: row[key] for key in ('steady_trace', 'steady_trace_std', 'mean_trace',
+                                              'nees_mean', 'nees_in_band')}
+                traces[f'{TITLES[kind]} {name}'] = \
+                    result.records[name].weighted_trace.mean(axis=0)
+    first = results[0]
+    write_json(out / 'summary.json', {
+        'trials': first.config.trials, 'steps': first.config.steps, 'seed': first.config.seed,
+        'scenario': next(r.scenario.to_dict() for r in results
+                         if r.config.measurement == RANGE_BEARING),
+        'steady_window': steady_window(first.config.steps), 'runs': rows})
+    if figures:
+        from formopt_ros.analysis import figures as plots
+        time_s = (np.arange(first.config.steps) + 1) * SUBSTEPS * first.scenario.dt
+        plots.sensor_figure(time_s, traces, out / 'sensors_weighted_trace.png',
+                            f'one follower at {list(first.scenario.p_o)} m, three sensors: '
+                            f'mean tr(W P W) over {first.config.trials} trials')
+
+
+def comparison_lines(folder: Path) -> list[str]:
+    """The sensor comparison as printed lines (from OUT/sensors/summary.json)."""
+    data = json.loads((folder / 'summary.json').read_text())
+    lines = ['', f"# Sensors compared at slot {data['scenario']['p_o']} m (steady: last "
+             f"{data['steady_window']} steps)", '',
+             '| run | steady tr(W P W) [m^2] | mean tr(W P W) [m^2] | NEES in band |',
+             '|---|---|---|---|']
+    for name, row in data['runs'].items():
+        lines.append(f"| {name} | {row['steady_trace']:.6g} | {row['mean_trace']:.6g} | "
+                     f"{100 * row['nees_in_band']:.1f} % |")
+    return lines
 
 
 def physical_memory() -> int:
@@ -351,13 +452,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     strategies = tuple(args.strategies)
-    kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
+    kinds = {'both': MEASUREMENT_KINDS, 'all': SENSOR_KINDS}.get(
+        args.measurement, (args.measurement,))
     start = time.perf_counter()
     try:
         options = strategy_options(args.option, {'gbs': {'cell': args.gbs_cell}})
-        configs = [StudyConfig(kind, args.trials, args.steps, args.seed, strategies, options,
+        configs = [StudyConfig(kind, args.trials, args.steps, args.seed,
+                               kind_strategies(kind, strategies), options,
                                scenario_overrides(kind, args))
                    for kind in kinds]
+        comparison = comparison_configs(configs, strategies)
         if not args.allow_inconsistent:
             for config in configs:
                 check_domain(Scenario.paper(config.measurement, **config.scenario), 'slot',
@@ -371,11 +475,17 @@ def main(argv: list[str] | None = None) -> int:
                           f'about {need / 2**30:.1f} GiB of records, more than half of the '
                           f"{have / 2**30:.1f} GiB of this machine's memory; lower --trials or "
                           '--steps')
-    bar = _progress(args.trials * len(strategies) * len(kinds), ' + '.join(kinds))
+    bar = _progress(args.trials * sum(len(c.strategies) for c in configs + comparison),
+                    ' + '.join(kinds))
     # each kind's outputs (figures take a second) are written as soon as its runs are in
     results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,
                           partial(write_into, args.out, not args.no_figures,
                                   allow_inconsistent=args.allow_inconsistent))
+    if comparison:
+        compared = run_studies(comparison, args.jobs, bar.update if bar else None, args.engine)
+        write_comparison(args.out / COMPARISON_FOLDER, compared + [
+            r for r in results if r.config.measurement == RANGE_BEARING],
+            not args.no_figures)
     if bar:
         bar.close()
     for result in results:
@@ -386,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{parser.prog}: warning: {result.config.measurement}: "
                   f"{', '.join(n.upper() for n in flagged)} flagged inconsistent (the filter's "
                   'NEES left its band; see report.md)', file=sys.stderr)
+    for line in comparison_lines(args.out / COMPARISON_FOLDER) if comparison else ():
+        print(line)
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
           f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')

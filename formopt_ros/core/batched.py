@@ -17,6 +17,8 @@ strategies in one stack (every (strategy, trial) a lane, so numpy's per-call cos
   move-dependent prior) and random stream per trial, which is how a stateful strategy runs;
   under a speed limit or a safety distance every strategy runs trial by trial, each planning
   inside its own reachable set (:mod:`~formopt_ros.core.reach`).
+  A range-bearing scenario plans every strategy trial by trial (its problems are
+  :class:`~formopt_ros.core.stacked.StackedProblem`, which have no batch form).
 
 A test checks agreement with run_trial to 1e-9 for every strategy, both sensors and a turning
 leader; in practice the numbers are identical.
@@ -30,16 +32,18 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from formopt_ros.core.cost import ProblemBatch
-from formopt_ros.core.estimator import HISTORY_LENGTH, driven_prior, innovation_gate
+from formopt_ros.core.cost import Problem, ProblemBatch
+from formopt_ros.core.estimator import (
+    HISTORY_LENGTH, driven_prior, innovation_gate, planning_problem, stacked_innovation_gate)
 from formopt_ros.core.formulas import weighted_trace
-from formopt_ros.core.model import ekf_update, normalized_estimation_error, propagate
-from formopt_ros.core.reach import reach_region
+from formopt_ros.core.model import (
+    RANGE, RANGE_BEARING, ekf_update, ekf_update_stacked, normalized_estimation_error, propagate)
 from formopt_ros.core.protocol import SUBSTEPS, command_velocities, held_leader_motion, \
     step_substeps
+from formopt_ros.core.reach import reach_region
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import (
-    DRAWS_PER_STEP, TrialResult, initial_truth, trial_streams, true_measurement, true_motion)
+    TrialResult, draws_per_step, initial_truth, trial_streams, true_measurement, true_motion)
 from formopt_ros.core.solver import timed_plan
 from formopt_ros.core.strategies import (
     BatchContext, EstimatorView, PlanContext, StepRecord, Strategy, make_strategy)
@@ -81,7 +85,8 @@ class _PerTrialPlanner:
                                                    for _ in strategies]
 
     def plan(self, step: int, leader: tuple[tuple[float, float], ...], x: np.ndarray,
-             P: np.ndarray, problems: ProblemBatch, p: np.ndarray, times: np.ndarray,
+             P: np.ndarray, problems: 'ProblemBatch | _PlanningProblems', p: np.ndarray,
+             times: np.ndarray,
              fallback: np.ndarray) -> None:
         s = self.scenario
         for t, strategy in enumerate(self.strategies):
@@ -103,6 +108,17 @@ class _PerTrialPlanner:
     def record(self, step: int, x: np.ndarray, P: np.ndarray, targets: np.ndarray) -> None:
         for t, history in enumerate(self.histories):
             history.append(StepRecord(step, x[t], P[t], targets[t]))
+
+
+class _PlanningProblems:
+    """The per-trial problems of one step of a range-bearing scenario (``problem(t)``, as
+    :meth:`~formopt_ros.core.cost.ProblemBatch.problem`)."""
+
+    def __init__(self, scenario: Scenario, step: int, prior: np.ndarray) -> None:
+        self.scenario, self.step, self.prior = scenario, step, prior
+
+    def problem(self, t: int) -> Problem:
+        return planning_problem(self.scenario, self.step, self.prior[t])
 
 
 def run_trials(scenario: Scenario, strategy: str, seed: int, trials: Sequence[int], steps: int,
@@ -133,10 +149,12 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
     s = scenario
     T, S = len(trials), len(strategies)
     options = options or {}
-    draws = np.array([trial_streams(seed, trial)[0].normal(size=3 + DRAWS_PER_STEP * steps)
+    per_step = draws_per_step(s)
+    stacked = s.measurement == RANGE_BEARING
+    draws = np.array([trial_streams(seed, trial)[0].normal(size=3 + per_step * steps)
                       for trial in trials])
     truth = np.tile(np.array([initial_truth(s, d[:3]) for d in draws]), (S, 1))
-    motion = np.tile(draws[:, 3:].reshape(T, steps, DRAWS_PER_STEP), (S, 1, 1))
+    motion = np.tile(draws[:, 3:].reshape(T, steps, per_step), (S, 1, 1))
     x0, P0 = s.initial_estimate()
     x, P = np.tile(x0, (S * T, 1)), np.tile(P0, (S * T, 1, 1))
     slot = s.slot
@@ -147,7 +165,8 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
         rngs.append([trial_streams(seed, trial)[1] for trial in trials])
         first = make_strategy(name, **options.get(name, {}))
         limited = s.max_speed is not None or s.safety_distance > 0.0
-        planners.append(first if first.vectorised() and not limited else _PerTrialPlanner(
+        batched = first.vectorised() and not (limited or stacked)
+        planners.append(first if batched else _PerTrialPlanner(
             [first] + [make_strategy(name, **options.get(name, {})) for _ in range(T - 1)],
             s, rngs[-1]))
     waypoints = np.empty((S * T, steps, 2))
@@ -163,12 +182,14 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
         prior = driven_prior(s, x, P, slot, leader)
         p = np.empty((S * T, 2))
         for planner, lane, lane_rngs in zip(planners, lanes, rngs):
-            problems = ProblemBatch.shared(prior[lane], slot, s.r, s.sigma, s.measurement,
-                                           validate=False)
+            problems = None if stacked else ProblemBatch.shared(
+                prior[lane], slot, s.r, s.sigma, s.measurement, validate=False)
             if isinstance(planner, _PerTrialPlanner):
-                planner.plan(k + 1, leader, x[lane], P[lane], problems, p[lane],
+                planner.plan(k + 1, leader, x[lane], P[lane],
+                             problems or _PlanningProblems(s, k + 1, prior[lane]), p[lane],
                              decision_time[lane, k], fallback[lane, k])
                 continue
+            assert problems is not None             # range-bearing plans trial by trial
             start = time.perf_counter()
             plan = planner.plan_batch(problems, BatchContext(k + 1, leader, lane_rngs, s.dt,
                                                              s.sigma_v, s.sigma_omega,
@@ -185,8 +206,12 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
             truth = true_motion(s, truth, v, omega, motion[:, k, 2 * j:2 * j + 2], v_l, omega_l)
             x, P = propagate(x, P, v, omega, s.dt, v_l, omega_l, s.sigma_v, s.sigma_omega,
                              s.sigma_v_leader, s.sigma_omega_leader, s.kinematics)
-        z = true_measurement(s, truth, motion[:, k, 2 * SUBSTEPS])
-        x, P, gated_in_a_row, out.innovation_nis[:, k], out.gated[:, k] = _gated_update(
+        if stacked:
+            z = true_measurement(s, truth, motion[:, k, 2 * SUBSTEPS:2 * SUBSTEPS + 2])
+            update = _gated_update_stacked if s.bearing_at(k + 1) else _gated_update
+        else:
+            z, update = true_measurement(s, truth, motion[:, k, 2 * SUBSTEPS]), _gated_update
+        x, P, gated_in_a_row, out.innovation_nis[:, k], out.gated[:, k] = update(
             s, x, P, z, gated_in_a_row)
         for planner, lane in zip(planners, lanes):
             if isinstance(planner, _PerTrialPlanner):
@@ -205,13 +230,30 @@ def _gated_update(s: Scenario, x: np.ndarray, P: np.ndarray, z: np.ndarray,
     :meth:`~formopt_ros.core.estimator.EstimatorPlanner.update` does it for one: (x, P, gated in
     a row, nis, gated) after the update."""
     variance = s.sigma ** 2
-    x_new, P_new, innovation, S = ekf_update(x, P, z, s.measurement, variance)
+    kind = s.measurement
+    if kind == RANGE_BEARING:               # a step without a bearing: the range alone
+        kind, z = RANGE, z[:, 0]
+    x_new, P_new, innovation, S = ekf_update(x, P, z, kind, variance)
     nis, use, inflation = innovation_gate(innovation, S, variance, gated_in_a_row)
     reopen = np.flatnonzero(use & (inflation > 1.0))
     if reopen.size:
         x_new[reopen], P_new[reopen], _, _ = ekf_update(
-            x[reopen], inflation[reopen, None, None] * P[reopen], z[reopen], s.measurement,
-            variance)
+            x[reopen], inflation[reopen, None, None] * P[reopen], z[reopen], kind, variance)
+    x_new[~use], P_new[~use] = x[~use], P[~use]
+    return x_new, P_new, np.where(use, 0, gated_in_a_row + 1), nis, ~use
+
+
+def _gated_update_stacked(s: Scenario, x: np.ndarray, P: np.ndarray, z: np.ndarray,
+                          gated_in_a_row: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:func:`_gated_update` for range and bearing together (z (T, 2)), as
+    :meth:`~formopt_ros.core.estimator.EstimatorPlanner.update` does it for one."""
+    variances = (s.sigma ** 2, s.sigma_bearing ** 2)
+    x_new, P_new, innovation, S = ekf_update_stacked(x, P, z, variances)
+    nis, use, inflation = stacked_innovation_gate(innovation, S, variances, gated_in_a_row)
+    reopen = np.flatnonzero(use & (inflation > 1.0))
+    if reopen.size:
+        x_new[reopen], P_new[reopen], _, _ = ekf_update_stacked(
+            x[reopen], inflation[reopen, None, None] * P[reopen], z[reopen], variances)
     x_new[~use], P_new[~use] = x[~use], P[~use]
     return x_new, P_new, np.where(use, 0, gated_in_a_row + 1), nis, ~use
 

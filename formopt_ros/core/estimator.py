@@ -14,12 +14,19 @@ The input gate (documented thresholds; every refusal is counted and says why):
   no study number. After ``GATE_PATIENCE`` refusals in a row the filter is taken to be lost:
   the next measurement is used after scaling P so that its innovation is at 3 standard
   deviations (counted as a covariance inflation).
+* range and bearing of one step ('range-bearing'): one joint gate on the stacked normalised
+  innovation squared nu' S^-1 nu (chi-square, 2 dof) at the same tail probability as the
+  scalar gate: ``INNOVATION_GATE_2`` = -2 ln P(chi2_1 > 100) = 105.1, re-opening at
+  ``REOPEN_NIS_2`` = -2 ln P(chi2_1 > 9) = 11.8 (P scaled so that the stacked innovation sits
+  there). A step with one of the two (rates: :attr:`Scenario.bearing_every`) is a scalar
+  update behind the scalar gate.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -27,11 +34,13 @@ from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import (
-    ekf_update, normalized_estimation_error, propagate, transition_matrices)
+    BEARING, RANGE, RANGE_BEARING, ekf_update, ekf_update_stacked, normalized_estimation_error,
+    propagate, stacked_nis, transition_matrices)
 from formopt_ros.core.protocol import (
     MotionCommand, Timebase, held_leader_motion, motion_commands, predict_move)
 from formopt_ros.core.reach import reach_region
 from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.solver import timed_plan
 from formopt_ros.core.stepper import ReadyStep, StepAssembler
 from formopt_ros.core.strategies import (
@@ -42,6 +51,10 @@ from formopt_ros.core.strategies import (
 HISTORY_LENGTH = 8
 #: Normalised innovation squared above which a measurement is not used (chi-square, 1 dof).
 INNOVATION_GATE = 100.0
+#: The stacked (2 dof) gate and re-opening level: the scalar ones' tail probabilities.
+INNOVATION_GATE_2 = -2.0 * math.log(math.erfc(math.sqrt(INNOVATION_GATE / 2.0)))
+#: Re-opening level of the stacked gate, 2 dof (the tail of 3 standard deviations).
+REOPEN_NIS_2 = -2.0 * math.log(math.erfc(math.sqrt(9.0 / 2.0)))
 #: Gated measurements in a row after which the filter re-opens with an inflated covariance.
 GATE_PATIENCE = 3
 #: Normalised innovation squared a re-opening measurement is scaled to (3 standard deviations).
@@ -129,6 +142,41 @@ def innovation_gate(innovation: Any, S: Any, variance: float,
     return nis, use, inflation
 
 
+def stacked_innovation_gate(innovation: np.ndarray, S: np.ndarray,
+                            variances: tuple[float, float], gated_in_a_row: Any,
+                            gate: float = INNOVATION_GATE_2) -> tuple[Any, Any, Any]:
+    """:func:`innovation_gate` for a stacked range-bearing update (module docstring).
+
+    Args:
+        innovation: z - h(x), (2,) or (T, 2) (m, rad); S: H P H' + R, (2, 2) or (T, 2, 2).
+        variances: (sigma_d^2, sigma_beta^2), the diagonal of R.
+        gated_in_a_row: measurements gated in a row before this one.
+        gate: the stacked normalised innovation squared above which it is refused.
+
+    Returns:
+        (nis, use, inflation): nis = nu' S^-1 nu; the factor a re-opening update scales P by is
+        the larger root alpha of nu' (alpha A + R)^-1 nu = REOPEN_NIS_2, A = S - R (a
+        quadratic: nu' adj(B) nu is affine and det B quadratic in alpha), at least 1.
+    """
+    r0, r1 = variances
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        nis = stacked_nis(innovation, S)
+        n0, n1 = innovation[..., 0], innovation[..., 1]
+        a00, a01, a11 = S[..., 0, 0] - r0, S[..., 0, 1], S[..., 1, 1] - r1
+        q1 = a11 * n0 * n0 - 2.0 * a01 * n0 * n1 + a00 * n1 * n1
+        q0 = r1 * n0 * n0 + r0 * n1 * n1
+        c = REOPEN_NIS_2
+        qa, qb, qc = c * (a00 * a11 - a01 * a01), c * (a00 * r1 + a11 * r0) - q1, c * r0 * r1 - q0
+        root = (-qb + np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
+        reopen = (np.asarray(gated_in_a_row) >= GATE_PATIENCE) & np.isfinite(nis) & (qa > 0.0)
+        passes = nis <= gate
+        inflation = np.where(reopen & ~passes, np.maximum(root, 1.0), 1.0)
+    use = passes | reopen
+    if np.ndim(use) == 0:
+        return float(nis), bool(use), float(inflation)
+    return nis, use, inflation
+
+
 @dataclass(frozen=True)
 class RealNoise:
     """Measurement-noise handling for real sensors (all off by default: the paper's filter).
@@ -174,14 +222,15 @@ class UpdateResult:
     """What one measurement did to the filter.
 
     Attributes:
-        innovation: z - h(x), m or rad (wrapped for bearing).
+        innovation: z - h(x), m or rad (wrapped for bearing); [d, beta] residuals (2,) of a
+            stacked range-bearing update.
         nis: normalised innovation squared nu^2 / S (before any inflation).
         used: False when the innovation gate refused the measurement.
         inflation: factor applied to P before a re-opening update (1: none).
         weight: Huber's weight of the measurement (1: full; below 1: down-weighted).
     """
 
-    innovation: float
+    innovation: float | np.ndarray
     nis: float
     used: bool
     inflation: float = 1.0
@@ -204,6 +253,23 @@ def driven_prior(scenario: Scenario, x: np.ndarray, P: np.ndarray, target: np.nd
     dt and odometry noise; one pose or a batch (shapes as there), returns the shape of P."""
     return predict_move(x, P, target, leader, scenario.dt, scenario.sigma_v,
                         scenario.sigma_omega, scenario.kinematics)[1]
+
+
+def planning_problem(scenario: Scenario, step: int, prior: np.ndarray,
+                     sigma: float | None = None) -> Problem:
+    """The planner's problem of measurement step ``step`` with prior covariance ``prior``
+    (3, 3) (not validated: the scenario is): a :class:`~formopt_ros.core.cost.Problem` of the
+    scenario's kind, for 'range-bearing' a :class:`~formopt_ros.core.stacked.StackedProblem`,
+    or a range Problem at a step without a bearing. ``sigma``: the (range) noise the planner
+    assumes (default the scenario's). (Typed as Problem: a StackedProblem has the attributes and
+    methods of one that the strategies use.)"""
+    s = scenario
+    sigma = s.sigma if sigma is None else sigma
+    if s.measurement != RANGE_BEARING:
+        return Problem(prior, s.slot, s.r, sigma, s.measurement, False)
+    if not s.bearing_at(step):
+        return Problem(prior, s.slot, s.r, sigma, RANGE, False)
+    return cast(Problem, StackedProblem(prior, s.slot, s.r, sigma, s.sigma_bearing, False))
 
 
 class EstimatorPlanner:
@@ -232,6 +298,10 @@ class EstimatorPlanner:
         self.rng = rng
         self.noise = noise
         self.state, self.covariance = scenario.initial_estimate()
+        if scenario.measurement == RANGE_BEARING and (sensor_offset is not None
+                                                      or noise != RealNoise()):
+            raise ValueError('a range-bearing follower has no sensor offset, bias state or '
+                             'robust update yet')
         if noise.bias_sigma > 0.0:
             if scenario.measurement != 'range':
                 raise ValueError('a bias state needs range measurements, got '
@@ -278,7 +348,7 @@ class EstimatorPlanner:
         """
         s = self.scenario
         prior = self.prior_for(self._slot, leader)     # the paper's planning prior (Sec. III-D)
-        problem = Problem(prior, self._slot, s.r, self.planning_sigma, s.measurement, False)
+        problem = planning_problem(s, step, prior, self.planning_sigma)
         view = EstimatorView(self.x, self.P, self.history,
                              lambda target: self.prior_for(target, leader))
         region = reach_region(s.p_o, s.r, self.x, leader, s.dt, s.kinematics, s.max_speed,
@@ -318,13 +388,23 @@ class EstimatorPlanner:
         covariance[3, 3] += self.noise.bias_walk ** 2 * dt
         self.state, self.covariance = np.append(pose, self.state[3]), covariance
 
-    def update(self, step: int, z: float, variance: float | None = None) -> UpdateResult:
+    def update(self, step: int, z: Any, variance: Any = None,
+               kind: str | None = None) -> UpdateResult:
         """EKF update with a range (m) or bearing (rad) measurement of step ``step``, behind the
         innovation gate (module docstring): a refused measurement leaves x and P as they are.
+
+        'range-bearing' scenarios: z = [d, beta] (2,), NaN where a sensor gave nothing this
+        step, and ``variance`` None or (sigma_d^2, sigma_beta^2); both present: one stacked
+        update (:func:`~formopt_ros.core.model.ekf_update_stacked`, 2-dof gate), one present: a
+        scalar update of that kind. ``kind``: the scalar kind of z when it is not the
+        scenario's (used for a single sensor of a range-bearing follower).
         """
         s = self.scenario
+        if s.measurement == RANGE_BEARING and kind is None:
+            return self._update_stacked(step, z, variance)
+        kind = s.measurement if kind is None else kind
         variance = s.sigma ** 2 if variance is None else variance
-        x, P, innovation, S = ekf_update(self.state, self.covariance, z, s.measurement,
+        x, P, innovation, S = ekf_update(self.state, self.covariance, z, kind,
                                          variance, self.sensor_offset)
         nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row,
                                               self.noise.gate_nis)
@@ -336,12 +416,38 @@ class EstimatorPlanner:
             weight = self.noise.huber / float(np.sqrt(nis))
         if inflation > 1.0 or weight < 1.0:
             x, P, innovation, S = ekf_update(self.state, inflation * self.covariance, z,
-                                             s.measurement, variance / weight,
-                                             self.sensor_offset)
+                                             kind, variance / weight, self.sensor_offset)
         self.gated_in_a_row = 0
         self.state, self.covariance = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))
         return UpdateResult(innovation, nis, True, float(inflation), weight)
+
+    def _update_stacked(self, step: int, z: Any, variance: Any) -> UpdateResult:
+        """:meth:`update` of a range-bearing follower: z (2,), NaN for a missing component."""
+        s = self.scenario
+        d, beta = (float(v) for v in np.asarray(z, dtype=float).reshape(2))
+        variances = (s.sigma ** 2, s.sigma_bearing ** 2) if variance is None else \
+            (float(variance[0]), float(variance[1]))
+        if math.isnan(d) or math.isnan(beta):
+            if math.isnan(d) and math.isnan(beta):
+                raise ValueError(f'measurement of step {step} has neither range nor bearing')
+            if math.isnan(beta):
+                return self.update(step, d, variances[0], kind=RANGE)
+            return self.update(step, beta, variances[1], kind=BEARING)
+        z_pair = np.array([d, beta])
+        x, P, innovation, S = ekf_update_stacked(self.state, self.covariance, z_pair, variances)
+        nis, use, inflation = stacked_innovation_gate(innovation, S, variances,
+                                                      self.gated_in_a_row)
+        if not use:
+            self.gated_in_a_row += 1
+            return UpdateResult(innovation, nis, False)
+        if inflation > 1.0:
+            x, P, innovation, S = ekf_update_stacked(self.state, inflation * self.covariance,
+                                                     z_pair, variances)
+        self.gated_in_a_row = 0
+        self.state, self.covariance = x, P
+        self.history.append(StepRecord(step, self.x, self.P, self._target))
+        return UpdateResult(innovation, nis, True, float(inflation))
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""

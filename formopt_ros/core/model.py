@@ -31,6 +31,10 @@ import numpy as np
 RANGE = 'range'
 BEARING = 'bearing'
 MEASUREMENT_KINDS = (RANGE, BEARING)
+#: Range and bearing at the same step: z = [d (m), beta (rad)], R = diag(sigma_d^2, sigma_beta^2)
+#: (a scenario and planner kind; the scalar kinds above stay the Problem kinds of RQ and RAM).
+RANGE_BEARING = 'range-bearing'
+SENSOR_KINDS = (RANGE, BEARING, RANGE_BEARING)
 #: Motion models: 'exact' (arcs of constant velocities, SE(2)) or 'euler' (the paper's eq. 9,
 #: with which its Sec. V simulates; kept to reproduce those numbers).
 EXACT = 'exact'
@@ -296,7 +300,10 @@ def symmetric3(entries: tuple[Any, Any, Any, Any, Any, Any]) -> np.ndarray:
 
 def predict_measurement(kind: str, x: np.ndarray) -> Any:
     """Noise-free range (m, eq. 15) or bearing (rad, eq. 17, wrapped) at pose x (3,) or
-    poses (T, 3) in {L}: a float, or an array (T,)."""
+    poses (T, 3) in {L}: a float, or an array (T,); for 'range-bearing' both stacked, (2,) or
+    (T, 2)."""
+    if kind == RANGE_BEARING:
+        return stack_vector(predict_measurement(RANGE, x), predict_measurement(BEARING, x))
     px, py, phi = _components(x)
     if kind == RANGE:
         return elementwise(math.hypot, px, py)
@@ -305,7 +312,11 @@ def predict_measurement(kind: str, x: np.ndarray) -> Any:
 
 
 def measurement_jacobian(kind: str, x: np.ndarray) -> np.ndarray:
-    """Jacobian of the measurement w.r.t. [x, y, phi], eqs. (16) and (18), shape of x."""
+    """Jacobian of the measurement w.r.t. [x, y, phi], eqs. (16) and (18), shape of x; for
+    'range-bearing' the two rows stacked, (2, 3) or (T, 2, 3)."""
+    if kind == RANGE_BEARING:
+        return np.stack([measurement_jacobian(RANGE, x), measurement_jacobian(BEARING, x)],
+                        axis=-2)
     px, py, _ = _components(x)
     d2 = px * px + py * py
     if kind == RANGE:
@@ -400,6 +411,54 @@ def ekf_update(x: np.ndarray, P: np.ndarray, z: Any, kind: str, variance: float,
     if x.ndim == 1:
         return x_post, P_post, float(innovation), float(S)
     return x_post, P_post, innovation, S
+
+
+def ekf_update_stacked(x: np.ndarray, P: np.ndarray, z: Any, variances: tuple[float, float]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """EKF update with range and bearing of the same instant (z = [d, beta]), Joseph form.
+
+    P_post = (I - K H) P (I - K H)' + K R K' with H = [h_d'; h_beta'] (2, 3),
+    S = H P H' + R (2, 2), K = P H' S^-1, R = diag(variances); the bearing residual is wrapped.
+    S^-1 is the explicit 2 x 2 inverse (entry-wise, so a batch gives each pose the bits it gets
+    alone).
+
+    Args:
+        x: prior pose [x, y, phi] in {L}, shape (3,) or (T, 3).
+        P: prior covariance, shape (3, 3) or (T, 3, 3).
+        z: measured [range m, bearing rad], shape (2,) or (T, 2).
+        variances: (sigma_d^2 m^2, sigma_beta^2 rad^2).
+
+    Returns:
+        (x_post, P_post, innovation (2,) or (T, 2), S (2, 2) or (T, 2, 2)).
+    """
+    H = measurement_jacobian(RANGE_BEARING, x)
+    innovation = np.asarray(z, dtype=float) - predict_measurement(RANGE_BEARING, x)
+    innovation[..., 1] = wrap_angle(innovation[..., 1])
+    PH = np.matmul(P, np.swapaxes(H, -1, -2))                     # (.., 3, 2)
+    R = np.diag(np.asarray(variances, dtype=float))
+    S = np.matmul(H, PH) + R
+    S = 0.5 * (S + np.swapaxes(S, -1, -2))
+    s00, s01, s11 = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
+    det = s00 * s11 - s01 * s01
+    S_inv = np.empty_like(S)
+    S_inv[..., 0, 0], S_inv[..., 1, 1] = s11 / det, s00 / det
+    S_inv[..., 0, 1] = S_inv[..., 1, 0] = -s01 / det
+    K = np.matmul(PH, S_inv)                                      # (.., 3, 2)
+    x_post = x + np.matmul(K, innovation[..., None])[..., 0]
+    x_post[..., 2] = wrap_angle(x_post[..., 2])
+    A = np.eye(3) - np.matmul(K, H)
+    P_post = A @ P @ np.swapaxes(A, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
+    P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
+    return x_post, P_post, innovation, S
+
+
+def stacked_nis(innovation: np.ndarray, S: np.ndarray) -> Any:
+    """Normalised innovation squared nu' S^-1 nu of a stacked update (chi-square, 2 dof):
+    innovation (2,) or (T, 2), S (2, 2) or (T, 2, 2); a float or an array (T,)."""
+    n0, n1 = innovation[..., 0], innovation[..., 1]
+    s00, s01, s11 = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
+    nis = (s11 * n0 * n0 - 2.0 * s01 * n0 * n1 + s00 * n1 * n1) / (s00 * s11 - s01 * s01)
+    return float(nis) if np.ndim(nis) == 0 else nis
 
 
 def state_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:

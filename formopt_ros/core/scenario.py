@@ -16,7 +16,8 @@ import numpy as np
 from formopt_ros.core.checks import (
     InvalidInput, as_array, as_bool, as_choice, as_integer, as_real)
 from formopt_ros.core.cost import MAX_DEVIATION, MIN_DEVIATION, check_disc
-from formopt_ros.core.model import BEARING, EULER, EXACT, KINEMATICS, MEASUREMENT_KINDS, RANGE
+from formopt_ros.core.model import (
+    BEARING, EULER, EXACT, KINEMATICS, RANGE, RANGE_BEARING, SENSOR_KINDS)
 from formopt_ros.core.strategies import make_strategy
 
 #: Shapes of leader path.
@@ -186,10 +187,10 @@ class Scenario:
     """Everything that defines one follower's run except strategy and seed (paper Sec. V).
 
     Attributes:
-        measurement: 'range' or 'bearing'.
+        measurement: 'range', 'bearing' or 'range-bearing' (both at a step).
         p_o: formation slot in the leader frame, m.
         r: allowed deviation from the slot, m; 1e-6 |p_o| <= r <= 0.999 |p_o|.
-        sigma: measurement noise standard deviation, m or rad.
+        sigma: measurement noise standard deviation, m or rad ('range-bearing': the range's).
         leader: the leader's path.
         dt: sub-step length, s.
         sigma_v, sigma_omega: follower velocity noise standard deviations, m/s and rad/s.
@@ -203,6 +204,9 @@ class Scenario:
             m/s (None: none, the paper's protocol); every strategy plans inside the disc it
             can reach (:mod:`formopt_ros.core.reach`).
         safety_distance: distance to keep from the leader, m (0: none, the paper's).
+        sigma_bearing: 'range-bearing' only: the bearing noise standard deviation, rad.
+        bearing_every: 'range-bearing' only: the bearing arrives at every k-th measurement step
+            (steps k, 2k, ...; the range at every step); 1: both at every step.
     """
 
     measurement: str
@@ -219,15 +223,18 @@ class Scenario:
     kinematics: str = EXACT
     max_speed: float | None = None
     safety_distance: float = 0.0
+    sigma_bearing: float = 0.0
+    bearing_every: int = 1
 
     def __post_init__(self) -> None:
-        kind = as_choice('measurement', self.measurement, MEASUREMENT_KINDS)
+        kind = as_choice('measurement', self.measurement, SENSOR_KINDS)
         p_o = tuple(ranged('p_o', v, 'slot') for v in as_array('p_o', self.p_o, (2,)).tolist())
         r = as_real('r', self.r, unit='m')
         check_disc(p_o[0], p_o[1], r)
         covariance = as_array('initial_covariance', self.initial_covariance, (3,)).tolist()
         values: dict[str, object] = {
-            'p_o': p_o, 'r': r, 'sigma': ranged('sigma', self.sigma, f'{kind}_sigma'),
+            'p_o': p_o, 'r': r, 'sigma': ranged('sigma', self.sigma, f'{kind}_sigma'
+                                                if kind != RANGE_BEARING else 'range_sigma'),
             'initial_covariance': tuple(ranged('initial_covariance', v) for v in covariance),
             'kinematics': as_choice('kinematics', self.kinematics, KINEMATICS),
             'leader': self.leader if isinstance(self.leader, LeaderPath) else
@@ -241,6 +248,13 @@ class Scenario:
             max_speed = ranged('max_speed', max_speed)
         values['max_speed'] = None if max_speed is None or max_speed == math.inf else max_speed
         values['safety_distance'] = ranged('safety_distance', self.safety_distance)
+        if kind == RANGE_BEARING:
+            values['sigma_bearing'] = ranged('sigma_bearing', self.sigma_bearing, 'bearing_sigma')
+            values['bearing_every'] = as_integer('bearing_every', self.bearing_every, 1, 10**6)
+        elif (self.sigma_bearing, self.bearing_every) != (0.0, 1):
+            raise InvalidInput('sigma_bearing', f'and bearing_every are for range-bearing only, '
+                                                f'got {self.sigma_bearing!r}, '
+                                                f'{self.bearing_every!r} for {kind!r}')
         for name, value in values.items():
             object.__setattr__(self, name, value)
         check_limits(self)
@@ -249,14 +263,17 @@ class Scenario:
     def paper(cls, measurement: str, **overrides: Any) -> 'Scenario':
         """The paper's Sec. V settings for 'range' (p_o = [-1, -2], sigma_d = 0.1 m) or
         'bearing' (p_o = [-1, 2], sigma_beta = 0.02 rad); r = 0.1 |p_o|, and its eq. (9) as the
-        kinematics ('euler'), unless overridden."""
-        as_choice('measurement', measurement, MEASUREMENT_KINDS)
+        kinematics ('euler'), unless overridden. 'range-bearing': the range follower's slot
+        with both of the paper's noises."""
+        as_choice('measurement', measurement, SENSOR_KINDS)
         p_o = tuple(as_array('p_o', overrides.pop(
-            'p_o', (-1.0, -2.0) if measurement == RANGE else (-1.0, 2.0)), (2,)).tolist())
+            'p_o', (-1.0, 2.0) if measurement == BEARING else (-1.0, -2.0)), (2,)).tolist())
         values: dict[str, Any] = dict(measurement=measurement, p_o=p_o,
                                       r=0.1 * math.hypot(*p_o),
-                                      sigma=0.1 if measurement == RANGE else 0.02,
+                                      sigma=0.02 if measurement == BEARING else 0.1,
                                       kinematics=EULER)
+        if measurement == RANGE_BEARING:
+            values['sigma_bearing'] = 0.02
         values.update(overrides)
         return cls(**values)
 
@@ -264,6 +281,11 @@ class Scenario:
     def slot(self) -> np.ndarray:
         """p_o as a numpy array, shape (2,), m."""
         return np.array(self.p_o, dtype=float)
+
+    def bearing_at(self, step: int) -> bool:
+        """'range-bearing': True when the bearing arrives at measurement step ``step``
+        (1-based; every ``bearing_every``-th step)."""
+        return step % self.bearing_every == 0
 
     @property
     def d_o(self) -> float:
@@ -277,6 +299,8 @@ class Scenario:
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form (inverse: :meth:`from_dict`)."""
         out = asdict(self)
+        if self.measurement != RANGE_BEARING:       # the scalar kinds' records stay as they were
+            del out['sigma_bearing'], out['bearing_every']
         out['p_o'] = list(self.p_o)
         out['initial_covariance'] = list(self.initial_covariance)
         out['leader'] = self.leader.to_dict()
@@ -537,6 +561,9 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
     missing = sorted({'id', 'sensor', 'slot'} - set(item))
     if missing:
         raise InvalidInput(f'formation follower {name}', f'lacks the keys {missing}')
+    if item['sensor'] == RANGE_BEARING:
+        raise InvalidInput(f'formation follower {name} sensor', 'range-bearing runs in the '
+                           'simulator and the study (formopt-montecarlo), not yet on ROS')
     try:
         base = Scenario.paper(item['sensor'], p_o=item['slot'])
         sigma_v, sigma_omega = _pair('odometry_noise', item.get(

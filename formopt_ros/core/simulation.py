@@ -8,7 +8,9 @@ One measurement step (DESIGN.md, "The Sec. V protocol"):
    the displacement still needed, then translate (omega = 0) so that the *estimate* lands on p;
    the leader keeps moving during both; true velocities are the commands plus fresh Gaussian
    noise, while the EKF propagates with the commands (the odometry);
-3. one range or bearing measurement of the true pose, one EKF update.
+3. one range or bearing measurement of the true pose, one EKF update ('range-bearing': range
+   and bearing of the true pose, one stacked update; at steps without a bearing (rates,
+   ``Scenario.bearing_every``) a range update).
 
 The pieces (the leader path of :class:`~formopt_ros.core.scenario.Scenario`,
 :class:`FollowerTruth`, :class:`~formopt_ros.core.estimator.EstimatorPlanner`) are separate so
@@ -26,7 +28,7 @@ import numpy as np
 
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.model import (
-    BEARING, integrate_unicycle, normalized_estimation_error, predict_measurement,
+    BEARING, RANGE_BEARING, integrate_unicycle, normalized_estimation_error, predict_measurement,
     propagate_state, wrap_angle)
 from formopt_ros.core.protocol import SUBSTEPS, held_leader_motion, step_substeps
 from formopt_ros.core.scenario import Formation, Scenario
@@ -41,6 +43,12 @@ def trial_streams(seed: int, trial: int) -> tuple[np.random.Generator, np.random
 
 #: Normal draws of the noise stream per measurement step: (v, omega) per sub-step, then z.
 DRAWS_PER_STEP = 2 * SUBSTEPS + 1
+
+
+def draws_per_step(scenario: Scenario) -> int:
+    """Normal draws per measurement step: DRAWS_PER_STEP, and one more (the bearing's, drawn
+    at every step whether or not it arrives) for 'range-bearing'."""
+    return DRAWS_PER_STEP + (scenario.measurement == RANGE_BEARING)
 
 
 def initial_truth(scenario: Scenario, draw: np.ndarray) -> np.ndarray:
@@ -61,8 +69,14 @@ def true_motion(scenario: Scenario, x: np.ndarray, v_cmd: Any, omega_cmd: Any, w
 
 
 def true_measurement(scenario: Scenario, x: np.ndarray, w: Any) -> Any:
-    """Range (m) or bearing (rad, wrapped) of the true pose(s) plus sigma * w (standard normal)."""
+    """Range (m) or bearing (rad, wrapped) of the true pose(s) plus sigma * w (standard normal);
+    'range-bearing': [d, beta] (2,) or (T, 2) from w (2,) or (T, 2), both noises."""
     s = scenario
+    if s.measurement == RANGE_BEARING:
+        w = np.asarray(w, dtype=float)
+        z = predict_measurement(RANGE_BEARING, x) + np.array([s.sigma, s.sigma_bearing]) * w
+        z[..., 1] = wrap_angle(z[..., 1])
+        return z
     z = predict_measurement(s.measurement, x) + s.sigma * w
     if s.measurement != BEARING:
         return z
@@ -88,9 +102,22 @@ class FollowerTruth:
         self.x = propagate_state(self.x, 0.0, 0.0, self.scenario.dt, v_l, omega_l,
                                  self.scenario.kinematics)
 
-    def measure(self) -> float:
-        """Range (m) or bearing (rad, wrapped) of the true pose plus N(0, sigma^2) noise."""
+    def measure(self) -> Any:
+        """Range (m) or bearing (rad, wrapped) of the true pose plus N(0, sigma^2) noise;
+        'range-bearing': [d, beta] (2,) (both drawn at every step)."""
+        if self.scenario.measurement == RANGE_BEARING:
+            return true_measurement(self.scenario, self.x, self.noise.normal(size=2))
         return float(true_measurement(self.scenario, self.x, self.noise.normal()))
+
+
+def received(scenario: Scenario, step: int, z: Any) -> Any:
+    """What the estimator receives at measurement step ``step`` (1-based): z itself, or for a
+    range-bearing follower without a bearing that step (``bearing_every``) [d, NaN]."""
+    if scenario.measurement != RANGE_BEARING or scenario.bearing_at(step):
+        return z
+    z = np.array(z, dtype=float)
+    z[..., 1] = np.nan
+    return z
 
 
 def leader_poses(scenario: Scenario, steps: int) -> np.ndarray:
@@ -124,7 +151,8 @@ class TrialResult:
     # run_trial only (the inputs a node would receive):
     commands: np.ndarray | None = None      # (steps, SUBSTEPS, 2) odometry (v m/s, omega rad/s)
     leader: np.ndarray | None = None        # (steps, SUBSTEPS, 2) leader (v m/s, omega rad/s)
-    measurements: np.ndarray | None = None  # (steps,) range (m) or bearing (rad)
+    measurements: np.ndarray | None = None  # (steps,) range (m) or bearing (rad); (steps, 2)
+    #                                         [d, beta] for range-bearing (NaN: no bearing)
 
 
 def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: int,
@@ -141,7 +169,7 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
     latest = scenario.leader.velocity(0, scenario.dt)
     fallback = np.zeros(steps, dtype=bool)
     commands, leader = np.empty((steps, SUBSTEPS, 2)), np.empty((steps, SUBSTEPS, 2))
-    measurements = np.empty(steps)
+    measurements = np.empty((steps, 2) if scenario.measurement == RANGE_BEARING else steps)
     out = TrialResult(np.empty(steps), np.empty(steps), np.empty((steps, 3)),
                       np.empty((steps, 3)), np.empty((steps, 3, 3)), np.empty((steps, 2)),
                       np.empty(steps), np.empty(steps), np.zeros(steps, dtype=bool), fallback,
@@ -154,7 +182,7 @@ def run_trial(scenario: Scenario, strategy: str, seed: int, trial: int, steps: i
             truth.execute(v, omega, v_l, omega_l)
             estimator.propagate(v, omega, v_l, omega_l)
             commands[k, j], leader[k, j] = (v, omega), latest
-        measurements[k] = truth.measure()
+        measurements[k] = received(scenario, k + 1, truth.measure())
         update = estimator.update(k + 1, measurements[k])
         out.innovation_nis[k], out.gated[k] = update.nis, not update.used
         out.weighted_trace[k] = estimator.weighted_trace()
@@ -174,5 +202,5 @@ def run_formation(formation: Formation, steps: int) -> dict[str, TrialResult]:
 
 
 __all__ = ['DRAWS_PER_STEP', 'SUBSTEPS', 'FollowerTruth', 'Scenario', 'TrialResult',
-           'initial_truth', 'leader_poses', 'run_formation', 'run_trial', 'trial_streams',
-           'true_measurement', 'true_motion']
+           'draws_per_step', 'initial_truth', 'leader_poses', 'received', 'run_formation',
+           'run_trial', 'trial_streams', 'true_measurement', 'true_motion']

@@ -92,3 +92,16 @@ def test_bench_rejects_unknown_methods(capsys: pytest.CaptureFixture) -> None:
         bench.main(['--methods', 'rq,simplex'])
     assert stop.value.code == 2
     assert 'ipopt-tuned' in capsys.readouterr().err
+
+
+def test_bench_range_bearing_rows(capsys: pytest.CaptureFixture) -> None:
+    """--measurement range-bearing: RQ (the branch and bound) proves every reference; its rows
+    and the baselines' are printed; RAM and rq-batch (no form for it) are left out."""
+    assert bench.main(['--problems', '3', '--repeats', '1', '--measurement', 'range-bearing',
+                       '--methods', 'ram,rq,rq-loop,rq-batch,gbs-cached,mtf']) == 0
+    out = capsys.readouterr().out
+    assert 'proved: range-bearing 3/3' in out
+    rows = [line.split() for line in out.splitlines() if line.startswith('range-bearing')]
+    assert [row[1] for row in rows] == ['rq', 'rq-loop', 'gbs-cached', 'mtf']
+    assert all(row[-2] == '0' for row in rows)          # nothing below a proved bound
+    assert rows[0][6] == '0' and rows[1][6] == '0'      # RQ misses nothing

@@ -10,7 +10,7 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.formulas import Entries, monomials, weighted_sum
-from formopt_ros.core.model import RANGE
+from formopt_ros.core.model import RANGE, RANGE_BEARING
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, OptionSpec, PlanContext, Solution, Strategy, make_solution)
 
@@ -267,8 +267,13 @@ class GridSearch(Strategy):
                                   MIN_GBS_CELL, 1.0)}
 
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
-        """The grid point of highest gain."""
+        """The grid point of highest gain (range-bearing: the gain evaluated at every grid
+        point of the same grid)."""
         cell = float(self.settings['cell'])
+        if problem.measurement == RANGE_BEARING:
+            grid = grid_for(RANGE, problem.slot, float(problem.r), cell)
+            gains = problem.gain_at(grid.points[:, 0], grid.points[:, 1])
+            return self._solution(problem, grid, int(np.argmax(gains)), cell)
         grid = grid_for(problem.measurement, problem.slot, float(problem.r), cell)
         best = int(grid_argmax(grid, problem.measurement, problem.forms, problem.coefficients,
                                problem.R)[0])

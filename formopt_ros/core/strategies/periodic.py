@@ -55,7 +55,8 @@ def steady_conditions(problem: Problem, context: PlanContext) -> SteadyCondition
         return None
     return SteadyConditions(problem.measurement, (float(problem.p_o[0]), float(problem.p_o[1])),
                             float(problem.r), float(problem.sigma), float(speeds.pop()), 0.0,
-                            context.dt, context.sigma_v, context.sigma_omega, context.kinematics)
+                            context.dt, context.sigma_v, context.sigma_omega, context.kinematics,
+                            float(getattr(problem, 'sigma_bearing', 0.0)))
 
 
 class PeriodicPattern(Strategy):

@@ -35,8 +35,9 @@ import numpy as np
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.model import (
-    EXACT, ekf_update, measurement_jacobian, predict_measurement, propagate_state,
-    transition_matrices)
+    EXACT, RANGE_BEARING, ekf_update, ekf_update_stacked, measurement_jacobian,
+    predict_measurement, propagate_state, transition_matrices)
+from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move
 from formopt_ros.core.strategies.rq import rq_optimum
 
@@ -74,6 +75,7 @@ class SteadyConditions:
         dt: sub-step length, s.
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
         kinematics: the motion model, 'exact' or 'euler' (core/model.py).
+        sigma_bearing: 'range-bearing' only: the bearing noise, rad (sigma is the range's).
     """
 
     measurement: str
@@ -86,6 +88,7 @@ class SteadyConditions:
     sigma_v: float
     sigma_omega: float
     kinematics: str = EXACT
+    sigma_bearing: float = 0.0
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
@@ -94,7 +97,8 @@ class SteadyConditions:
         if omega_l != 0.0:
             return None
         return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, 0.0,
-                   scenario.dt, scenario.sigma_v, scenario.sigma_omega, scenario.kinematics)
+                   scenario.dt, scenario.sigma_v, scenario.sigma_omega, scenario.kinematics,
+                   scenario.sigma_bearing)
 
     @property
     def slot(self) -> np.ndarray:
@@ -112,9 +116,10 @@ class SteadyConditions:
         if (self.measurement, self.p_o, self.r, self.kinematics) != \
                 (other.measurement, other.p_o, other.r, other.kinematics):
             return False
-        mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega)
+        mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega,
+                self.sigma_bearing)
         theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
-                  other.sigma_omega)
+                  other.sigma_omega, other.sigma_bearing)
         return all(abs(a - b) <= tolerance * max(abs(a), abs(b)) for a, b in zip(mine, theirs))
 
     def boundary_points(self, angles: np.ndarray) -> np.ndarray:
@@ -123,8 +128,21 @@ class SteadyConditions:
         return self.slot + self.r * np.stack([np.cos(a), np.sin(a)], axis=-1)
 
     def problem(self, P: np.ndarray) -> Problem:
-        """The paper's one-step problem with prior P (3, 3) (trusted, not validated)."""
+        """The paper's one-step problem with prior P (3, 3) (trusted, not validated); a
+        :class:`~formopt_ros.core.stacked.StackedProblem` for 'range-bearing'."""
+        if self.measurement == RANGE_BEARING:
+            return StackedProblem(P, self.slot, self.r, self.sigma,  # type: ignore[return-value]
+                                  self.sigma_bearing, False)
         return Problem(P, self.slot, self.r, self.sigma, self.measurement, False)
+
+    def information(self, x: np.ndarray) -> np.ndarray:
+        """H' R^-1 H (3, 3) of the measurement at pose x (3,) (both rows for 'range-bearing')."""
+        if self.measurement != RANGE_BEARING:
+            h = measurement_jacobian(self.measurement, x)
+            return np.outer(h, h) / (self.sigma * self.sigma)
+        h_d, h_b = measurement_jacobian(RANGE_BEARING, x)
+        return np.outer(h_d, h_d) / (self.sigma * self.sigma) + \
+            np.outer(h_b, h_b) / (self.sigma_bearing * self.sigma_bearing)
 
 
 def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
@@ -136,6 +154,10 @@ def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
     """
     c = conditions
     x, P = predict_move(x, P, target, c.leader, c.dt, c.sigma_v, c.sigma_omega, c.kinematics)
+    if c.measurement == RANGE_BEARING:
+        x, P, _, _ = ekf_update_stacked(x, P, predict_measurement(RANGE_BEARING, x),
+                                        (c.sigma * c.sigma, c.sigma_bearing * c.sigma_bearing))
+        return x, P
     x, P, _, _ = ekf_update(x, P, predict_measurement(c.measurement, x), c.measurement,
                             c.sigma * c.sigma)
     return x, P
@@ -171,10 +193,9 @@ def move_map(x: np.ndarray, target: np.ndarray,
         x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l,
                             c.kinematics)
     Phi_inv_t = np.linalg.inv(Phi).T
-    h = measurement_jacobian(c.measurement, x)
     M = np.zeros((6, 6))
     M[:3, :3], M[:3, 3:], M[3:, 3:] = Phi, GQG @ Phi_inv_t, Phi_inv_t
-    M[3:] += np.outer(h, h) / (c.sigma * c.sigma) @ M[:3]
+    M[3:] += c.information(x) @ M[:3]
     return M, x
 
 

@@ -79,6 +79,7 @@ from formopt_ros.core.strategies.common import (
     Poly, boundary_stationarity, gains_tie, poly_combine, poly_mul, polish_boundary_angles,
     range_plan_from_direction)
 from formopt_ros.core.strategies.rq import rq_optimum
+from formopt_ros.core.model import MEASUREMENT_KINDS
 
 #: Relative KKT residual below which a back-substituted root is a candidate without polishing.
 RESIDUAL_TOLERANCE = 1e-4
@@ -677,7 +678,11 @@ class RelaxedAlgebraicMethod(Strategy):
                                             'raise FloatingPointError')}
 
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
-        """The analytic greedy optimum."""
+        """The analytic greedy optimum (scalar measurements only)."""
+        if problem.measurement not in MEASUREMENT_KINDS:
+            raise ValueError(f'RAM is the paper\'s method for one scalar measurement (range or '
+                             f'bearing); it does not apply to a {problem.measurement!r} '
+                             f'measurement (use rq, which solves it by branch and bound)')
         return ram_optimum(problem, bool(self.settings['fallback']))
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:

@@ -42,7 +42,8 @@ from formopt_ros.core.formulas import Entries, point_from_q, quotient_gain
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.model import BEARING, RANGE
+from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING
+from formopt_ros.core.strategies.stacked import stacked_plan
 from formopt_ros.core.strategies.certificate import PROVED, certify, proved_batch
 from formopt_ros.core.strategies.common import (
     CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
@@ -396,7 +397,11 @@ def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
 
 
 def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
-    """Certified optimum of problem Pi_1 through generalised eigenvalues (module docstring)."""
+    """Certified optimum of problem Pi_1 through generalised eigenvalues (module docstring).
+    A range-bearing problem (:class:`~formopt_ros.core.stacked.StackedProblem`) goes to its
+    own certified solver, :func:`~formopt_ros.core.strategies.stacked.stacked_plan`."""
+    if problem.measurement == RANGE_BEARING:
+        return stacked_plan(problem, method)  # type: ignore[arg-type]
     if problem.measurement == 'range':
         return _plan_range(problem, method)
     tried: list[tuple[float, float]] = []

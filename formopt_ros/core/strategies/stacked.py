@@ -1,0 +1,271 @@
+"""Certified optimum of the range-bearing problem: branch and bound over the disc.
+
+See docs/range_bearing.md.
+
+Each square cell (centre c, half-width w, radius rho = w sqrt 2) gets a lower bound of the cost
+over the cell from the convexity of F(I) = tr(W (P^-1 + I)^-1 W) in the information
+I(p) = sum_i h_i h_i' / R_i:
+
+    f(p) >= f(c) + <G, I(p) - I(c)>,   G = -P_c W^2 P_c   (P_c the posterior at c),
+
+and <G, I(p) - I(c)> = sum_i (2 h_i(c)' G D_i + D_i' G D_i) / R_i with D_i = h_i(p) - h_i(c).
+Taylor's theorem with |D h_d| <= 1/d, |D^2 h_d| <= 3/d^2, |D h_beta| <= 1/d^2,
+|D^2 h_beta| <= 6/d^3 (d the cell's least distance from the leader) gives
+
+    f(p) >= f(c) + grad f(c)'(p - c) - rho^2 sum_i (|(G h_i)_xy| L2_i + |G_xy| L1_i^2) / R_i,
+
+and the linear term's minimum over cell and disc is at least the larger of its minima over the
+square and over the disc. The bound is of second order in rho, so cells near a minimum are
+pruned once rho^2 is below the tolerance and the search ends after a few levels. Cells are
+split in SPLIT x SPLIT until every remaining lower bound is within ``RTOL`` of the best
+feasible cost found (the projections of the cell centres on the disc; ``LOOSE_RTOL`` where the
+cell budget would not allow RTOL); the certificate's gap is that
+tolerance plus a rounding margin (``ROUNDING`` times the cost, for the Joseph-form evaluation;
+an estimate, not a proof). The search is capped at ``MAX_CELLS`` cells; a search that hits
+the cap is not certified and says so (``Solution.fallback = 'grid'``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.core.stacked import StackedProblem
+from formopt_ros.core.strategies.base import Solution, make_solution
+
+#: Relative tolerance the search closes to (of the best cost).
+RTOL = 1e-10
+#: Rounding margin of each cost evaluation (Joseph form), relative to the cost: an estimate
+#: (the test compares the form with 50-digit arithmetic: below 1e-14 on every family).
+ROUNDING = 1e-12
+#: Gap (relative to the cost) up to which an answer counts as certified.
+CERTIFIED_GAP = 1e-9
+#: Tolerance the search falls back to when closing to RTOL would exceed its cell budget.
+LOOSE_RTOL = 5e-10
+#: Cells processed at most (a search beyond it falls back: uncertified, best point found).
+MAX_CELLS = 200_000
+#: Cells per side of the first grid over the disc's bounding square.
+FIRST_GRID = 8
+#: Each cell kept is split into SPLIT x SPLIT cells.
+SPLIT = 8
+#: Certificate name of a closed search.
+BRANCH_AND_BOUND = 'branch-and-bound'
+
+
+def posterior_terms(problem: StackedProblem, x: np.ndarray, y: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """At points (x, y) (n,) (m): the cost tr(W P_c W) (m^2), its gradient (2, n) and the
+    curvature weight sum_i (|(G h_i)_xy| L2_i d^k + |G_xy| L1_i^2 d^k) / R_i of the module
+    docstring with the distance factors left out, as three per-row coefficients (3, n):
+    [range second-derivative term, bearing second-derivative term, |G_xy|]."""
+    (p00, p01, p02), (_, p11, p12), (_, _, p22) = problem.P.tolist()
+    r_d, r_b = problem.R
+    w22 = problem.w22
+    d2 = x * x + y * y
+    d = np.sqrt(d2)
+    ux, uy = x / d, y / d
+    bx, by = -y / d2, x / d2
+    a0, a1, a2 = p00 * ux + p01 * uy, p01 * ux + p11 * uy, p02 * ux + p12 * uy        # P h_d
+    b0, b1, b2 = p00 * bx + p01 * by - p02, p01 * bx + p11 * by - p12, \
+        p02 * bx + p12 * by - p22                                                   # P h_b
+    s00 = ux * a0 + uy * a1 + r_d
+    s01 = ux * b0 + uy * b1
+    s11 = bx * b0 + by * b1 - b2 + r_b
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    # Joseph form Q = A P A' + K R K', A = I - K H, K = [P h_d, P h_b] S^-1: no cancellation
+    # (P - K S K' loses digits where the update removes most of tr(W P W))
+    n = x.size
+    K = np.empty((n, 3, 2))
+    for i, (ai, bi) in enumerate(((a0, b0), (a1, b1), (a2, b2))):
+        K[:, i, 0], K[:, i, 1] = ai * i00 + bi * i01, ai * i01 + bi * i11
+    H = np.empty((n, 2, 3))
+    H[:, 0, 0], H[:, 0, 1], H[:, 0, 2] = ux, uy, 0.0
+    H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = bx, by, -1.0
+    A = np.eye(3) - K @ H
+    Q = A @ problem.P @ np.swapaxes(A, 1, 2) + (K * (r_d, r_b)) @ np.swapaxes(K, 1, 2)
+    q00, q01, q02 = Q[:, 0, 0], 0.5 * (Q[:, 0, 1] + Q[:, 1, 0]), 0.5 * (Q[:, 0, 2] + Q[:, 2, 0])
+    q11, q12, q22 = Q[:, 1, 1], 0.5 * (Q[:, 1, 2] + Q[:, 2, 1]), Q[:, 2, 2]
+    cost = q00 + q11 + w22 * q22
+    # G = -Q W^2 Q, the entries needed (00, 01, 11, 02, 12)
+    g00 = -(q00 * q00 + q01 * q01 + w22 * q02 * q02)
+    g01 = -(q00 * q01 + q01 * q11 + w22 * q02 * q12)
+    g11 = -(q01 * q01 + q11 * q11 + w22 * q12 * q12)
+    g02 = -(q00 * q02 + q01 * q12 + w22 * q02 * q22)
+    g12 = -(q01 * q02 + q11 * q12 + w22 * q12 * q22)
+    gd0, gd1 = g00 * ux + g01 * uy, g01 * ux + g11 * uy                 # (G h_d)_xy
+    gb0, gb1 = g00 * bx + g01 * by - g02, g01 * bx + g11 * by - g12     # (G h_b)_xy
+    d3, d4 = d2 * d, d2 * d2
+    # derivatives of the xy parts: d h_d / dx = (y^2, -xy) / d^3, d h_d / dy = (-xy, x^2) / d^3,
+    # d h_b / dx = (2xy, y^2 - x^2) / d^4, d h_b / dy = (y^2 - x^2, -2xy) / d^4
+    xy, yy_xx = x * y, y * y - x * x
+    gx = 2.0 * ((gd0 * y * y - gd1 * xy) / (d3 * r_d) + (gb0 * 2.0 * xy + gb1 * yy_xx)
+                / (d4 * r_b))
+    gy = 2.0 * ((-gd0 * xy + gd1 * x * x) / (d3 * r_d) + (gb0 * yy_xx - gb1 * 2.0 * xy)
+                / (d4 * r_b))
+    g_xy = np.sqrt(g00 * g00 + 2.0 * g01 * g01 + g11 * g11)       # Frobenius >= spectral norm
+    return cost, np.stack([gx, gy]), np.stack([np.hypot(gd0, gd1), np.hypot(gb0, gb1), g_xy])
+
+
+def cell_bounds(problem: StackedProblem, cx: np.ndarray, cy: np.ndarray, w: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(cost at the centres, lower bound of the cost over each cell within the disc) for
+    square cells of half-width w (m) around centres (cx, cy) (n,) (m); the bound is -inf for a
+    cell that may hold the leader and +inf for one that misses the disc."""
+    cost, (gx, gy), norms = posterior_terms(problem, cx, cy)
+    return cost, lower_bounds(problem, cx, cy, w, cost, gx, gy, norms)
+
+
+def lower_bounds(problem: StackedProblem, cx: np.ndarray, cy: np.ndarray, w: float,
+                 cost: np.ndarray, gx: np.ndarray, gy: np.ndarray, norms: np.ndarray
+                 ) -> np.ndarray:
+    """The cells' lower bounds (module docstring) from the terms of :func:`posterior_terms`:
+    the larger of the second-order bound and the first-order one
+    f(c) - sum_i (2 |(G h_i)_xy| D_i + |G_xy| D_i^2) / R_i, where D_i bounds |h_i(p) - h_i(c)|
+    without derivatives (|p/|p| - c/|c|| <= 2 |p - c| / (|p| + |c|) and
+    |p/|p|^2 - c/|c|^2| = |p - c| / (|p| |c|)), which stays useful next to the leader."""
+    r_d, r_b = problem.R
+    gh_d, gh_b, g_xy = norms
+    rho = w * math.sqrt(2.0)
+    x_o, y_o = problem.slot
+    linear = linear_minimum(gx, gy, cx, cy, w, x_o, y_o, problem.r)
+    d_c = np.hypot(cx, cy)
+    near = np.maximum(d_c - rho, 0.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        step_d = np.minimum(2.0 * rho / (near + d_c), 2.0)
+        step_b = rho / (near * d_c)
+        second = cost + linear - (gh_d * 3.0 * rho * rho / (near * near) + g_xy * step_d * step_d
+                                  ) / r_d \
+            - (gh_b * 6.0 * rho * rho / (near * near * near) + g_xy * step_b * step_b) / r_b
+        first = cost - (2.0 * gh_d * step_d + g_xy * step_d * step_d) / r_d \
+            - (2.0 * gh_b * step_b + g_xy * step_b * step_b) / r_b
+        lower = np.maximum(np.where(np.isnan(second), -np.inf, second),
+                           np.where(np.isnan(first), -np.inf, first))
+    return np.where(np.isposinf(linear), np.inf,
+                    np.where((near > 0.0) & np.isfinite(lower), lower, -np.inf))
+
+
+_CORNERS = np.array([[-1.0, -1.0, 1.0, 1.0], [-1.0, 1.0, -1.0, 1.0]])[:, :, None]    # (2, 4, 1)
+_SIDES = np.array([-1.0, 1.0])[:, None, None]                                      # (2, 1, 1)
+_SIGNS = np.array([-1.0, 1.0])[None, :, None]                                      # (1, 2, 1)
+
+
+def linear_minimum(gx: np.ndarray, gy: np.ndarray, cx: np.ndarray, cy: np.ndarray, w: float,
+                   x_o: float, y_o: float, r: float) -> np.ndarray:
+    """min of g'(p - c) over the square |p - c|_inf <= w intersected with the disc
+    |p - p_o| <= r, per cell (arrays (n,)); +inf where the two do not meet.
+
+    A linear function takes its minimum over the convex set at an extreme point: a corner of
+    the square inside the disc, a crossing of a side with the circle, or the disc's own
+    minimiser p_o - r g / |g| when it lies in the square. Candidates are admitted with a slack
+    of 1e-12 r and the minimum lowered by 1e-12 r |g| (rounding of the candidates).
+    """
+    slack = 1e-12 * r
+    ox, oy = cx - x_o, cy - y_o
+    sx, sy = w * _CORNERS[0], w * _CORNERS[1]                                 # (4, 1)
+    corner = np.where(np.hypot(ox + sx, oy + sy) <= r + slack, gx * sx + gy * sy, np.inf)
+    best = corner.min(axis=0)
+    side = w * _SIDES                                                          # (2, 1, 1)
+    for a, b, ga, gb in ((ox, oy, gx, gy), (oy, ox, gy, gx)):      # sides a = const, along b
+        reach = r * r - (a + side) ** 2                                        # (2, 1, n)
+        offset = _SIGNS * np.sqrt(np.maximum(reach, 0.0)) - b                  # (2, 2, n)
+        ok = (reach >= 0.0) & (np.abs(offset) <= w + slack)
+        best = np.minimum(best, np.where(ok, ga * side + gb * offset, np.inf).min(axis=(0, 1)))
+    norm = np.hypot(gx, gy)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        mx, my = -r * gx / norm - ox, -r * gy / norm - oy
+    ok = (norm > 0.0) & (np.abs(mx) <= w + slack) & (np.abs(my) <= w + slack)
+    best = np.minimum(best, np.where(ok, gx * mx + gy * my, np.inf))
+    return best - 1e-12 * r * norm
+
+
+def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int = MAX_CELLS
+                     ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
+    """The global minimum of the cost over the disc, to ``rtol``.
+
+    Returns:
+        (point (m), its cost (m^2, :meth:`StackedProblem.cost_at`), proved lower bound of the
+        cost over the disc (m^2; when the cap stopped the search, the least bound of the cells
+        still open), diagnostics: cells, levels, capped).
+    """
+    x_o, y_o = problem.slot
+    r = problem.r
+    n = FIRST_GRID
+    w = r / n
+    offsets = (np.arange(n) - (n - 1) / 2.0) * 2.0 * w
+    cx, cy = (a.ravel() for a in np.meshgrid(x_o + offsets, y_o + offsets))
+    best_p, best = (x_o, y_o), problem.cost_at(x_o, y_o)
+    floor = math.inf                    # least lower bound of the cells pruned
+    open_floor = -math.inf              # least lower bound of the cells split last
+    cells, levels = 0, 0
+    while cx.size:
+        rho = w * math.sqrt(2.0)
+        dx, dy = cx - x_o, cy - y_o
+        dist = np.hypot(dx, dy)
+        inside = dist - rho <= r
+        cx, cy, dx, dy, dist = cx[inside], cy[inside], dx[inside], dy[inside], dist[inside]
+        count = cx.size
+        if not count:
+            break
+        if cells + count > max_cells:       # the open cells' parents bound what is left
+            return best_p, best, min(floor, open_floor, best) - ROUNDING * abs(best), \
+                {'cells': cells, 'levels': levels, 'capped': True}
+        cells += count
+        # feasible candidates: the centres in the disc and the others projected on it
+        out = dist > r
+        scale = r / dist[out]
+        px, py = x_o + dx[out] * scale, y_o + dy[out] * scale
+        cost, grad, k = posterior_terms(problem, np.concatenate([cx, px]),
+                                        np.concatenate([cy, py]))
+        candidates = cost.copy()
+        candidates[:count][out] = np.inf
+        j = int(np.argmin(candidates))
+        if candidates[j] < best:
+            point = (float(np.concatenate([cx, px])[j]), float(np.concatenate([cy, py])[j]))
+            value = problem.cost_at(*point)
+            if value < best:
+                best, best_p = value, point
+        lower = lower_bounds(problem, cx, cy, w, cost[:count], grad[0, :count], grad[1, :count],
+                             k[:, :count])
+        margin = ROUNDING * abs(best)
+        keep = lower < best - rtol * abs(best) - margin
+        if cells + SPLIT * SPLIT * int(keep.sum()) > max_cells:    # budget tight: close to
+            keep = lower < best - LOOSE_RTOL * abs(best) - margin   # the looser tolerance
+        if not keep.all():
+            floor = min(floor, float(lower[~keep].min()))
+        cx, cy = cx[keep], cy[keep]
+        open_floor = float(lower[keep].min()) if keep.any() else math.inf
+        offsets = (np.arange(SPLIT) - (SPLIT - 1) / 2.0) * (2.0 * w / SPLIT)
+        w /= SPLIT
+        levels += 1
+        cx = (cx[:, None, None] + offsets[None, :, None] + 0.0 * offsets[None, None, :]).ravel()
+        cy = (cy[:, None, None] + 0.0 * offsets[None, :, None] + offsets[None, None, :]).ravel()
+    return best_p, best, min(floor, best) - ROUNDING * abs(best), {'cells': cells,
+                                                                   'levels': levels}
+
+
+def stacked_plan(problem: StackedProblem, method: str, max_cells: int = MAX_CELLS) -> Solution:
+    """The certified optimum of a range-bearing problem as a Solution (certificate
+    'branch-and-bound' with ``details['certificate_gap']``; an uncapped search always
+    certifies; a capped one returns its best point with ``fallback = 'grid'``)."""
+    p, cost, lower, info = branch_and_bound(problem, max_cells=max_cells)
+    gap = (cost - lower) / abs(cost) if cost else math.inf
+    on_boundary = math.hypot(p[0] - problem.slot[0], p[1] - problem.slot[1]) >= problem.r * (
+        1.0 - 1e-12)
+    certified = gap <= CERTIFIED_GAP
+    details = {'certificate_gap': gap, 'lower_bound': lower, **info}
+    if not certified:
+        details['reason'] = (f'branch and bound closed to a gap of {gap:.3g} only '
+                             f'({info["cells"]} cells)')
+    solution = make_solution(problem, p, method, on_boundary=on_boundary,  # type: ignore
+                             candidates=info['cells'], details=details,
+                             fallback=None if certified else 'grid',
+                             certificate=BRANCH_AND_BOUND if certified else 'none')
+    # the Joseph-form costs (base_cost - gain_at carries rounding of eps tr(W P W))
+    return replace(solution, cost=cost, cost_at_slot=problem.cost_at(*problem.slot))
+
+
+__all__ = ['BRANCH_AND_BOUND', 'CERTIFIED_GAP', 'branch_and_bound', 'cell_bounds',
+           'stacked_plan']
