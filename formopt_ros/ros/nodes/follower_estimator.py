@@ -100,6 +100,14 @@ def stamp_ns(message: Any) -> int:
     return int(message.header.stamp.sec) * NS_PER_S + int(message.header.stamp.nanosec)
 
 
+def delayed_streams(delays: dict[str, list[float]], lag: float) -> tuple[list[str], list[str]]:
+    """The streams whose median delay exceeds ``lag`` s (sustained: a clock behind or a slow
+    link) and those whose largest delay does (a stall), as 'name delay s' texts."""
+    slow = [f'{s} {np.median(d):.2f} s' for s, d in delays.items() if d and np.median(d) > lag]
+    spikes = [f'{s} {max(d):.2f} s' for s, d in delays.items() if d and max(d) > lag]
+    return slow, spikes
+
+
 class FollowerEstimatorNode(Node):
     """Feeds standard messages to an :class:`~formopt_ros.core.asynchronous.AsyncEstimator`,
     plans on a timer and drives the base (see SUMMARY and the module docstring of
@@ -146,7 +154,7 @@ class FollowerEstimatorNode(Node):
         self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0,
                         'no_mount': 0}
         self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
-        self.delay = {s: 0.0 for s in self.streams}  # largest arrival - stamp this period, s
+        self.delays: dict[str, list[float]] = {s: [] for s in self.streams}  # this period, s
         self.refusal: dict[str, str] = {}            # the last refusal per stream
         self.first_input_ns: int | None = None
         self._reported: dict[str, int] = {}          # counts at the last diagnostics
@@ -223,7 +231,7 @@ class FollowerEstimatorNode(Node):
                          'ahead of this clock: are the clocks synchronised?')
             return False
         self.first_input_ns = self.first_input_ns or now
-        self.delay[stream] = max(self.delay[stream], (now - stamp) / NS_PER_S)
+        self.delays[stream].append((now - stamp) / NS_PER_S)
         self.newest[stream] = max(stamp, self.newest[stream] or stamp)
         if self.tracker is None:
             self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
@@ -386,11 +394,12 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def diagnostic_level(self) -> tuple[str, str]:
         """ERROR: sustained inconsistency or gating (the consistency watch, latched); stamps
-        ahead of this clock; inputs arriving later than reorder_lag after
-        their stamps (a clock behind this one, or a slow link: they are dropped as late);
-        a stream silent, or stamped behind this clock, for stale_timeout since input began.
-        WARN: waiting for the first input, a stream older than half the timeout, odometry
-        carried past its last message, gaps, gated ranges."""
+        ahead of this clock; inputs dropped as late, or a stream whose median delay (arrival
+        minus stamp) over the period exceeds reorder_lag (a clock behind this one, or a slow
+        link); a stream silent, or stamped behind this clock, for stale_timeout since input
+        began. WARN: waiting for the first input, a stream older than half the timeout, a
+        delay spike beyond reorder_lag (this process or the link stalled), odometry carried
+        past its last message, gaps, gated ranges."""
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
@@ -400,7 +409,7 @@ class FollowerEstimatorNode(Node):
         if new.get('refused_future'):
             return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
         lag = self.params['reorder_lag']
-        slow = [f'{s} {d:.2f} s' for s, d in self.delay.items() if d > lag]
+        slow, spikes = delayed_streams(self.delays, lag)
         if slow or new.get('late_odometry') or new.get('late_measurements'):
             return 'ERROR', (f'inputs arrive later than reorder_lag ({lag:g} s) after their '
                              'stamps and are dropped: a clock behind this one or a slow link'
@@ -417,6 +426,9 @@ class FollowerEstimatorNode(Node):
         late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
         if late:
             return 'WARN', 'late: ' + ', '.join(late)
+        if spikes:
+            return 'WARN', ('inputs delayed beyond reorder_lag (this process or the link '
+                            'stalled): ' + ', '.join(spikes))
         for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
                           ('gaps', f"odometry intervals longer than {self.params['max_gap']:g} "
                                    's (messages lost)'),
@@ -431,7 +443,7 @@ class FollowerEstimatorNode(Node):
         level, message = self.diagnostic_level()
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
-        self.delay = {s: 0.0 for s in self.streams}
+        self.delays = {s: [] for s in self.streams}
         if level == 'ERROR':
             self.worst = 'ERROR'
             if message.split(' (')[0] not in [e.split(' (')[0] for e in self.errors]:
