@@ -34,6 +34,8 @@ def node_parameters(formation: Formation, index: int, leader_topic: str, start_t
     follower: FollowerSpec = formation.followers[index]
     values = follower_values(follower, formation.trial, formation.leader_id)
     values['sensor'] = values.pop('measurement')
+    if not values['max_speed']:            # no limit in the file: the bases keep their own
+        del values['max_speed']
     frames = real_frames(follower.id, values['sensor'])
     values.update({'base_frame': frames['base'], 'leader_frame': formation.leader_id,
                    'sensor_frame': frames['sensor']})
@@ -56,6 +58,10 @@ def check_real(formation: Formation, names: dict[str, set[str]],
             if key in MANAGED:
                 return f"follower {follower.id!r}: real: {key} is set from the follower's " \
                        'own keys (sensor, slot, deviation, noise, ...) or by run_formation'
+            if key in ('max_speed', 'safety_distance') and \
+                    getattr(follower.scenario, key) not in (None, 0.0):
+                return f"follower {follower.id!r}: {key} is given twice, as the follower's " \
+                       'key and in real: give it once'
             nodes = [node for node in REAL_NODES if key in names[node]]
             if not nodes:
                 return f'follower {follower.id!r}: real: {key}: no such parameter of ' \

@@ -541,6 +541,9 @@ class Formation:
                 'leader_odometry_noise': [f.scenario.sigma_v_leader,
                                           f.scenario.sigma_omega_leader],
                 'initial_covariance': list(f.scenario.initial_covariance),
+                **({'max_speed': f.scenario.max_speed} if f.scenario.max_speed else {}),
+                **({'safety_distance': f.scenario.safety_distance}
+                   if f.scenario.safety_distance else {}),
                 'strategy': f.strategy, 'options': dict(f.options), 'seed': f.seed,
                 **({'interfaces': f.interfaces, 'real': dict(f.real)}
                    if f.interfaces != 'simulated' else {})}
@@ -548,8 +551,8 @@ class Formation:
 
 
 _FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'odometry_noise',
-                  'leader_odometry_noise', 'initial_covariance', 'strategy', 'options', 'seed',
-                  'interfaces', 'real'}
+                  'leader_odometry_noise', 'initial_covariance', 'max_speed', 'safety_distance',
+                  'strategy', 'options', 'seed', 'interfaces', 'real'}
 #: How a follower's nodes talk (FollowerSpec.interfaces).
 INTERFACES = ('simulated', 'real')
 
@@ -575,7 +578,9 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
             * base.d_o, sigma=item.get('noise', base.sigma), leader=path, dt=dt,
             sigma_v=sigma_v, sigma_omega=sigma_omega, sigma_v_leader=sigma_v_leader,
             sigma_omega_leader=sigma_omega_leader, kinematics=kinematics,
-            initial_covariance=item.get('initial_covariance', base.initial_covariance))
+            initial_covariance=item.get('initial_covariance', base.initial_covariance),
+            max_speed=item.get('max_speed'),
+            safety_distance=item.get('safety_distance', 0.0))
         real = item.get('real') or {}
         if not isinstance(real, dict):
             raise InvalidInput('real', f'must be a mapping of parameter names, got {real!r}')

@@ -98,9 +98,14 @@ PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATION
 INITIAL_COVARIANCE = Param(
     'initial_covariance', [0.1, 0.1, 4e-4], 'diagonal of P_1|1 [x m^2, y m^2, phi rad^2]; the '
     'truth starts at N([p_o, 0], P_1|1)', *_range('initial_covariance'))
+MAX_SPEED = Param('max_speed', 0.0, "speed limit of the follower's planned motion: mean "
+                  'world-frame speed over a measurement step, m/s (0: none, the paper\'s '
+                  'protocol)', 0.0, _range('max_speed')[1])
+SAFETY_DISTANCE = Param('safety_distance', 0.0, 'distance from the leader no planned point '
+                        "comes within, m (0: none)", *_range('safety_distance'))
 SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER,
                    KINEMATICS, RANGE_SIGMA, BEARING_SIGMA, SLOT, DEVIATION,
-                   INITIAL_COVARIANCE] + PATH_PARAMS
+                   INITIAL_COVARIANCE, MAX_SPEED, SAFETY_DISTANCE] + PATH_PARAMS
 
 
 def strategy_params() -> list[Param]:
@@ -162,7 +167,8 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
             leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
             sigma_omega=values['sigma_omega'], sigma_v_leader=values['sigma_v_leader'],
             sigma_omega_leader=values['sigma_omega_leader'], kinematics=values['kinematics'],
-            initial_covariance=tuple(values['initial_covariance']))
+            initial_covariance=tuple(values['initial_covariance']),
+            max_speed=values['max_speed'] or None, safety_distance=values['safety_distance'])
     except ValueError as error:
         raise ParameterError(f'the scenario parameters are inconsistent: {error}') from None
     try:

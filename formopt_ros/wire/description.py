@@ -174,6 +174,8 @@ def scenario_parameters(scenario: Scenario) -> dict[str, Any]:
             'formation_slot': list(scenario.p_o),
             'deviation_fraction': scenario.r / scenario.d_o,
             'initial_covariance': list(scenario.initial_covariance),
+            'max_speed': scenario.max_speed or 0.0,
+            'safety_distance': scenario.safety_distance,
             **path_parameters(scenario.leader)}
 
 

@@ -134,11 +134,13 @@ def waypoint_problem(msg: Any, follower_id: str) -> str | None:
 
 
 def waypoint_mismatch(msg: Any, dt: float, p_o: tuple[float, float], r: float,
-                      substeps: int) -> str | None:
+                      substeps: int, limited: bool = False) -> str | None:
     """Why a well-formed waypoint does not fit this follower's scenario (None when it does):
     its sub-step duration, slot or radius differ from ``dt``, ``p_o``, ``r`` (relative 1e-9),
-    it has not ``substeps`` commands, or its position lies outside the disc. Names the
-    parameter whose values differ, as the scenario handshake does."""
+    it has not ``substeps`` commands, or its position lies outside the disc (unless
+    ``limited``: under a speed limit a follower away from its disc is sent to the reachable
+    point nearest the slot). Names the parameter whose values differ, as the scenario
+    handshake does."""
     def differs(a: float, b: float) -> bool:
         return not abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1e-300)
 
@@ -154,7 +156,7 @@ def waypoint_mismatch(msg: Any, dt: float, p_o: tuple[float, float], r: float,
     if len(msg.linear_velocity) != substeps:
         return f'the waypoint has {len(msg.linear_velocity)} sub-step commands, not {substeps}'
     distance = math.hypot(msg.position.x - p_o[0], msg.position.y - p_o[1])
-    if distance > r * (1.0 + 1e-9):
+    if distance > r * (1.0 + 1e-9) and not limited:
         return (f'the waypoint position is {distance:.6g} m from the slot, outside the '
                 f'allowed deviation r = {r:.6g} m')
     return None

@@ -109,7 +109,8 @@ def test_formations_are_refused_at_the_boundary_or_run() -> None:
     rng = np.random.default_rng(20241)
     outcomes = {'refused': 0, 'ran': 0}
     keys = ('slot', 'deviation', 'noise', 'odometry_noise', 'leader_odometry_noise',
-            'initial_covariance', 'seed', 'dt', 'trial', 'options')
+            'initial_covariance', 'max_speed', 'safety_distance', 'seed', 'dt', 'trial',
+            'options')
     for case in range(60):
         follower: dict[str, Any] = {'id': 'f1', 'sensor': ('range', 'bearing')[case % 2],
                                     'slot': [-1.0, 2.0], 'strategy': STRATEGIES[case % 7]}

@@ -13,13 +13,25 @@ SEED = 3
 TOL = 1e-9
 
 
-@pytest.mark.parametrize('kind', ['range', 'bearing'])
-@pytest.mark.parametrize('strategy', ['ram', 'crm'])
-def test_lockstep_equals_run_trial(formation, kind: str, strategy: str) -> None:
+#: A speed limit and a safety distance (node parameters; the scenario's fields).
+LIMITS = {'max_speed': 1.5, 'safety_distance': 2.0}
+
+
+@pytest.mark.parametrize('kind, strategy, limits', [
+    ('range', 'ram', {}), ('range', 'crm', {}), ('bearing', 'ram', {}), ('bearing', 'crm', {}),
+    ('range', 'rq', LIMITS), ('bearing', 'periodic', LIMITS)])
+def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
+                                   limits: dict[str, float]) -> None:
+    """Estimates, covariances, truth and statuses of every step equal run_trial's, also with
+    the limits given as node parameters."""
     run = formation({'measurement': kind, 'strategy': strategy, 'seed': SEED, 'steps': STEPS,
-                     'resend_timeout': 60.0})
+                     'resend_timeout': 60.0, **limits})
     assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
-    ref = run_trial(node_scenario(kind), strategy, SEED, 0, STEPS)
+    ref = run_trial(node_scenario(kind, **limits), strategy, SEED, 0, STEPS)
+    if limits:      # the limits reached the nodes: they change the run and hold
+        free = run_trial(node_scenario(kind), strategy, SEED, 0, STEPS)
+        assert np.max(np.abs(free.waypoints - ref.waypoints)) > 0.05
+        assert np.min(np.hypot(*ref.waypoints.T)) >= LIMITS['safety_distance'] - 1e-9
     summary = run.estimator.summary()
     assert summary['steps'] == STEPS
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)

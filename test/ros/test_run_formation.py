@@ -389,6 +389,10 @@ def test_paths_with_yaml_characters_stay_inside_the_output_folder(
     ('[{id: a__b, sensor: range, slot: [-1, -2]}]', "must not contain '__'"),
     ('[{id: odom, sensor: range, slot: [-1, -2]}]', 'must not be a reserved frame name'),
     (f"[{{id: {'f' * 65}, sensor: range, slot: [-1, -2]}}]", 'at most 64 characters'),
+    ('[{id: a, sensor: range, slot: [-1, -2], max_speed: 0.5}]',
+     'max_speed 0.5 m/s is below 1 m/s'),
+    ('[{id: a, sensor: range, slot: [-1, -2], max_speed: 1.5, interfaces: real, '
+     'real: {max_speed: 2.0}}]', 'max_speed is given twice'),
 ])
 def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, followers: str,
                                                              text: str) -> None:
@@ -398,6 +402,24 @@ def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, fol
     result = run('--formation', str(formation), '--out', str(out), timeout=30)
     assert result.returncode == 2 and text in result.stderr, result.stderr
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_real_followers_limits_reach_both_of_its_nodes() -> None:
+    """max_speed and safety_distance of a real follower: both its nodes get the speed (the
+    base's limit and the planner's), the estimator the distance; without them the nodes keep
+    their own default speed."""
+    from formopt_ros.cli.preflight import real_names
+    from formopt_ros.cli.real_run import node_parameters
+    from formopt_ros.core.scenario import Formation
+    follower = {'id': 'a', 'sensor': 'range', 'slot': [-1.0, -2.0], 'interfaces': 'real'}
+    limited = Formation.from_dict({'followers': [{**follower, 'max_speed': 1.5,
+                                                  'safety_distance': 2.0}]})
+    params = node_parameters(limited, 0, '/odom', 1.0, 1.0, real_names())
+    assert params['field_sim']['max_speed'] == params['follower_estimator']['max_speed'] == 1.5
+    assert params['follower_estimator']['safety_distance'] == 2.0
+    free = node_parameters(Formation.from_dict({'followers': [follower]}), 0, '/odom', 1.0, 1.0,
+                           real_names())
+    assert 'max_speed' not in free['field_sim'] and 'max_speed' not in free['follower_estimator']
 
 
 def test_overlapping_discs_are_a_warning() -> None:

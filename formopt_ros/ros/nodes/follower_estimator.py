@@ -28,9 +28,9 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
-    BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SIGMA_OMEGA,
-    SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH, strategy_options,
-    strategy_params)
+    BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SAFETY_DISTANCE,
+    SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
+    strategy_options, strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
 from formopt_ros.wire.messages import twist_noise
 
@@ -77,7 +77,9 @@ PARAMS = [
           'ERROR (half as long: WARN), and the base stops, s', 0.05, 60.0),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
-    Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
+    Param('max_speed', 2.0, 'largest forward speed of the base, m/s; the strategy plans '
+          'within the reach of this speed', 1e-3, 100.0),
+    SAFETY_DISTANCE,
     Param('max_yaw_rate', 3.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
     Param('max_acceleration', 2.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
     Param('max_yaw_acceleration', 10.0, 'largest yaw acceleration of the base, rad/s^2', 1e-3,
@@ -212,7 +214,8 @@ class FollowerEstimatorNode(Node):
                 p[f"{p['sensor']}_sigma"], dt=p['dt'], sigma_v=p['sigma_v'],
                 sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
                 sigma_omega_leader=p['sigma_omega_leader'],
-                initial_covariance=tuple(p['initial_covariance']))
+                initial_covariance=tuple(p['initial_covariance']), max_speed=p['max_speed'],
+                safety_distance=p['safety_distance'])
             check_deviation_domain(scenario, 'deviation_fraction')
             return scenario
         except ValueError as error:

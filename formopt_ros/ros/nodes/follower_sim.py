@@ -166,7 +166,7 @@ class FollowerSim(Node):
             self.throttle.warn('waypoint', f'rejected waypoint: {problem}')
             return
         s = self.scenario
-        mismatch = waypoint_mismatch(msg, s.dt, s.p_o, s.r, SUBSTEPS)
+        mismatch = waypoint_mismatch(msg, s.dt, s.p_o, s.r, SUBSTEPS, s.max_speed is not None)
         if mismatch is not None:
             stop_run(self, MISMATCH_EXIT, f'the waypoint of step {msg.step} does not fit this '
                                           f'follower: {mismatch}')
