@@ -18,10 +18,11 @@ from formopt_ros.core import Problem
 from formopt_ros.core.cost import ProblemBatch
 from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.model import BEARING, RANGE
-from formopt_ros.core.strategies import PlanContext, baselines, certificate, common, ram, rq
+from formopt_ros.core.strategies import PlanContext, baselines, certificate, ram, rq, verify
 from formopt_ros.core.strategies.certificate import (
-    BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED, certify, exact_bound_matrix,
-    integer_positive_definite)
+    BOUNDARY, CRITICAL_POINTS, INTERIOR, NONE, PROVED)
+from formopt_ros.core.strategies.verify import (
+    certify, exact_bound_matrix, integer_positive_definite)
 from harness.problems import (
     beyond_double_problem, clustered_interior_problem, dense_reference, families, hard_problem,
     interior_bearing_problem, minor_axis_problem, near_rank_one_problem, quick_reference,
@@ -126,12 +127,12 @@ def test_exact_stage_runs_when_asked_and_for_kkt_points_only(
     (mu = 0 there), which stays unproved without the exact stage's cost (exact=True runs it
     there, and fails)."""
     calls = Counter()
-    original = certificate.exact_bound_matrix
+    original = verify.exact_bound_matrix
 
     def counted(*args: object) -> tuple[tuple[int, ...], int]:
         calls['exact'] += 1
         return original(*args)  # type: ignore[arg-type]
-    monkeypatch.setattr(certificate, 'exact_bound_matrix', counted)
+    monkeypatch.setattr(verify, 'exact_bound_matrix', counted)
     rng = np.random.default_rng(16)
     exact_boundary = kkt_free = 0
     for _ in range(400):
@@ -189,17 +190,17 @@ def test_exact_bearing_multiplier_decides_like_a_scan() -> None:
             S = tuple(x - m * d for x, d in zip(X, D))
         else:
             S, m = _integer_matrix(rng, (1, -1, 1), 1000), -1
-        mu = certificate._best_bearing_multiplier(S, tuple(s + d for s, d in zip(S, D)))
+        mu = verify._best_bearing_multiplier(S, tuple(s + d for s, d in zip(S, D)))
         if mu is not None:
             a, b = mu.numerator, mu.denominator
-            assert mu >= 0 and certificate.integer_positive_definite(
+            assert mu >= 0 and verify.integer_positive_definite(
                 [b * s + a * d for s, d in zip(S, D)]), (S, D, mu)
             found += 1
             narrow += trial % 3 == 0
         elif m >= 0:
             pytest.fail(f'no multiplier found for S = X - {m} D: {S}, {D}')
         else:
-            assert not any(certificate.integer_positive_definite(
+            assert not any(verify.integer_positive_definite(
                 [64 * s + k * d for s, d in zip(S, D)]) for k in range(64 * 64)), (S, D)
             refused += 1
     assert found >= 200 and refused >= 250 and narrow >= 60, (found, refused, narrow)
@@ -331,7 +332,7 @@ def exact_cost(problem: Problem, p: np.ndarray) -> Fraction:
 
 @pytest.mark.parametrize('kind', KINDS)
 def test_exact_gain_equals_rational_reference(kind: str) -> None:
-    """certificate.exact_gain and exact_base_cost (scaled integers) equal exact_cost's plain
+    """verify.exact_gain and exact_base_cost (scaled integers) equal exact_cost's plain
     Fractions to the last bit, on 100 hard and 100 minor-axis problems at the slot, at a
     boundary point and at a point whose unit is finer than the data's (the data's integers,
     computed once per problem, are then shifted)."""
@@ -340,7 +341,7 @@ def test_exact_gain_equals_rational_reference(kind: str) -> None:
         problem = (hard_problem if index % 2 else minor_axis_problem)(rng, kind)
         for p in (problem.p_o, problem.p_o + problem.r * np.array([0.6, -0.8]),
                   problem.p_o * np.array([1.0, 2.0 ** -1000])):
-            exact = certificate.exact_base_cost(problem) - certificate.exact_gain(
+            exact = verify.exact_base_cost(problem) - verify.exact_gain(
                 problem, float(p[0]), float(p[1]))
             assert exact == exact_cost(problem, p)
 
@@ -359,7 +360,7 @@ def test_gain_error_bound_holds_and_is_tight_where_nothing_cancels(kind: str) ->
         for angle in np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False):
             x, y = problem.p_o + problem.r * np.array([math.cos(angle), math.sin(angle)])
             g = problem.gain_at(x, y)
-            actual = abs(Fraction(g) - certificate.exact_gain(problem, x, y))
+            actual = abs(Fraction(g) - verify.exact_gain(problem, x, y))
             bound = problem.gain_error_at(x, y, g)
             assert actual <= Fraction(bound), (problem, x, y, float(actual), bound)
             if index % 2:
@@ -511,7 +512,7 @@ def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
              [9.853266501952553e-27, 0.0, 6.320489823860494e-35]]),
             np.array([0.007333250459313318, 1.2858743651480721e-10]), 0.007325917208854006,
             3.3122756862538496e-05, BEARING))
-    angles = np.linspace(0.0, 2 * math.pi, common.CHECK_SAMPLES, endpoint=False)
+    angles = np.linspace(0.0, 2 * math.pi, verify.CHECK_SAMPLES, endpoint=False)
     labels = Counter()
     for problem in problems:
         samples = np.vstack([problem.p_o, problem.p_o + problem.r * np.stack(
@@ -522,7 +523,7 @@ def test_beyond_double_precision_never_worse_than_samples(kind: str) -> None:
             labels[solution.certificate] += 1
             assert problem.feasible(solution.p), solution
             exact = exact_cost(problem, solution.p)
-            allowed = {NONE: 0.0, CRITICAL_POINTS: common.EXACT_TIE}.get(
+            allowed = {NONE: 0.0, CRITICAL_POINTS: verify.EXACT_TIE}.get(
                 solution.certificate, solution.details['certificate_gap'])
             assert exact <= best + Fraction(allowed) * exact, (problem, solution)
             if solution.certificate == NONE:
@@ -603,7 +604,7 @@ def test_exact_search_starts_in_every_tied_basin() -> None:
     target = exact_cost(problem, np.array([-2.303438335127945e-05, 0.6941195553977484]))
     for solution in (rq.rq_optimum(problem), ram.ram_optimum(problem)):
         assert problem.feasible(solution.p)
-        assert exact_cost(problem, solution.p) <= target * (1 + Fraction(common.EXACT_TIE))
+        assert exact_cost(problem, solution.p) <= target * (1 + Fraction(verify.EXACT_TIE))
 
 
 #: A reviewer's 'lopsided' bearing problems (variances 1e-100 to 1e22 in one P, sigma down to
@@ -732,7 +733,7 @@ def test_near_rank_one_answers_are_proved(kind: str, count: int) -> None:
         for solution in (rq.rq_optimum(problem), ram.ram_optimum(problem)):
             labels[solution.certificate] += 1
             assert problem.feasible(solution.p), solution
-            allowed = {NONE: 0.0, CRITICAL_POINTS: common.EXACT_TIE}.get(
+            allowed = {NONE: 0.0, CRITICAL_POINTS: verify.EXACT_TIE}.get(
                 solution.certificate, solution.details['certificate_gap'])
             exact = exact_cost(problem, solution.p)
             assert exact <= best + Fraction(allowed) * exact, (problem, solution)

@@ -20,7 +20,7 @@ from formopt_ros.core.checks import as_bool, as_integer, as_real
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.model import EXACT
 from formopt_ros.core.reach import Region
-from formopt_ros.core.strategies.certificate import exact_cost
+from formopt_ros.core.strategies.verify import exact_cost
 
 if TYPE_CHECKING:
     from formopt_ros.core.scenario import Scenario

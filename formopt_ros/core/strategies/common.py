@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -12,36 +11,11 @@ from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.formulas import point_from_q
 from formopt_ros.core.model import RANGE
 from formopt_ros.core.strategies.base import Solution, make_solution
-from formopt_ros.core.strategies.certificate import (
-    CRITICAL_POINTS, NONE, PROVED, best_of, certify, exact_base_cost, exact_cost, exact_gain,
-    Ratio, exact_gain_ratio, exact_quotient_newton_step, tied_with_best)
+from formopt_ros.core.strategies.certificate import PROVED
+from formopt_ros.core.strategies.verify import CHECK_SAMPLES, certify, settle_unproved
 
 #: Relative spread of the gain below which every direction ties (range case): return p_o.
 FLAT_TOLERANCE = 1e-12
-#: Boundary samples, equally spaced in the angle around p_o, that an answer without a proof is
-#: held against (with the slot; bearing: as many again, equally spaced on the q-circle): when
-#: rounding loses a critical point (condition numbers of P beyond ~1e16), a sample or the slot
-#: beats every critical point found, and shows it.
-CHECK_SAMPLES = 360
-#: Relative cost (exact arithmetic) by which a sample, the slot or a Newton point may beat the
-#: best critical point before the enumeration counts as having lost one.
-EXACT_TIE = 1e-9
-#: The exact local search (:func:`refine_exactly`): first step (as a fraction of r, and rad),
-#: the step at which it stops, and the most exact gains it evaluates (about 10 us each) from
-#: the answer (a quarter of that from each other start).
-REFINE_FIRST_STEP = 1e-3
-REFINE_LAST_STEP = 1e-15
-REFINE_EVALUATIONS = 600
-#: Exact gains at most per round of the compass search before Newton's method tries again.
-REFINE_ROUND = 100
-#: ``details['reason']`` of an answer the exact search improved on but could not prove.
-REFINED_REASON = ('rounding spoilt the critical points: the point is the best an exact local '
-                  'search found from them, not proved optimal')
-#: Local maxima of each ring of boundary samples from which the exact search starts too (the
-#: gain has at most three along the boundary, and so has a ring of its exact values).
-RING_PEAKS = 3
-#: Newton steps at most that the exact search tries first on a bearing problem.
-REFINE_NEWTON_STEPS = 8
 
 
 def gains_tie(problem: Problem | ProblemBatch, gain_max: Any, gain_min: Any,
@@ -66,208 +40,6 @@ def check_points(problem: Problem, extra: Sequence[tuple[float, float]] = ()) ->
         c0, c1, rho = problem.q_circle
         parts.append(point_from_q(np.array([c0, c1]) + rho * ring))
     return np.vstack([*parts, problem.p_o[None, :], np.reshape(extra, (-1, 2))])
-
-
-def ring_peaks(problem: Problem, samples: np.ndarray,
-               gains: np.ndarray) -> list[tuple[float, float]]:
-    """The samples (x, y) (m) of each ring of :func:`check_points` (its first rows; ``gains``:
-    their computed gains, ``problem.gain(samples)``) whose exact
-    gain beats both neighbours on the ring: the boundary's local maxima (at most three: the
-    boundary's stationarity polynomial has degree 6), each a start for :func:`refine_exactly`
-    in its own basin. Neighbours are compared on computed gains where their rounding bounds
-    part them, else on exact gains.
-
-    A basin can be far narrower than the samples' spacing and hold the optimum while its
-    nearest sample is worse than another basin's best (a reviewer's bearing problem with
-    variances 1e-28 to 1e10, the disc 2.5e-6 m from the leader: the optimum's basin on the
-    boundary is 1e-5 rad wide; the answer, 2.7e-9 above it, lay in another)."""
-    peaks: list[tuple[float, float]] = []
-    for first in range(0, CHECK_SAMPLES * (1 if problem.measurement == RANGE else 2),
-                       CHECK_SAMPLES):
-        ring = samples[first:first + CHECK_SAMPLES].tolist()
-        values = gains[first:first + CHECK_SAMPLES].tolist()
-        errors = [problem.gain_error_at(x, y, g) for (x, y), g in zip(ring, values)]
-        exact: dict[int, Ratio] = {}
-
-        def beats(k: int, j: int) -> bool:
-            """Sample k's exact gain exceeds sample j's."""
-            if values[k] - errors[k] > values[j] + errors[j]:
-                return True
-            if values[k] + errors[k] < values[j] - errors[j]:
-                return False
-            for i in (k, j):
-                if i not in exact:
-                    exact[i] = exact_gain_ratio(problem, *ring[i])
-            return exact[k][0] * exact[j][1] > exact[j][0] * exact[k][1]
-        better = [beats(k, k - 1) for k in range(CHECK_SAMPLES)]      # k beats k - 1
-        tops = [k for k in range(CHECK_SAMPLES)
-                if better[k] and not better[(k + 1) % CHECK_SAMPLES]]
-        tops.sort(key=values.__getitem__, reverse=True)
-        peaks += [(ring[k][0], ring[k][1]) for k in tops[:RING_PEAKS]]
-    return peaks
-
-
-def exact_best(problem: Problem, critical: np.ndarray, gains: np.ndarray, others: np.ndarray,
-               other_gains: np.ndarray) -> tuple[int, bool]:
-    """(index into critical + others of the best point by exact gain among those whose computed
-    gains tie within their rounding bounds, whether the best critical point is as good as it
-    to EXACT_TIE of its cost): an 'all-critical-points' answer is the best critical point, and
-    no sample, the slot or a Newton point beats it beyond that."""
-    candidates = np.vstack([critical, others]).tolist()
-    candidate_gains = [*(gains.tolist() if len(critical) else []), *other_gains.tolist()]
-    chosen = best_of(problem, candidates, candidate_gains)
-    if chosen < len(critical) or not len(critical):
-        return chosen, bool(len(critical))
-    top = best_of(problem, critical.tolist(), gains.tolist())
-    g_critical = exact_gain(problem, *candidates[top])
-    g_best = exact_gain(problem, *candidates[chosen])
-    if g_best - g_critical <= Fraction(EXACT_TIE) * (exact_base_cost(problem) - g_critical):
-        return top, True
-    return chosen, False
-
-
-#: The exact search's moves (d rho, d phi): the eight compass directions, and along the circle.
-_COMPASS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1))
-_ALONG_BOUNDARY = ((0, 1), (0, -1))
-
-
-def refine_exactly(problem: Problem, p: Sequence[float],
-                   budget: int = REFINE_EVALUATIONS) -> tuple[tuple[float, float], Ratio]:
-    """A compass search for a better point than p (2,) on exact gains: ((x, y) m, its exact
-    gain as a :data:`~.certificate.Ratio`), p itself when it finds none.
-
-    Where rounding swamps the cost (P ill-conditioned, the posterior cost 1e-8 to 1e-15 of
-    tr(W P W)), the floating-point critical points can miss the optimum by 1e-9 to 1e-5 of
-    the cost while their gains no longer tell them apart. The search works in the plane where
-    the gain is a quotient of quadratic forms: p for range, q = (-y, x) / |p|^2 for bearing
-    (where the disc is the q-disc), with the point as centre + rho (cos phi, sin phi), rho up
-    to the disc's radius. It moves along the eight compass directions of (rho, phi) with
-    steps from REFINE_FIRST_STEP (of the radius, and rad) halved down to REFINE_LAST_STEP,
-    comparing exact gains (:func:`~.certificate.exact_gain_ratio`, by cross-multiplying), at
-    most ``budget`` of them; on the boundary the phi moves follow the circle, and a start on
-    the boundary moves along it first (a reviewer's problem: the boundary's basin narrower than
-    the first step, the search went inwards and stopped 3.2e-8 above the optimum). Points that
-    rounding puts outside the disc's tolerance (``Problem.feasible``) are passed over. For
-    bearing, Newton steps on exact residuals come first (:func:`exact_quotient_newton_step`);
-    the search runs in rounds of Newton steps and at most REFINE_ROUND compass evaluations
-    while a round gains: on a narrow curved ridge the compass search crawls, and Newton's
-    method from where it stopped reaches an interior optimum (a reviewer's problem: 2.3e-7
-    above the optimum after 600 evaluations without rounds).
-    """
-    x, y = float(p[0]), float(p[1])
-    if problem.measurement == RANGE:
-        (c0, c1), radius, u, v = problem.slot, float(problem.r), x, y
-    else:
-        c0, c1, radius = problem.q_circle
-        n2 = x * x + y * y
-        u, v = -y / n2, x / n2
-
-    def to_p(u: float, v: float) -> tuple[float, float]:
-        """The point (m) of search coordinates (u, v): p itself (range) or q (bearing)."""
-        if problem.measurement == RANGE:
-            return u, v
-        n2 = u * u + v * v
-        return v / n2, -u / n2
-
-    def point(rho: float, phi: float) -> tuple[float, float]:
-        return to_p(c0 + rho * math.cos(phi), c1 + rho * math.sin(phi))
-
-    best = exact_gain_ratio(problem, x, y)
-    evaluations = 0
-    improved = True
-    while improved and evaluations < budget:
-        before = best
-        if problem.measurement != RANGE:
-            # an interior optimum first: Newton steps on exact residuals, kept while they gain
-            for _ in range(REFINE_NEWTON_STEPS):
-                du, dv = exact_quotient_newton_step(problem, u, v)
-                u_new, v_new = u + du, v + dv
-                if not math.hypot(u_new - c0, v_new - c1) <= radius:
-                    break
-                x_new, y_new = to_p(u_new, v_new)
-                if not problem.feasible((x_new, y_new)):
-                    break
-                gain = exact_gain_ratio(problem, x_new, y_new)
-                evaluations += 1
-                if not gain[0] * best[1] > best[0] * gain[1]:
-                    break
-                u, v, x, y, best = u_new, v_new, x_new, y_new, gain
-        rho, phi = min(math.hypot(u - c0, v - c1), radius), math.atan2(v - c1, u - c0)
-        # from a point on the boundary, along the boundary first: where the boundary's basin is
-        # narrower than the first step, a step inwards would win and leave it for good
-        for moves in ((_ALONG_BOUNDARY, _COMPASS) if rho == radius else (_COMPASS,)):
-            step, round_end = REFINE_FIRST_STEP, min(budget, evaluations + REFINE_ROUND)
-            while step >= REFINE_LAST_STEP and evaluations < round_end:
-                moved = False
-                for d_rho, d_phi in moves:
-                    rho_new = min(max(rho + d_rho * step * radius, 0.0), radius)
-                    phi_new = phi + d_phi * step
-                    if rho_new == rho and phi_new == phi:
-                        continue
-                    x_new, y_new = point(rho_new, phi_new)
-                    if not problem.feasible((x_new, y_new)):      # rounding, on a tiny disc
-                        continue
-                    gain = exact_gain_ratio(problem, x_new, y_new)
-                    evaluations += 1
-                    if gain[0] * best[1] > best[0] * gain[1]:
-                        rho, phi, x, y, best = rho_new, phi_new, x_new, y_new, gain
-                        moved = True
-                        break
-                if not moved:
-                    step *= 0.5
-        # where the compass search stalls on a narrow ridge, Newton may go on from its end
-        u, v = c0 + rho * math.cos(phi), c1 + rho * math.sin(phi)
-        improved = best[0] * before[1] > before[0] * best[1]
-    return (x, y), best
-
-
-def settle_unproved(problem: Problem, critical: np.ndarray, gains: np.ndarray,
-                    others: np.ndarray, other_gains: np.ndarray, p: np.ndarray,
-                    details: dict[str, Any]) -> tuple[int, bool, np.ndarray, str, dict[str, Any]]:
-    """For an answer p (2,) that :func:`certify` did not prove: the exact best of the candidates
-    (:func:`exact_best`), certified afresh if it is another point; if that is no proof either,
-    the best point :func:`refine_exactly` reaches from it and from the critical points whose
-    gains tie with the best (``details['refined']``), certified in exact arithmetic when it is
-    better. The exact cost is in details.
-
-    Returns:
-        (index into critical + others, whether it is the best critical point, the point, its
-        certificate: a proof, else 'all-critical-points' or 'none', details).
-    """
-    index, enumerated = exact_best(problem, critical, gains, others, other_gains)
-    chosen = critical[index] if enumerated else others[index - len(critical)]
-    name = NONE
-    if not np.array_equal(chosen, p):
-        p = chosen
-        name, details = certify(problem, (float(p[0]), float(p[1])))
-    if name not in PROVED:
-        # rounding may have spoilt the critical points themselves: search on exact gains from
-        # p and from every critical point that ties with the best (another basin may hold the
-        # optimum while its critical point, misplaced by rounding, looks worse)
-        starts = [(float(p[0]), float(p[1]))]
-        if len(critical):
-            tied = tied_with_best(problem, np.vstack([critical, others]).tolist(),
-                                  [*gains.tolist(), *other_gains.tolist()])
-            starts += [(float(critical[k][0]), float(critical[k][1])) for k in tied
-                       if k < len(critical) and not np.array_equal(critical[k], p)]
-        if problem.measurement != RANGE:        # range: one basin per half-turn of bearing
-            starts += [q for q in ring_peaks(problem, others, other_gains) if q not in starts]
-        best: tuple[tuple[float, float], Ratio] | None = None
-        for count, start in enumerate(starts):
-            refined, gain = refine_exactly(problem, start, REFINE_EVALUATIONS if count == 0
-                                           else REFINE_EVALUATIONS // 4)
-            if best is None or gain[0] * best[1][1] > best[1][0] * gain[1]:
-                best = refined, gain
-        if best is not None and best[0] != starts[0]:    # a strictly better point
-            p, enumerated = np.array(best[0]), False
-            name, details = certify(problem, best[0])
-            details['refined'] = True
-            if name not in PROVED:
-                details['reason'] = REFINED_REASON
-    details.setdefault('exact_cost', exact_cost(problem, float(p[0]), float(p[1])))
-    if name not in PROVED:
-        name = CRITICAL_POINTS if enumerated else NONE
-    return index, enumerated, p, name, details
 
 
 def range_plan_from_direction(problem: Problem, theta_star: float, flat: bool,

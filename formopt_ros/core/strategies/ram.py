@@ -74,11 +74,12 @@ from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.formulas import Entries
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, OptionSpec, PlanContext, Solution, Strategy, make_solution)
-from formopt_ros.core.strategies.certificate import PROVED, certify
+from formopt_ros.core.strategies.certificate import PROVED
 from formopt_ros.core.strategies.common import (
     Poly, boundary_stationarity, gains_tie, poly_combine, poly_mul, polish_boundary_angles,
     range_plan_from_direction)
 from formopt_ros.core.strategies.rq import rq_optimum
+from formopt_ros.core.strategies.verify import certify
 from formopt_ros.core.model import MEASUREMENT_KINDS
 
 #: Relative KKT residual below which a back-substituted root is a candidate without polishing.

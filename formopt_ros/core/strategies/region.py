@@ -53,7 +53,8 @@ from formopt_ros.core.model import RANGE
 from formopt_ros.core.reach import Circle, Region
 from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, make_solution
 from formopt_ros.core.strategies.certificate import (
-    BOUNDARY, CRITICAL_POINTS, GAP_RTOLS, INTERIOR, NONE, PROVED, _exact_forms)
+    BOUNDARY, CRITICAL_POINTS, GAP_RTOLS, INTERIOR, NONE, PROVED)
+from formopt_ros.core.strategies.verify import exact_forms
 from formopt_ros.core.strategies.rq import (
     _circle_series, rq_optimum, top_generalized_eigenvector)
 
@@ -200,8 +201,8 @@ def _fraction_positive_definite(S: list[list[Fraction]]) -> bool:
 def _exact_checker(problem: Problem, forms: Sequence[np.ndarray]
                    ) -> Callable[[float, Sequence[float]], bool]:
     """(lambda, mu) -> lambda B - A + sum mu_i G_i positive definite, exactly: A and B from
-    the exact data (:func:`~.certificate._exact_forms`), the G_i as the floats they are."""
-    M, N, R, _, E = _exact_forms(problem, *problem.slot)
+    the exact data (:func:`~.certificate.exact_forms`), the G_i as the floats they are."""
+    M, N, R, _, E = exact_forms(problem, *problem.slot)
     n = 2 if problem.measurement == RANGE else 3
     index = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
     if n == 2:

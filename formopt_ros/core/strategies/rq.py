@@ -44,10 +44,11 @@ from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING
 from formopt_ros.core.strategies.stacked import stacked_plan
-from formopt_ros.core.strategies.certificate import PROVED, certify, proved_batch
+from formopt_ros.core.strategies.certificate import PROVED, proved_batch
 from formopt_ros.core.strategies.common import (
-    CHECK_SAMPLES, boundary_points, boundary_stationarity, check_points, gains_tie,
-    polish_boundary_angles, range_plan_from_direction, settle_unproved)
+    boundary_points, boundary_stationarity, check_points, gains_tie, polish_boundary_angles,
+    range_plan_from_direction)
+from formopt_ros.core.strategies.verify import CHECK_SAMPLES, certify, settle_unproved
 
 #: Gains closer than this (relative to tr(W P W)) tie: the rounding of the gain formula.
 GAIN_ROUNDING = 16 * EPS
