@@ -148,6 +148,7 @@ def test_bad_sweeps_stop_with_one_line(tmp_path: Path, args: list[str], message:
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_separate_dask_cluster_gives_the_same_numbers(tmp_path: Path) -> None:
     """`dask scheduler` + `dask worker` (2 processes) started here; --scheduler ADDRESS."""
     dask_cli = Path(sys.executable).parent / 'dask'

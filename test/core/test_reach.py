@@ -177,10 +177,11 @@ def _check_against_reference(kind: str, count: int, seed: int) -> Counter[str]:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_region_optimum_quick(kind: str) -> None:
-    """300 generated problems per sensor: RQ's point lies in the region, is certified (a proof
-    or every KKT point enumerated) and costs at most the dense reference (1 + 1e-9)."""
-    tally = _check_against_reference(kind, 300, 7)
-    assert sum(tally[c] for c in (*PROVED, CRITICAL_POINTS)) >= 290
+    """100 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
+    region, is certified (a proof or every KKT point enumerated) and costs at most the dense
+    reference (1 + 1e-9)."""
+    tally = _check_against_reference(kind, 100, 7)
+    assert sum(tally[c] for c in (*PROVED, CRITICAL_POINTS)) >= 97
 
 
 @pytest.mark.slow
