@@ -215,7 +215,8 @@ class AsyncEstimator:
             update = self.estimator.update(self.applied + 1, value, variance)
             self.applied += 1
             self._count(update)
-            self.watch.add_nis(update.nis, not update.used, self.applied)
+            for part in update.nis_parts():
+                self.watch.add_nis(part, not update.used, self.applied)
             out.append(AppliedMeasurement(stamp, self.estimator.x.copy(),
                                           self.estimator.P.copy(), update, bridged))
         return out

@@ -78,20 +78,26 @@ class InputBounds:
         yaw_rate: largest |omega|, rad/s.
         range: largest range, m.
         variance: (smallest, largest) measurement variance, m^2 or rad^2.
+        bearing_variance: the same for the bearing of a range-bearing follower, rad^2 (None:
+            ``variance`` holds for every kind).
     """
 
     speed: float
     yaw_rate: float
     range: float
     variance: tuple[float, float]
+    bearing_variance: tuple[float, float] | None = None
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> 'InputBounds':
         """The bounds of ``scenario``."""
-        sigma2 = scenario.sigma ** 2
+        def around(sigma: float) -> tuple[float, float]:
+            return sigma ** 2 / VARIANCE_BOUND, sigma ** 2 * VARIANCE_BOUND
         return cls(TRAVEL_BOUND * scenario.d_o / scenario.dt,
                    TURN_BOUND * np.pi / scenario.dt, RANGE_BOUND * scenario.d_o,
-                   (sigma2 / VARIANCE_BOUND, sigma2 * VARIANCE_BOUND))
+                   around(scenario.sigma),
+                   around(scenario.sigma_bearing) if scenario.measurement == RANGE_BEARING
+                   else None)
 
     def odometry_problem(self, v: float, omega: float) -> str | None:
         """Why a velocity pair (m/s, rad/s) is implausible, or None."""
@@ -107,7 +113,8 @@ class InputBounds:
             return f'range {value:.6g} m is outside [0, {self.range:.6g}] m'
         if kind == 'bearing' and not abs(value) <= np.pi:
             return f'bearing {value:.6g} rad is outside [-pi, pi]'
-        low, high = self.variance
+        low, high = self.bearing_variance if kind == BEARING and self.bearing_variance \
+            else self.variance
         if not low <= variance <= high:
             return (f'variance {variance:.6g} is outside [{low:.6g}, {high:.6g}] (a factor '
                     f'{VARIANCE_BOUND:g} around sigma^2)')
@@ -228,6 +235,10 @@ class UpdateResult:
         used: False when the innovation gate refused the measurement.
         inflation: factor applied to P before a re-opening update (1: none).
         weight: Huber's weight of the measurement (1: full; below 1: down-weighted).
+        parts: the NIS as independent chi-square(1) terms for the consistency watch: (nis,)
+            for a scalar update; for a stacked one the squared components of the whitened
+            innovation L^-1 nu (S = L L', range first: its own NIS, then the bearing's given
+            the range), which sum to nis.
     """
 
     innovation: float | np.ndarray
@@ -235,6 +246,22 @@ class UpdateResult:
     used: bool
     inflation: float = 1.0
     weight: float = 1.0
+    parts: tuple[float, ...] = ()
+
+    def nis_parts(self) -> tuple[float, ...]:
+        """:attr:`parts`, or (nis,) when none were set."""
+        return self.parts or (self.nis,)
+
+
+def whitened_squares(innovation: np.ndarray, S: np.ndarray) -> tuple[float, float]:
+    """The squared components of L^-1 nu for S = L L' (Cholesky, 2x2): chi-square(1) each
+    and independent for a consistent filter; they sum to nu' S^-1 nu."""
+    l00 = math.sqrt(S[0, 0])
+    l10 = S[0, 1] / l00
+    l11 = math.sqrt(max(S[1, 1] - l10 * l10, 0.0))
+    e0 = innovation[0] / l00
+    e1 = (innovation[1] - l10 * e0) / l11
+    return float(e0 * e0), float(e1 * e1)
 
 
 @dataclass(frozen=True)
@@ -438,16 +465,17 @@ class EstimatorPlanner:
         x, P, innovation, S = ekf_update_stacked(self.state, self.covariance, z_pair, variances)
         nis, use, inflation = stacked_innovation_gate(innovation, S, variances,
                                                       self.gated_in_a_row)
+        parts = whitened_squares(innovation, S)
         if not use:
             self.gated_in_a_row += 1
-            return UpdateResult(innovation, nis, False)
+            return UpdateResult(innovation, nis, False, parts=parts)
         if inflation > 1.0:
             x, P, innovation, S = ekf_update_stacked(self.state, inflation * self.covariance,
                                                      z_pair, variances)
         self.gated_in_a_row = 0
         self.state, self.covariance = x, P
         self.history.append(StepRecord(step, self.x, self.P, self._target))
-        return UpdateResult(innovation, nis, True, float(inflation))
+        return UpdateResult(innovation, nis, True, float(inflation), parts=parts)
 
     def weighted_trace(self) -> float:
         """tr(W P W) of the current covariance, m^2."""
@@ -513,6 +541,10 @@ class EstimatorSession:
     _posteriors: dict[int, tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict, repr=False)
     _bounds: InputBounds | None = field(default=None, repr=False)
+    # range-bearing: the parts of a step's measurement received so far, {step: {kind: (stamp
+    # ns, value, variance)}}
+    _parts: dict[int, dict[str, tuple[int, float, float]]] = field(default_factory=dict,
+                                                                   repr=False)
 
     @property
     def bounds(self) -> InputBounds:
@@ -554,17 +586,64 @@ class EstimatorSession:
                            'rejected_odometry')
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
-                        now_ns: int | None = None) -> str | None:
-        """The measurement of ``step``; the refusal reason, or None."""
-        problem = self.bounds.measurement_problem(self.estimator.scenario.measurement, value,
-                                                  variance)
+                        now_ns: int | None = None, kind: str | None = None) -> str | None:
+        """The measurement of ``step`` (``kind``: the scenario's, or for a range-bearing
+        follower 'range' or 'bearing', one part of the step's measurement); the refusal
+        reason, or None.
+
+        A range-bearing step goes to the assembler once its parts are in (the range, and the
+        bearing on the steps that have one, ``Scenario.bearing_at``), as z = [d, beta] with
+        both stamps equal; in realtime a part of a later step sends an earlier incomplete step
+        on with what it has (NaN for the missing part)."""
+        scenario = self.estimator.scenario
+        kind = scenario.measurement if kind is None else kind
+        stacked = scenario.measurement == RANGE_BEARING
+        if kind != scenario.measurement and not (stacked and kind in (RANGE, BEARING)):
+            return self.reject('rejected_measurements', f'measurement of kind {kind} for a '
+                               f'{scenario.measurement} follower')
+        if stacked and kind == BEARING and not scenario.bearing_at(step):
+            return self.reject('rejected_measurements', f'a bearing at step {step}: this '
+                               f'follower has one every {scenario.bearing_every} steps')
+        problem = self.bounds.measurement_problem(kind, value, variance)
         if problem is not None:
             return self.reject('rejected_measurements', f'measurement {problem}')
-        reason = self._count(self.assembler.add_measurement(step, stamp_ns, value, variance,
-                                                            now_ns), 'rejected_measurements')
+        if stacked:
+            reason = self._add_part(step, stamp_ns, kind, value, variance, now_ns)
+        else:
+            reason = self._count(self.assembler.add_measurement(step, stamp_ns, value, variance,
+                                                                now_ns), 'rejected_measurements')
         if reason is None:
             self.counters.accepted_measurements += 1
         return reason
+
+    def _add_part(self, step: int, stamp_ns: int, kind: str, value: float, variance: float,
+                  now_ns: int | None) -> str | None:
+        """One part of a range-bearing step (see :meth:`add_measurement`)."""
+        parts = self._parts.setdefault(step, {})
+        if kind in parts:
+            return self.reject('rejected_measurements', f'a {kind} of step {step} is already '
+                               'waiting')
+        if parts and next(iter(parts.values()))[0] != stamp_ns:
+            return self.reject('rejected_measurements', f'the {kind} of step {step} is stamped '
+                               f'{stamp_ns} ns, its other part {next(iter(parts.values()))[0]}')
+        parts[kind] = (stamp_ns, value, variance)
+        reason = None
+        if not self.assembler.lockstep:
+            for older in sorted(k for k in self._parts if k < step):
+                reason = self._send_parts(older, now_ns) or reason
+        if len(parts) == (2 if self.estimator.scenario.bearing_at(step) else 1):
+            reason = self._send_parts(step, now_ns) or reason
+        return reason
+
+    def _send_parts(self, step: int, now_ns: int | None) -> str | None:
+        """The parts of ``step`` to the assembler as one measurement [d, beta] (NaN where a part
+        is missing)."""
+        parts = self._parts.pop(step)
+        stamp = next(iter(parts.values()))[0]
+        nan = (stamp, math.nan, math.nan)
+        (_, d, var_d), (_, beta, var_beta) = parts.get(RANGE, nan), parts.get(BEARING, nan)
+        return self._count(self.assembler.add_measurement(
+            step, stamp, np.array([d, beta]), (var_d, var_beta), now_ns), 'rejected_measurements')
 
     def reject(self, counter: str, reason: str) -> str:
         """Count an input refused before it reached the session (e.g. malformed)."""
@@ -607,7 +686,8 @@ class EstimatorSession:
         for m in ready.motions:
             estimator.propagate(m.v_f, m.omega_f, m.v_l, m.omega_l)
         update = estimator.update(ready.step, ready.value, ready.variance)
-        self.watch.add_nis(update.nis, not update.used, ready.step)
+        for part in update.nis_parts():
+            self.watch.add_nis(part, not update.used, ready.step)
         if not update.used:
             self.reject('gated_measurements', f'measurement of step {ready.step} gated: '
                         f'normalised innovation {update.nis:.4g} > {INNOVATION_GATE:g}')

@@ -452,6 +452,14 @@ class FollowerSpec:
                                f'{self.interfaces!r}')
         if self.real and self.interfaces != 'real':
             raise InvalidInput('real', 'settings need interfaces: real')
+        if self.scenario.measurement == RANGE_BEARING:
+            if self.strategy == 'ram':
+                raise InvalidInput('strategy', "ram is the paper's method for one scalar "
+                                   'measurement; a range-bearing follower needs another (rq '
+                                   'solves it by branch and bound)')
+            if self.interfaces == 'real':
+                raise InvalidInput('interfaces', 'a range-bearing follower runs on the simulated '
+                                   'interfaces (follower_estimator takes a range or a bearing)')
 
 
 @dataclass(frozen=True)
@@ -536,7 +544,10 @@ class Formation:
             'trial': self.trial,
             'followers': [{
                 'id': f.id, 'sensor': f.scenario.measurement, 'slot': list(f.scenario.p_o),
-                'deviation': f.scenario.r / f.scenario.d_o, 'noise': f.scenario.sigma,
+                'deviation': f.scenario.r / f.scenario.d_o,
+                **({'noise': [f.scenario.sigma, f.scenario.sigma_bearing],
+                    'bearing_every': f.scenario.bearing_every}
+                   if f.scenario.measurement == RANGE_BEARING else {'noise': f.scenario.sigma}),
                 'odometry_noise': [f.scenario.sigma_v, f.scenario.sigma_omega],
                 'leader_odometry_noise': [f.scenario.sigma_v_leader,
                                           f.scenario.sigma_omega_leader],
@@ -550,9 +561,9 @@ class Formation:
                 for f in self.followers]}
 
 
-_FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'odometry_noise',
-                  'leader_odometry_noise', 'initial_covariance', 'max_speed', 'safety_distance',
-                  'strategy', 'options', 'seed', 'interfaces', 'real'}
+_FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'bearing_every',
+                  'odometry_noise', 'leader_odometry_noise', 'initial_covariance', 'max_speed',
+                  'safety_distance', 'strategy', 'options', 'seed', 'interfaces', 'real'}
 #: How a follower's nodes talk (FollowerSpec.interfaces).
 INTERFACES = ('simulated', 'real')
 
@@ -564,18 +575,25 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
     missing = sorted({'id', 'sensor', 'slot'} - set(item))
     if missing:
         raise InvalidInput(f'formation follower {name}', f'lacks the keys {missing}')
-    if item['sensor'] == RANGE_BEARING:
-        raise InvalidInput(f'formation follower {name} sensor', 'range-bearing runs in the '
-                           'simulator and the study (formopt-montecarlo), not yet on ROS')
     try:
         base = Scenario.paper(item['sensor'], p_o=item['slot'])
+        both = item['sensor'] == RANGE_BEARING
+        noise = item.get('noise', [base.sigma, base.sigma_bearing] if both else base.sigma)
+        if both:
+            sigma, sigma_bearing = _pair('noise', noise, '[range m, bearing rad]')
+            sensor = {'sigma': sigma, 'sigma_bearing': sigma_bearing,
+                      'bearing_every': item.get('bearing_every', 1)}
+        elif 'bearing_every' in item:
+            raise InvalidInput('bearing_every', 'is for a range-bearing follower only')
+        else:
+            sensor = {'sigma': noise}
         sigma_v, sigma_omega = _pair('odometry_noise', item.get(
             'odometry_noise', (base.sigma_v, base.sigma_omega)))
         sigma_v_leader, sigma_omega_leader = _pair('leader_odometry_noise', item.get(
             'leader_odometry_noise', (0.0, 0.0)))
         scenario = Scenario.paper(
             item['sensor'], p_o=base.p_o, r=ranged('deviation', item.get('deviation', 0.1))
-            * base.d_o, sigma=item.get('noise', base.sigma), leader=path, dt=dt,
+            * base.d_o, **sensor, leader=path, dt=dt,
             sigma_v=sigma_v, sigma_omega=sigma_omega, sigma_v_leader=sigma_v_leader,
             sigma_omega_leader=sigma_omega_leader, kinematics=kinematics,
             initial_covariance=item.get('initial_covariance', base.initial_covariance),
@@ -584,7 +602,8 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
         real = item.get('real') or {}
         if not isinstance(real, dict):
             raise InvalidInput('real', f'must be a mapping of parameter names, got {real!r}')
-        return FollowerSpec(name, scenario, item.get('strategy', 'ram'),
+        default = 'rq' if scenario.measurement == RANGE_BEARING else 'ram'
+        return FollowerSpec(name, scenario, item.get('strategy', default),
                             item.get('options') or {}, item.get('seed', default_seed),
                             str(item.get('interfaces', 'simulated')), dict(real))
     except InvalidInput as error:
@@ -593,10 +612,10 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
         raise ValueError(f'formation follower {name}: {error}') from None
 
 
-def _pair(name: str, value: object) -> tuple[object, object]:
-    """``value`` if it is a list of two (linear, angular), else InvalidInput naming it."""
+def _pair(name: str, value: object, units: str = '[m/s, rad/s]') -> tuple[object, object]:
+    """``value`` if it is a list of two (e.g. linear, angular), else InvalidInput naming it."""
     if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise InvalidInput(name, f'must be [m/s, rad/s], got {value!r}')
+        raise InvalidInput(name, f'must be {units}, got {value!r}')
     return value[0], value[1]
 
 

@@ -28,8 +28,8 @@ import numpy as np
 
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.model import (
-    BEARING, RANGE_BEARING, integrate_unicycle, normalized_estimation_error, predict_measurement,
-    propagate_state, wrap_angle)
+    BEARING, RANGE, RANGE_BEARING, integrate_unicycle, normalized_estimation_error,
+    predict_measurement, propagate_state, wrap_angle)
 from formopt_ros.core.protocol import SUBSTEPS, held_leader_motion, step_substeps
 from formopt_ros.core.scenario import Formation, Scenario
 from formopt_ros.core.strategies import make_strategy
@@ -118,6 +118,18 @@ def received(scenario: Scenario, step: int, z: Any) -> Any:
     z = np.array(z, dtype=float)
     z[..., 1] = np.nan
     return z
+
+
+def measurement_parts(scenario: Scenario, step: int, z: Any) -> list[tuple[str, float, float]]:
+    """The scalar measurements a follower sends at measurement step ``step`` (1-based) for its
+    measurement z: [(kind, value m or rad, variance m^2 or rad^2)]; a range-bearing follower
+    sends its range and, on the steps that have one, its bearing."""
+    if scenario.measurement != RANGE_BEARING:
+        return [(scenario.measurement, float(z), scenario.sigma ** 2)]
+    parts = [(RANGE, float(z[0]), scenario.sigma ** 2)]
+    if scenario.bearing_at(step):
+        parts.append((BEARING, float(z[1]), scenario.sigma_bearing ** 2))
+    return parts
 
 
 def leader_poses(scenario: Scenario, steps: int) -> np.ndarray:

@@ -29,6 +29,7 @@ Every refusal returns a reason (a short text) to count.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from formopt_ros.core.protocol import Timebase, hold_command, step_substeps
 
@@ -58,8 +59,8 @@ class ReadyStep:
     step: int
     stamp_ns: int
     motions: tuple[Motion, ...]
-    value: float          # m or rad
-    variance: float       # m^2 or rad^2
+    value: Any            # m or rad; range-bearing: [d m, beta rad] (2,), NaN where missing
+    variance: Any         # m^2 or rad^2; range-bearing: (d, beta) variances
     skipped: int = 0      # realtime: steps whose measurement never came
     filled: int = 0       # realtime: hold sub-steps put in for odometry lost in a resume gap
 
@@ -83,7 +84,7 @@ class StepAssembler:
     next_step: int = 1
     _follower: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
     _leader: dict[int, tuple[float, float]] = field(default_factory=dict, repr=False)
-    _measurements: dict[int, tuple[int, float, float]] = field(
+    _measurements: dict[int, tuple[int, Any, Any]] = field(
         default_factory=dict, repr=False)
     _accounted_ns: int = -1           # realtime: stamp of the last processed measurement
     _last_follower_ns: int | None = None   # realtime: last follower odometry used
@@ -113,9 +114,10 @@ class StepAssembler:
                     self._waited[step] += 1
         return reason
 
-    def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
+    def add_measurement(self, step: int, stamp_ns: int, value: Any, variance: Any,
                         now_ns: int | None = None) -> str | None:
-        """Store the measurement of ``step``; the reason when refused, else None."""
+        """Store the measurement of ``step`` (a ReadyStep's value and variance); the reason
+        when refused, else None."""
         if step < self.next_step:
             return f'step {step} already processed'
         if self.lockstep and self.timebase.measurement_stamp(step) != stamp_ns:

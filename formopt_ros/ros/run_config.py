@@ -9,7 +9,7 @@ from typing import Any
 from rclpy.node import Node
 
 from formopt_ros.core.domain import check_domain
-from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS
+from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS, RANGE_BEARING
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
 from formopt_ros.core.scenario import (
     PATH_KINDS, RANGES, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
@@ -38,7 +38,11 @@ LEADER_ID = Param('leader_id', DEFAULT_LEADER, 'id of the leader: its namespace 
 MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
              'realtime: timers at 1/dt', choices=MODES)
 DT = Param('dt', 0.05, 'sub-step length, s', *_range('dt'))
-MEASUREMENT = Param('measurement', 'range', 'the follower sensor', choices=MEASUREMENT_KINDS)
+MEASUREMENT = Param('measurement', 'range', 'the follower sensor: range, bearing, or both at '
+                    'each step (range-bearing: two Measurement messages per step; the bearing '
+                    'every bearing_every steps)', choices=(*MEASUREMENT_KINDS, RANGE_BEARING))
+BEARING_EVERY = Param('bearing_every', 1, 'range-bearing: the bearing comes at every k-th step, '
+                      'the range at every step', 1, 10**6)
 SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)',
              *_range('seed'))
 TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)',
@@ -105,7 +109,7 @@ SAFETY_DISTANCE = Param('safety_distance', 0.0, 'distance from the leader no pla
                         "comes within, m (0: none)", *_range('safety_distance'))
 SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER,
                    KINEMATICS, RANGE_SIGMA, BEARING_SIGMA, SLOT, DEVIATION,
-                   INITIAL_COVARIANCE, MAX_SPEED, SAFETY_DISTANCE] + PATH_PARAMS
+                   INITIAL_COVARIANCE, MAX_SPEED, SAFETY_DISTANCE, BEARING_EVERY] + PATH_PARAMS
 
 
 def strategy_params() -> list[Param]:
@@ -163,7 +167,9 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
     try:
         scenario = Scenario.paper(
             kind, p_o=p_o, r=values['deviation_fraction'] * math.hypot(*p_o),
-            sigma=values['range_sigma'] if kind == 'range' else values['bearing_sigma'],
+            sigma=values['bearing_sigma'] if kind == 'bearing' else values['range_sigma'],
+            **({'sigma_bearing': values['bearing_sigma'],
+                'bearing_every': values['bearing_every']} if kind == RANGE_BEARING else {}),
             leader=leader_path_from(values), dt=values['dt'], sigma_v=values['sigma_v'],
             sigma_omega=values['sigma_omega'], sigma_v_leader=values['sigma_v_leader'],
             sigma_omega_leader=values['sigma_omega_leader'], kinematics=values['kinematics'],
@@ -251,7 +257,7 @@ def follower_run(node: Node, values: dict[str, Any], strategy_owned: bool) -> Fo
         strategy_owned: the node has the strategy parameters (estimator_planner).
     """
     follower_id = values['follower_id'] or robot_id(node, DEFAULT_FOLLOWER)
-    strategy, options = 'ram', {}
+    strategy, options = 'rq', {}          # unused by a node without a strategy
     if strategy_owned:
         strategy = values['strategy']
         options = strategy_options(strategy, values)

@@ -6,7 +6,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
-from formopt_ros.core.model import EULER
+from formopt_ros.core.model import EULER, RANGE_BEARING
 from formopt_ros.core.scenario import LeaderPath, Scenario
 
 #: Version tags of the JSON layouts.
@@ -166,9 +166,14 @@ def path_parameters(path: LeaderPath) -> dict[str, Any]:
 
 def scenario_parameters(scenario: Scenario) -> dict[str, Any]:
     """The node parameters that describe ``scenario`` (the sensor's noise as range_sigma or
-    bearing_sigma, r as deviation_fraction of |p_o|)."""
-    return {'measurement': scenario.measurement, 'dt': scenario.dt,
-            f'{scenario.measurement}_sigma': scenario.sigma, 'sigma_v': scenario.sigma_v,
+    bearing_sigma, both with bearing_every for range-bearing; r as deviation_fraction of
+    |p_o|)."""
+    sigmas = {'range_sigma': scenario.sigma, 'bearing_sigma': scenario.sigma_bearing,
+              'bearing_every': scenario.bearing_every} \
+        if scenario.measurement == RANGE_BEARING else \
+        {f'{scenario.measurement}_sigma': scenario.sigma}
+    return {'measurement': scenario.measurement, 'dt': scenario.dt, **sigmas,
+            'sigma_v': scenario.sigma_v,
             'sigma_omega': scenario.sigma_omega, 'sigma_v_leader': scenario.sigma_v_leader,
             'sigma_omega_leader': scenario.sigma_omega_leader, 'kinematics': scenario.kinematics,
             'formation_slot': list(scenario.p_o),

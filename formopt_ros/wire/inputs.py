@@ -12,7 +12,8 @@ from typing import Any
 
 from formopt_ros.core.estimator import EstimatorSession
 from formopt_ros.wire.messages import (
-    foreign_run, header_ns, measurement_problem, odometry_problem, odometry_values, pose_values)
+    KIND_NAMES, foreign_run, header_ns, measurement_problem, odometry_problem, odometry_values,
+    pose_values)
 
 
 def odometry_frames(robot: str, robot_id: str) -> tuple[str, str]:
@@ -34,7 +35,8 @@ def feed_odometry(session: EstimatorSession, robot: str, msg: Any, robot_id: str
 
 def feed_measurement(session: EstimatorSession, msg: Any, follower_id: str,
                      now_ns: int | None = None, run_id: str = '') -> str | None:
-    """One range or bearing measurement (of run ``run_id``; '' accepts any)."""
+    """One range or bearing measurement (of run ``run_id``; '' accepts any); for a
+    range-bearing follower, one part of its step's measurement."""
     foreign = foreign_run(msg, run_id)
     if foreign is not None:
         return session.reject('foreign_messages', f'measurement {foreign}')
@@ -42,7 +44,7 @@ def feed_measurement(session: EstimatorSession, msg: Any, follower_id: str,
     if problem is not None:
         return session.reject('rejected_measurements', f'measurement {problem}')
     return session.add_measurement(int(msg.step), header_ns(msg), float(msg.value),
-                                   float(msg.variance), now_ns)
+                                   float(msg.variance), now_ns, KIND_NAMES[int(msg.kind)])
 
 
 def feed_truth(session: EstimatorSession, msg: Any) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import BEARING, RANGE
+from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING
 
 #: Measurement.kind codes of the message definition (RANGE=0, BEARING=1).
 KIND_CODES = {RANGE: 0, BEARING: 1}
@@ -94,13 +94,14 @@ def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
         return f'for follower {msg.follower_id!r}, not {follower_id!r}'
     if msg.header.frame_id != follower_id:
         return f'frame_id {msg.header.frame_id!r} is not the follower frame {follower_id!r}'
-    if KIND_NAMES.get(int(msg.kind)) != kind:
-        return f'kind {msg.kind} is not {kind}'
+    kinds = (RANGE, BEARING) if kind == RANGE_BEARING else (kind,)
+    if KIND_NAMES.get(int(msg.kind)) not in kinds:
+        return f"kind {msg.kind} is not {' or '.join(kinds)}"
     if not math.isfinite(msg.value):
         return f'value {msg.value} is not finite'
     if not (math.isfinite(msg.variance) and msg.variance > 0.0):
         return f'variance {msg.variance} is not a finite number > 0'
-    if kind == RANGE and msg.value < 0.0:
+    if KIND_NAMES[int(msg.kind)] == RANGE and msg.value < 0.0:
         return f'range {msg.value} m is negative'
     return None
 

@@ -187,14 +187,42 @@ def test_ram_does_not_apply() -> None:
         run_trial(Scenario.paper(RANGE_BEARING), 'ram', SEED, 0, 1)
 
 
-def test_formation_file_refuses_range_bearing_until_ros_supports_it() -> None:
-    """A formation file with a range-bearing follower is refused with a message naming the
-    follower and where it does run (the simulator and the study)."""
-    import yaml
+def test_formation_files_take_range_bearing_followers() -> None:
+    """config/formation_range_bearing.yaml loads (its third follower measures both, RQ by
+    default) and round-trips; a single noise, RAM, real interfaces, or bearing_every on a
+    single-sensor follower are refused naming the field."""
     from formopt_ros.core.scenario import Formation
-    path = Path(__file__).resolve().parents[2] / 'config' / 'formation_fig4.yaml'
-    with open(path, encoding='utf-8') as handle:
-        data = yaml.safe_load(handle)['formation']
-    data['followers'][0]['sensor'] = RANGE_BEARING
-    with pytest.raises(InvalidInput, match='range-bearing runs in the simulator'):
-        Formation.from_dict(data)
+    from formopt_ros.wire.formation import load_formation
+    path = Path(__file__).resolve().parents[2] / 'config' / 'formation_range_bearing.yaml'
+    formation = load_formation(path)
+    both = formation.follower('both').scenario
+    assert (both.measurement, both.sigma, both.sigma_bearing) == (RANGE_BEARING, 0.1, 0.02)
+    assert Formation.from_dict(formation.to_dict()) == formation
+    follower = {'id': 'f', 'sensor': RANGE_BEARING, 'slot': [-1.0, -2.0]}
+    assert Formation.from_dict({'followers': [follower]}).followers[0].strategy == 'rq'
+    for change, field in (({'noise': 0.1}, 'noise'), ({'strategy': 'ram'}, 'strategy'),
+                          ({'interfaces': 'real'}, 'interfaces'),
+                          ({'sensor': 'range', 'bearing_every': 2}, 'bearing_every')):
+        with pytest.raises(InvalidInput) as error:
+            Formation.from_dict({'followers': [{**follower, **change}]})
+        assert field in error.value.name, (change, error.value)
+
+
+def test_a_stacked_nis_splits_into_two_independent_chi_square_1_terms() -> None:
+    """whitened_squares: the two terms sum to nu' S^-1 nu (1e-12 relative) and, for nu drawn
+    from N(0, S) with random S (20,000 draws, seeded), each has mean 1 and they are
+    uncorrelated (within 0.05), as the consistency watch's 1-dof windows assume."""
+    from formopt_ros.core.estimator import whitened_squares
+    from formopt_ros.core.model import stacked_nis
+    rng = np.random.default_rng(26)
+    terms = []
+    for _ in range(20_000):
+        A = rng.normal(size=(2, 2)) * [1.0, 0.01]
+        S = A @ A.T + np.diag([1e-2, 4e-4])
+        nu = np.linalg.cholesky(S) @ rng.normal(size=2)
+        parts = whitened_squares(nu, S)
+        assert sum(parts) == pytest.approx(float(stacked_nis(nu, S)), rel=1e-12)
+        terms.append(parts)
+    terms_array = np.array(terms)
+    assert np.all(np.abs(terms_array.mean(axis=0) - 1.0) < 0.05)
+    assert abs(np.corrcoef(terms_array.T)[0, 1]) < 0.05

@@ -8,7 +8,8 @@ import pytest
 from formopt_ros.core.estimator import EstimatorSession
 from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.core.scenario import LeaderPath, Scenario
-from formopt_ros.core.simulation import TrialResult, run_trial, trial_streams
+from formopt_ros.core.simulation import (
+    TrialResult, measurement_parts, run_trial, trial_streams)
 from formopt_ros.core.stepper import REALTIME_PATIENCE, StepAssembler
 from formopt_ros.core.strategies import make_strategy
 
@@ -36,22 +37,32 @@ def session_for(scenario: Scenario, strategy: str, lockstep: bool = True,
 
 
 def feed(session: EstimatorSession, event: tuple, variance: float) -> str | None:
+    """One event of :func:`lockstep_inputs`; a range-bearing measurement as its parts (range,
+    then the bearing where the step has one), as follower_sim sends them."""
     kind = event[0]
     if kind == 'leader':
         return session.add_odometry('leader', *event[1:])
     if kind == 'follower':
         return session.add_odometry('follower', *event[1:])
-    return session.add_measurement(event[1], event[2], event[3], variance)
+    scenario = session.estimator.scenario
+    if scenario.measurement != 'range-bearing':
+        return session.add_measurement(event[1], event[2], event[3], variance)
+    reasons = [session.add_measurement(event[1], event[2], value, part_variance, kind=part)
+               for part, value, part_variance in measurement_parts(scenario, event[1], event[3])]
+    return next(filter(None, reasons), None)
 
 
 @pytest.mark.parametrize('kind,strategy', [('range', 'ram'), ('bearing', 'crm'),
-                                           ('bearing', 'mme')])
+                                           ('bearing', 'mme'), ('range-bearing', 'rq')])
 @pytest.mark.parametrize('order', ['published', 'shuffled'])
 def test_lockstep_session_equals_the_simulation(kind: str, strategy: str, order: str) -> None:
     """Fed the simulation's inputs (in order, or shuffled within windows of 6 steps, as a
     replayed bag delivers each topic at its own pace), the session reproduces run_trial: every
-    posterior, every planned waypoint (same planner stream)."""
-    scenario = Scenario.paper(kind, leader=LeaderPath('s-curve', amplitude=0.3, period=3.0))
+    posterior, every planned waypoint (same planner stream); a range-bearing follower (bearing
+    every second step) sends its range and bearing as two parts."""
+    rb = {'bearing_every': 2} if kind == 'range-bearing' else {}
+    scenario = Scenario.paper(kind, leader=LeaderPath('s-curve', amplitude=0.3, period=3.0),
+                              **rb)
     ref = run_trial(scenario, strategy, SEED, 0, STEPS)
     events = lockstep_inputs(ref, Timebase.from_dt(scenario.dt))
     if order == 'shuffled':
@@ -76,7 +87,34 @@ def test_lockstep_session_equals_the_simulation(kind: str, strategy: str, order:
         assert outcome.weighted_trace == pytest.approx(ref.weighted_trace[k], rel=TOL)
     assert len(plans) == STEPS                 # no plan after the last step
     np.testing.assert_allclose([p.solution.p for p in plans], ref.waypoints, rtol=0, atol=TOL)
-    assert session.finished and session.counters.accepted_measurements == STEPS
+    parts = STEPS + STEPS // 2 if kind == 'range-bearing' else STEPS
+    assert session.finished and session.counters.accepted_measurements == parts
+
+
+def test_realtime_range_bearing_step_without_its_bearing_goes_on_with_the_range() -> None:
+    """Realtime, range-bearing: the bearing of step 3 is lost; when step 4's range comes,
+    step 3 is applied with its range alone (a scalar update), and every step is processed; a
+    second range of a step and a bearing stamped apart from its range are refused."""
+    scenario = Scenario.paper('range-bearing')
+    ref = run_trial(scenario, 'rq', SEED, 0, STEPS)
+    timebase = Timebase.from_dt(scenario.dt)
+    session = session_for(scenario, 'rq', lockstep=False)
+    session.plan_next()
+    outcomes = []
+    for event in lockstep_inputs(ref, timebase):
+        if event[0] == 'measurement' and event[1] == 3:
+            stamp, (d, beta) = event[2], event[3]
+            assert session.add_measurement(3, stamp, d, 0.01, kind='range') is None
+            assert 'already waiting' in session.add_measurement(3, stamp, d, 0.01, kind='range')
+            assert 'stamped' in session.add_measurement(3, stamp + 1, beta, 4e-4,
+                                                        kind='bearing')
+        else:
+            assert feed(session, event, 0.0) is None
+        outcomes += session.advance()
+    assert [o.step for o in outcomes] == list(range(1, STEPS + 1))
+    assert [len(o.update.nis_parts()) for o in outcomes[1:4]] == [2, 1, 2]
+    assert session.counters.accepted_measurements == 2 * STEPS - 1
+    assert session.counters.rejected_measurements == 2
 
 
 def test_lockstep_refusals_change_nothing() -> None:

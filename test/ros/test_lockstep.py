@@ -19,16 +19,18 @@ LIMITS = {'max_speed': 1.5, 'safety_distance': 2.0}
 
 @pytest.mark.parametrize('kind, strategy, limits', [
     ('range', 'ram', {}), ('range', 'crm', {}), ('bearing', 'ram', {}), ('bearing', 'crm', {}),
-    ('range', 'rq', LIMITS), ('bearing', 'periodic', LIMITS)])
+    ('range', 'rq', LIMITS), ('bearing', 'periodic', LIMITS),
+    ('range-bearing', 'rq', {}), ('range-bearing', 'rq', {'bearing_every': 3})])
 def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
                                    limits: dict[str, float]) -> None:
     """Estimates, covariances, truth and statuses of every step equal run_trial's, also with
-    the limits given as node parameters."""
+    the limits given as node parameters, and for a range-bearing follower (two messages per
+    step, the bearing at every step or every third)."""
     run = formation({'measurement': kind, 'strategy': strategy, 'seed': SEED, 'steps': STEPS,
                      'resend_timeout': 60.0, **limits})
     assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
     ref = run_trial(node_scenario(kind, **limits), strategy, SEED, 0, STEPS)
-    if limits:      # the limits reached the nodes: they change the run and hold
+    if limits and kind != 'range-bearing':  # the limits reached the nodes: they change the run
         free = run_trial(node_scenario(kind), strategy, SEED, 0, STEPS)
         assert np.max(np.abs(free.waypoints - ref.waypoints)) > 0.05
         assert np.min(np.hypot(*ref.waypoints.T)) >= LIMITS['safety_distance'] - 1e-9
@@ -49,11 +51,13 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
     assert [s.weighted_trace for s in statuses] == pytest.approx(
         ref.weighted_trace.tolist(), abs=TOL)
     last = statuses[-1]
+    every = limits.get('bearing_every', 1)
+    parts = STEPS + (len(range(every, STEPS + 1, every)) if kind == 'range-bearing' else 0)
     assert (last.accepted_measurements, last.rejected_measurements,
-            last.rejected_odometry) == (STEPS, 0, 0)
+            last.rejected_odometry) == (parts, 0, 0)
     assert summary['mean_nees'] == pytest.approx(float(np.mean(ref.nees)), rel=1e-9)
     assert summary['message_counts']['received'] == {
-        'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS, 'measurement': STEPS,
+        'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS, 'measurement': parts,
         'truth': STEPS}
 
 

@@ -112,6 +112,28 @@ def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     assert (out / 'report' / 'trajectory.png').stat().st_size > 20_000
 
 
+def test_range_bearing_formation_equals_the_simulation(tmp_path: Path, ros_domain: int) -> None:
+    """config/formation_range_bearing.yaml: the range-bearing follower sends two measurements
+    per step, every follower equals the pure formation simulation (1e-9), and the recording
+    holds every message."""
+    path = REPO / 'config' / 'formation_range_bearing.yaml'
+    out = tmp_path / 'rb'
+    result = run('--formation', str(path), '--steps', str(STEPS), '--out', str(out),
+                 '--domain-id', str(ros_domain), '--timeout', '120')
+    assert result.returncode == 0, result.stdout + result.stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    reference = run_formation(load_formation(path), STEPS)
+    assert summary['ok'] and set(summary['followers']) == {'bearing', 'range', 'both'}
+    for follower, ref in reference.items():
+        got = summary['followers'][follower]
+        np.testing.assert_allclose(got['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
+        np.testing.assert_allclose(got['final_covariance'], ref.covariance[-1], rtol=0,
+                                   atol=TOL)
+    counts = summary['recording']['counts']
+    assert summary['recording']['complete']
+    assert counts['/both/measurement'] == 2 * STEPS and counts['/range/measurement'] == STEPS
+
+
 @pytest.mark.parametrize('args,text', [
     (['--mode', 'warp'], "argument --mode: invalid choice: 'warp'"),
     (['--strategy', 'fast'], "argument --strategy: invalid choice: 'fast'"),

@@ -13,7 +13,7 @@ from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.model import integrate_unicycle
 from formopt_ros.core.protocol import SUBSTEPS, Timebase, hold_command, step_substeps
-from formopt_ros.core.simulation import FollowerTruth, trial_streams
+from formopt_ros.core.simulation import FollowerTruth, measurement_parts, trial_streams
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
@@ -34,8 +34,8 @@ from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, ODOM_FRAME, follow
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + [
     RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and publishes its '
-           'odometry, one range or bearing measurement per step, its true pose and its frames '
-           'on /tf.')
+           'odometry, its range or bearing measurement per step (range-bearing: both), its true '
+           'pose and its frames on /tf.')
 #: Publication order of a step's messages: what the estimator reads first (a lockstep step is
 #: published when complete): odometry, the truth (before the measurement, so that the
 #: estimator knows the truth of a step when it processes it, also the last one), the
@@ -48,7 +48,8 @@ class FollowerSim(Node):
 
     Per sub-step it publishes its odometry (the commanded velocities it measured, with the
     noise variances) and <id>/odom -> <id> on /tf; after the motion its true relative pose
-    (and leader -> <id>/truth) and one measurement. /tf_static holds odom -> <id>/odom, where
+    (and leader -> <id>/truth) and its measurement (range-bearing: two messages, range then
+    bearing). /tf_static holds odom -> <id>/odom, where
     its odometry started. A waypoint of the step last executed (the estimator resends it after
     a restart or a lost message) republishes that step's messages.
 
@@ -254,12 +255,13 @@ class FollowerSim(Node):
         """Measure; the step's cache holds its messages in the order of WAITED_FOR."""
         s = self.scenario
         truth = conversions.pose_stamped(stamp, self.leader_id, self.truth.x)
-        meas = conversions.measurement(stamp, self.follower_id, self.follower_id, step,
-                                       s.measurement, self.truth.measure(), s.sigma ** 2,
-                                       self.params['run_id'])
+        parts = measurement_parts(s, step, self.truth.measure())
+        meas = [conversions.measurement(stamp, self.follower_id, self.follower_id, step, kind,
+                                        value, variance, self.params['run_id'])
+                for kind, value, variance in parts]
         tf = conversions.tf_message([conversions.transform(
             stamp, self.leader_id, self.frames['truth'], self.truth.x)])
-        for key, msg in (('truth', truth), ('measurement', meas), ('tf', tf)):
+        for key, msg in (('truth', truth), *(('measurement', m) for m in meas), ('tf', tf)):
             self.step_messages.append((key, msg))
             if not self.lockstep:
                 self._publish(key, msg)
