@@ -1,7 +1,9 @@
 """The processes of a run: start nodes through scripts/<node>.sh, restart or stop them, and never
-leave one behind (every started process group is ended when the run ends, however it ends)."""
+leave one behind (every started process group is ended when the run ends, however it ends; if
+run_formation itself is killed, the kernel ends its nodes: :func:`die_with_parent`)."""
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -18,6 +20,22 @@ PROG = 'run_formation.sh'
 SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
 #: Exit code of a node refusing its configuration (not respawned: it would refuse again).
 CONFIGURATION_EXIT = 2
+#: prctl option that asks the kernel to signal a process when its parent dies (Linux).
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """Run in a started node before it executes (``preexec_fn``): when the process that
+    started it dies, even by SIGKILL, the node receives SIGTERM (Linux; it survives the exec
+    of scripts/<node>.sh into the node, which ends its run and writes its summary). A parent
+    already gone gets the same answer at once. Elsewhere: nothing."""
+    parent = os.getppid()
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+    except (AttributeError, OSError):          # no prctl: not Linux
+        return
+    if os.getppid() != parent:
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 @dataclass
@@ -40,7 +58,7 @@ class Process:
                          .encode())
             stream.flush()
             self.process = subprocess.Popen(self.args, stdout=stream, stderr=subprocess.STDOUT,
-                                            start_new_session=True)
+                                            start_new_session=True, preexec_fn=die_with_parent)
 
     def alive(self) -> bool:
         """True while the process runs."""
@@ -84,7 +102,7 @@ class Launcher:
         log = self.out / f'{name}.log'
         with open(log, 'wb') as stream:
             process = subprocess.Popen(args, stdout=stream, stderr=subprocess.STDOUT,
-                                       start_new_session=True)
+                                       start_new_session=True, preexec_fn=die_with_parent)
         self.processes.append(Process(name, process, log, args, summary_path))
         return self.processes[-1]
 

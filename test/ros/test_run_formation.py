@@ -362,6 +362,32 @@ def test_a_signal_ends_every_process_and_writes_the_summary(
     assert not _alive_with(str(out))
 
 
+def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int) -> None:
+    """run_formation killed by SIGKILL once its nodes are up (no handler of it runs): the kernel
+    sends each node SIGTERM, each writes its summary, and 5 s later no process of the run
+    lives."""
+    out = tmp_path / 'killed'
+    process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--mode', 'realtime',
+                                '--steps', '1000', '--out', str(out), '--domain-id',
+                                str(ros_domain)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout is not None
+    logs = [out / f'{name}.log' for name in ('leader_sim', 'follower.follower_sim',
+                                              'follower.estimator_planner')]
+    deadline = time.monotonic() + 60.0
+    while not all(log.exists() and ' ready ' in log.read_text() for log in logs):
+        assert time.monotonic() < deadline and process.poll() is None, 'the nodes never started'
+        time.sleep(0.1)
+    process.kill()
+    process.communicate(timeout=30)
+    deadline = time.monotonic() + 5.0
+    while _alive_with(str(out)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive_with(str(out))
+    assert {p.name for p in out.glob('*.json')} >= {
+        'leader_sim.json', 'follower.follower_sim.json', 'follower.estimator_planner.json'}
+
+
 def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: int,
                                                   monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
