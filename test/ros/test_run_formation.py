@@ -371,9 +371,8 @@ def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int)
                                 '--steps', '1000', '--out', str(out), '--domain-id',
                                 str(ros_domain)], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
-    assert process.stdout is not None
-    logs = [out / f'{name}.log' for name in ('leader_sim', 'follower.follower_sim',
-                                              'follower.estimator_planner')]
+    names = ('leader_sim', 'follower.follower_sim', 'follower.estimator_planner')
+    logs = [out / f'{name}.log' for name in names]
     deadline = time.monotonic() + 60.0
     while not all(log.exists() and ' ready ' in log.read_text() for log in logs):
         assert time.monotonic() < deadline and process.poll() is None, 'the nodes never started'
