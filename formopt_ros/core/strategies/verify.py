@@ -21,10 +21,10 @@ point (:func:`settle_unproved`).
 
 Where the floating-point certificate decides on its own: never where the gain's rounding
 bound exceeds GAP_RTOLS[-1] (1e-10) of the cost; below that, unless cancellation in S defeats
-its bound. Measured (docs/certification.md): in the paper's scenarios the exact stage runs for
-none of RQ's range decisions and 1.4 % of its bearing decisions; in the adversarial families of
-the certification tests for 5-8 % of the problems with a bound below 1e-15 of the cost and
-14-34 % from 1e-14 to 1e-11.
+its bound. Measured by ``scripts/measure_exact_share.py`` (docs/certification.md): in the
+paper's scenarios the exact stage runs for none of RQ's range certificates and 1.4 % of its
+bearing ones; in the adversarial families of the certification tests for 1-9 % of the
+problems whose bound is below 1e-15 of the cost and 14-34 % from 1e-14 to 1e-11.
 """
 from __future__ import annotations
 
