@@ -30,7 +30,8 @@ def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
             fail(PROG, f'--formation: {error}')
         check_formation(formation, args.formation)
         return formation, args.formation.resolve(), {}
-    kind, strategy = args.measurement or 'range', args.strategy or 'ram'
+    kind = args.measurement or 'range'
+    strategy = args.strategy or ('rq' if kind == 'range-bearing' else 'ram')
     extras: dict[str, str] = {}
     for item in args.extra:
         if ':=' not in item:
@@ -50,7 +51,10 @@ def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
         fail(PROG, f'-p: {error}')
     options = {name[len(strategy) + 1:]: value for name, value in values.items()
                if name.startswith(f'{strategy}_')}
-    spec = FollowerSpec('follower', scenario, strategy, options, args.seed or 0)
+    try:
+        spec = FollowerSpec('follower', scenario, strategy, options, args.seed or 0)
+    except ValueError as error:
+        fail(PROG, f'--strategy {strategy}: {error}')
     return Formation('leader', (spec,)), None, values
 
 

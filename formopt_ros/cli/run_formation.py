@@ -33,10 +33,12 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--formation', type=Path, metavar='FILE',
                         help='a formation file (config/formation_fig4.yaml documents it); '
                              'without it one follower runs, set by the flags below')
-    parser.add_argument('--measurement', choices=('range', 'bearing'),
-                        help="single follower: its sensor (default range)")
+    parser.add_argument('--measurement', choices=('range', 'bearing', 'range-bearing'),
+                        help='single follower: its sensor (default range; range-bearing: '
+                             'both at each step)')
     parser.add_argument('--strategy', choices=tuple(STRATEGIES),
-                        help='single follower: its strategy (default ram)')
+                        help='single follower: its strategy (default ram; rq for '
+                             'range-bearing)')
     parser.add_argument('--seed', type=integer(0, 2**31 - 1),
                         help='single follower: seed of its random streams (default 0)')
     parser.add_argument('--steps', type=integer(1, 10**9), default=100,

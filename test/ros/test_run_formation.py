@@ -137,6 +137,8 @@ def test_range_bearing_formation_equals_the_simulation(tmp_path: Path, ros_domai
 @pytest.mark.parametrize('args,text', [
     (['--mode', 'warp'], "argument --mode: invalid choice: 'warp'"),
     (['--strategy', 'fast'], "argument --strategy: invalid choice: 'fast'"),
+    (['--measurement', 'range-bearing', '--strategy', 'ram'],
+     "--strategy ram: strategy ram is the paper's method for one scalar measurement"),
     (['--steps', '0'], 'argument --steps: must be an integer in [1,'),
     (['--domain-id', 'x'], 'argument --domain-id: must be an integer'),
     (['--formation', 'nonexistent.yaml'], 'no such formation file'),
