@@ -34,7 +34,9 @@ def node_parameters(formation: Formation, index: int, leader_topic: str, start_t
     follower: FollowerSpec = formation.followers[index]
     values = follower_values(follower, formation.trial, formation.leader_id)
     values['sensor'] = values.pop('measurement')
-    if not values['max_speed']:            # no limit in the file: the bases keep their own
+    if values['max_speed']:                # the file's limit: the base's, and planned within
+        values['plan_within_reach'] = True
+    else:                                  # no limit in the file: the bases keep their own
         del values['max_speed']
     frames = real_frames(follower.id, values['sensor'])
     values.update({'base_frame': frames['base'], 'leader_frame': formation.leader_id,

@@ -455,8 +455,8 @@ def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, fol
 
 def test_a_real_followers_limits_reach_both_of_its_nodes() -> None:
     """max_speed and safety_distance of a real follower: both its nodes get the speed (the
-    base's limit and the planner's), the estimator the distance; without them the nodes keep
-    their own default speed."""
+    base's limit, and the planner's: plan_within_reach), the estimator the distance; without
+    them the nodes keep their own default speed and plan over the whole disc."""
     from formopt_ros.cli.preflight import real_names
     from formopt_ros.cli.real_run import node_parameters
     from formopt_ros.core.scenario import Formation
@@ -466,9 +466,11 @@ def test_a_real_followers_limits_reach_both_of_its_nodes() -> None:
     params = node_parameters(limited, 0, '/odom', 1.0, 1.0, real_names())
     assert params['field_sim']['max_speed'] == params['follower_estimator']['max_speed'] == 1.5
     assert params['follower_estimator']['safety_distance'] == 2.0
+    assert params['follower_estimator']['plan_within_reach'] is True
     free = node_parameters(Formation.from_dict({'followers': [follower]}), 0, '/odom', 1.0, 1.0,
                            real_names())
     assert 'max_speed' not in free['field_sim'] and 'max_speed' not in free['follower_estimator']
+    assert 'plan_within_reach' not in free['follower_estimator']
 
 
 def test_overlapping_discs_are_a_warning() -> None:

@@ -77,8 +77,10 @@ PARAMS = [
           'ERROR (half as long: WARN), and the base stops, s', 0.05, 60.0),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
-    Param('max_speed', 2.0, 'largest forward speed of the base, m/s; the strategy plans '
-          'within the reach of this speed', 1e-3, 100.0),
+    Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
+    Param('plan_within_reach', False, 'plan inside the set the base reaches in 2 dt at '
+          'max_speed (false: anywhere in the disc, as the paper, and the controller clips; '
+          'docs/real_robots.md compares the two)'),
     SAFETY_DISTANCE,
     Param('max_yaw_rate', 3.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
     Param('max_acceleration', 2.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
@@ -214,7 +216,8 @@ class FollowerEstimatorNode(Node):
                 p[f"{p['sensor']}_sigma"], dt=p['dt'], sigma_v=p['sigma_v'],
                 sigma_omega=p['sigma_omega'], sigma_v_leader=p['sigma_v_leader'],
                 sigma_omega_leader=p['sigma_omega_leader'],
-                initial_covariance=tuple(p['initial_covariance']), max_speed=p['max_speed'],
+                initial_covariance=tuple(p['initial_covariance']),
+                max_speed=p['max_speed'] if p['plan_within_reach'] else None,
                 safety_distance=p['safety_distance'])
             check_deviation_domain(scenario, 'deviation_fraction')
             return scenario
