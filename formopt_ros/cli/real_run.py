@@ -11,6 +11,7 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
+from formopt_ros.cli.supervisor import CONFIGURATION_EXIT
 from formopt_ros.core.scenario import Formation, FollowerSpec
 from formopt_ros.wire.topics import real_frames
 
@@ -72,6 +73,25 @@ def check_real(formation: Formation, names: dict[str, set[str]],
                 problem = check(node, key, value)
                 if problem:
                     return f'follower {follower.id!r}: real: {problem}'
+        problem = real_limits_problem(follower)
+        if problem:
+            return f'follower {follower.id!r}: real: {problem}'
+    return None
+
+
+def real_limits_problem(follower: FollowerSpec) -> str | None:
+    """Why the follower's scenario with the limits its ``real`` settings give the estimator
+    (safety_distance; max_speed where it plans within reach) is refused, or None: the same
+    rule the nodes apply, checked before anything starts."""
+    import dataclasses
+    real, scenario = follower.real, follower.scenario
+    within = real.get('plan_within_reach', bool(scenario.max_speed))
+    try:
+        dataclasses.replace(
+            scenario, safety_distance=real.get('safety_distance', scenario.safety_distance),
+            max_speed=real.get('max_speed', scenario.max_speed) if within else None)
+    except ValueError as error:
+        return str(error)
     return None
 
 
@@ -134,6 +154,9 @@ def summarise(formation: Formation, pairs: dict[str, tuple[Any, Any]], recording
     from formopt_ros.bag.reader import read_bag
     bag = read_bag(recording / 'run.mcap') if recording is not None else None
     followers: dict[str, Any] = {}
+    refused = [p for pair in pairs.values() for p in pair if p.code == CONFIGURATION_EXIT]
+    if refused and not failure:             # a node refused its parameters: its own words
+        failure = f'{refused[0].name} refused its configuration:\n{refused[0].tail()}'
     for follower_id, (sim, estimator) in pairs.items():
         result, world = estimator.summary(), sim.summary()
         if result is None or world is None:
@@ -144,9 +167,10 @@ def summarise(formation: Formation, pairs: dict[str, tuple[Any, Any]], recording
         result['field_sim'] = world
         if bag is not None:
             ns = f'{prefix}/{follower_id}'
-            result['tracking'] = tracking_errors(bag, f'{ns}/estimate', f'{ns}/truth')
-            sensor = formation.follower(follower_id).scenario.measurement
             counts = bag.counts()
+            result['tracking'] = tracking_errors(bag, f'{ns}/estimate', f'{ns}/truth') \
+                if counts.get(f'{ns}/estimate') and counts.get(f'{ns}/truth') else None
+            sensor = formation.follower(follower_id).scenario.measurement
             expected = {f'{ns}/odom': world['sent']['odom'],
                         f'{ns}/{sensor}': world['sent'][sensor],
                         f'{ns}/estimate': result['counters'].get('measurements', 0)}

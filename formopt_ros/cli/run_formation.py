@@ -190,7 +190,7 @@ def run_real_formation(args: Any, formation: Formation, launcher: Launcher, out:
         return 1
     tracking = ', '.join(
         f"{f} NEES {t['mean_nees']:.2f} RMS {t['rms_position_error_m']:.3f} m"
-        if (t := r.get('tracking', {})).get('count') else f'{f} (not recorded)'
+        if (t := r.get('tracking') or {}).get('count') else f'{f} (not recorded)'
         for f, r in summary['followers'].items())
     print(f'{PROG}: real interfaces, {wall:.1f} s wall; {tracking}; {out / "summary.json"}')
     return 0

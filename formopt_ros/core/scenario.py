@@ -458,8 +458,9 @@ class FollowerSpec:
                                    'measurement; a range-bearing follower needs another (rq '
                                    'solves it by branch and bound)')
             if self.interfaces == 'real':
-                raise InvalidInput('interfaces', 'a range-bearing follower runs on the simulated '
-                                   'interfaces (follower_estimator takes a range or a bearing)')
+                raise InvalidInput('interfaces', "'real' takes range or bearing followers "
+                                   '(follower_estimator has one sensor): a range-bearing '
+                                   'follower runs on the simulated interfaces')
 
 
 @dataclass(frozen=True)
@@ -564,6 +565,9 @@ class Formation:
 _FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'bearing_every',
                   'odometry_noise', 'leader_odometry_noise', 'initial_covariance', 'max_speed',
                   'safety_distance', 'strategy', 'options', 'seed', 'interfaces', 'real'}
+#: The formation file's key of each Scenario field whose name differs.
+_FILE_KEYS = {'measurement': 'sensor', 'p_o': 'slot', 'r': 'deviation', 'sigma': 'noise',
+              'sigma_bearing': 'noise'}
 #: How a follower's nodes talk (FollowerSpec.interfaces).
 INTERFACES = ('simulated', 'real')
 
@@ -606,8 +610,9 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
         return FollowerSpec(name, scenario, item.get('strategy', default),
                             item.get('options') or {}, item.get('seed', default_seed),
                             str(item.get('interfaces', 'simulated')), dict(real))
-    except InvalidInput as error:
-        raise InvalidInput(f'formation follower {name}: {error.name}', error.reason) from None
+    except InvalidInput as error:                   # the file's key, not the Scenario field
+        key = _FILE_KEYS.get(error.name, error.name)
+        raise InvalidInput(f'formation follower {name}: {key}', error.reason) from None
     except ValueError as error:
         raise ValueError(f'formation follower {name}: {error}') from None
 

@@ -14,30 +14,10 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.base import PlanContext
 from formopt_ros.core.strategies.stacked import (
     BRANCH_AND_BOUND, CERTIFIED_GAP, branch_and_bound, cell_bounds, stacked_plan)
+from harness.problems import STACKED_FAMILIES as FAMILIES
+from harness.problems import stacked_problem as generated_problem
 
 SEED = 26
-#: Kinds of generated problem, drawn in turn.
-FAMILIES = ('moderate', 'ill-conditioned', 'tiny-r', 'large-r', 'near-leader', 'small-noise')
-
-
-def generated_problem(rng: np.random.Generator, family: str) -> StackedProblem:
-    """One random problem of a family: prior condition up to 1e4 (1e8 'ill-conditioned') and
-    scale 1e-4..1, slot 0.5-10 m away (0.01-0.2 m 'near-leader', where r is 0.3-0.999 |p_o|),
-    r 5-30 % of |p_o| (1e-6..1e-3 'tiny-r', 0.9-0.999 'large-r'), sigma_d 0.01-0.5 m and
-    sigma_beta 0.002-0.1 rad (1e-4 m / 1e-5 rad 'small-noise')."""
-    q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
-    spread = 8.0 if family == 'ill-conditioned' else 4.0
-    eigenvalues = 10.0 ** -np.array([0.0, rng.uniform(0, spread), rng.uniform(0, spread)])
-    P = (q * eigenvalues) @ q.T * 10.0 ** rng.uniform(-4.0, 0.0)
-    d_o = rng.uniform(0.01, 0.2) if family == 'near-leader' else rng.uniform(0.5, 10.0)
-    theta = rng.uniform(-math.pi, math.pi)
-    fraction = {'tiny-r': 10.0 ** rng.uniform(-6.0, -3.0), 'large-r': rng.uniform(0.9, 0.999),
-                'near-leader': rng.uniform(0.3, 0.999)}.get(family, rng.uniform(0.05, 0.3))
-    sigma_d, sigma_b = (rng.uniform(0.01, 0.5), rng.uniform(0.002, 0.1))
-    if family == 'small-noise':
-        sigma_d, sigma_b = sigma_d * 1e-2, sigma_b * 1e-2
-    return StackedProblem(0.5 * (P + P.T), [d_o * math.cos(theta), d_o * math.sin(theta)],
-                          fraction * d_o, sigma_d, sigma_b)
 
 
 def reference_cost(problem: StackedProblem) -> tuple[float, np.ndarray]:

@@ -28,3 +28,18 @@ def test_montecarlo_range_bearing_writes_study_and_sensor_comparison(tmp_path) -
     mean = sum(run_trial(scenario, 'rq', 0, t, 6).weighted_trace.mean() for t in (0, 1)) / 2
     assert abs(sensors['runs']['range+bearing rq']['mean_trace'] - mean) <= 1e-12 * mean
     assert not (out / 'range-bearing' / 'range_bearing_weighted_trace.png').exists()
+
+
+def test_montecarlo_range_bearing_under_limits(tmp_path) -> None:
+    """The study of a range-bearing follower under a speed limit and a safety distance (2
+    trials x 20 steps): every strategy runs, RQ over the reachable set included, and the true
+    follower keeps the safety distance up to the odometry noise's drift (5 cm)."""
+    out = tmp_path / 'mc'
+    assert montecarlo.main(['--measurement', 'range-bearing', '--trials', '2', '--steps', '20',
+                            '--jobs', '1', '--no-figures', '--max-speed', '1.5',
+                            '--safety-distance', '2.1', '--strategies', 'rq,gbs,periodic',
+                            '--out', str(out)]) == 0
+    summary = json.loads((out / 'range-bearing' / 'summary.json').read_text())
+    assert list(summary['strategies']) == ['rq', 'gbs', 'periodic']
+    for name, row in summary['strategies'].items():
+        assert row['min_leader_distance'] >= 2.1 - 0.05, (name, row)

@@ -157,7 +157,7 @@ def test_range_bearing_formation_equals_the_simulation(tmp_path: Path, ros_domai
     (['--prefix', 'a'], "--prefix must look like /name or /name/name, got 'a'"),
     (['--prefix', '//a'], "--prefix must look like /name or /name/name, got '//a'"),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_loud_noise.yaml')],
-     'formation follower range: sigma must be a number in [0.001, 1000] m'),
+     'formation follower range: noise must be a number in [0.001, 1000] m'),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_broken.yaml')],
      "cannot read the formation: while parsing a flow sequence"),
 ])
@@ -442,6 +442,8 @@ def test_paths_with_yaml_characters_stay_inside_the_output_folder(
      'max_speed 0.5 m/s is below 1 m/s'),
     ('[{id: a, sensor: range, slot: [-1, -2], max_speed: 1.5, interfaces: real, '
      'real: {max_speed: 2.0}}]', 'max_speed is given twice'),
+    ('[{id: a, sensor: range, slot: [-1, -2], interfaces: real, real: {safety_distance: 3.0}}]',
+     "follower 'a': real: safety_distance 3 m leaves no point of the slot's disc"),
 ])
 def test_misused_formation_files_stop_before_any_node_starts(tmp_path: Path, followers: str,
                                                              text: str) -> None:

@@ -49,11 +49,12 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.linalg import EPS
-from formopt_ros.core.model import RANGE
+from formopt_ros.core.model import RANGE, RANGE_BEARING
 from formopt_ros.core.reach import Circle, Region
 from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, make_solution
 from formopt_ros.core.strategies.certificate import (
     BOUNDARY, CRITICAL_POINTS, GAP_RTOLS, INTERIOR, NONE, PROVED)
+from formopt_ros.core.strategies.stacked import BRANCH_AND_BOUND, stacked_plan
 from formopt_ros.core.strategies.verify import exact_forms
 from formopt_ros.core.strategies.rq import (
     _circle_series, rq_optimum, top_generalized_eigenvector)
@@ -340,7 +341,9 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     slot's disc) gives :meth:`~formopt_ros.core.reach.Region.fallback_target` with certificate
     'none' and ``fallback`` 'unreachable'."""
     disc = rq_optimum(problem, method)
-    if not region.restricts or (region.contains(disc.p) and disc.certificate in PROVED):
+    stacked = problem.measurement == RANGE_BEARING
+    if not region.restricts or (region.contains(disc.p) and
+                                disc.certificate in (*PROVED, BRANCH_AND_BOUND)):
         return disc
     if region.empty():
         target = region.fallback_target()
@@ -348,6 +351,10 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
                              details={'reason': 'the reach disc misses the slot disc outside '
                                       'the safety circle: heading for the disc',
                                       'region': 'empty'})
+    if stacked:                     # range-bearing: the branch and bound over the region
+        nearest = region.nearest(disc.p)
+        return stacked_plan(problem, method, region=region,  # type: ignore[arg-type]
+                            seeds=() if nearest is None else (nearest,))
     interval = region.direction_interval() if problem.measurement == RANGE else None
     if problem.measurement == RANGE:
         assert interval is not None

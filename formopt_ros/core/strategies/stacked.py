@@ -23,6 +23,16 @@ cell budget would not allow RTOL); the certificate's gap is that
 tolerance plus a rounding margin (``ROUNDING`` times the cost, for the Joseph-form evaluation;
 an estimate, not a proof). The search is capped at ``MAX_CELLS`` cells; a search that hits
 the cap is not certified and says so (``Solution.fallback = 'grid'``).
+
+Over a reachable set (a :class:`~formopt_ros.core.reach.Region`: the slot's disc, the reach
+disc, outside the safety circle) the same search prunes the cells that lie wholly outside one
+of the region's circles and takes its incumbents only from feasible cell centres (and the
+region's point nearest the slot, its corners, and the caller's seeds); the bounds stay valid
+(each holds over the whole cell). Where a constraint is active at the optimum, the cells that
+straddle it keep points beyond it that are cheaper than the optimum, so their bounds do not
+close: the search stops at ``REGION_MAX_CELLS``, the best point is polished along each circle
+it lies on (a bounded 1-D search in the angle), and the answer carries the gap it reached,
+certified only when that gap is within ``CERTIFIED_GAP``.
 """
 from __future__ import annotations
 
@@ -32,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.reach import Circle, Region
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies.base import Solution, make_solution
 
@@ -46,6 +57,12 @@ CERTIFIED_GAP = 1e-9
 LOOSE_RTOL = 5e-10
 #: Cells processed at most (a search beyond it falls back: uncertified, best point found).
 MAX_CELLS = 200_000
+#: Cells processed at most over a restricted region (module docstring).
+REGION_MAX_CELLS = 20_000
+#: Half-width of the angle window of the polish along a circle, in first-grid cells.
+POLISH_CELLS = 2.0
+#: Windows of the polish along a circle, each 16 times narrower than the one before.
+POLISH_LEVELS = 5
 #: Cells per side of the first grid over the disc's bounding square.
 FIRST_GRID = 8
 #: Each cell kept is split into SPLIT x SPLIT cells.
@@ -181,14 +198,17 @@ def linear_minimum(gx: np.ndarray, gy: np.ndarray, cx: np.ndarray, cy: np.ndarra
     return best - 1e-12 * r * norm
 
 
-def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int = MAX_CELLS
+def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int = MAX_CELLS,
+                     region: Region | None = None,
+                     seeds: tuple[tuple[float, float], ...] = ()
                      ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
-    """The global minimum of the cost over the disc, to ``rtol``.
+    """The global minimum of the cost over the disc (or over ``region``, a non-empty subset of
+    it, with feasible ``seeds`` (m) as first incumbents), to ``rtol``.
 
     Returns:
         (point (m), its cost (m^2, :meth:`StackedProblem.cost_at`), proved lower bound of the
-        cost over the disc (m^2; when the cap stopped the search, the least bound of the cells
-        still open), diagnostics: cells, levels, capped).
+        cost over the disc or region (m^2; when the cap stopped the search, the least bound of
+        the cells still open), diagnostics: cells, levels, capped).
     """
     x_o, y_o = problem.slot
     r = problem.r
@@ -196,7 +216,14 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
     w = r / n
     offsets = (np.arange(n) - (n - 1) / 2.0) * 2.0 * w
     cx, cy = (a.ravel() for a in np.meshgrid(x_o + offsets, y_o + offsets))
-    best_p, best = (x_o, y_o), problem.cost_at(x_o, y_o)
+    circles: list[Circle] = region.circles() if region is not None else []
+    if region is None:
+        best_p, best = (x_o, y_o), problem.cost_at(x_o, y_o)
+    else:
+        starts = [q for q in (region.nearest(problem.slot), *region.corners(), *seeds)
+                  if q is not None]
+        costs = [problem.cost_at(*q) for q in starts]
+        best_p, best = starts[int(np.argmin(costs))], min(costs)
     floor = math.inf                    # least lower bound of the cells pruned
     open_floor = -math.inf              # least lower bound of the cells split last
     cells, levels = 0, 0
@@ -205,7 +232,13 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
         dx, dy = cx - x_o, cy - y_o
         dist = np.hypot(dx, dy)
         inside = dist - rho <= r
+        feasible = dist <= r
+        for ccx, ccy, radius, within in circles[1:]:     # the reach and safety circles
+            gap = np.hypot(cx - ccx, cy - ccy)
+            inside &= (gap - rho <= radius) if within else (gap + rho >= radius)
+            feasible &= (gap <= radius) if within else (gap >= radius)
         cx, cy, dx, dy, dist = cx[inside], cy[inside], dx[inside], dy[inside], dist[inside]
+        feasible = feasible[inside]
         count = cx.size
         if not count:
             break
@@ -213,14 +246,15 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
             return best_p, best, min(floor, open_floor, best) - ROUNDING * abs(best), \
                 {'cells': cells, 'levels': levels, 'capped': True}
         cells += count
-        # feasible candidates: the centres in the disc and the others projected on it
-        out = dist > r
+        # feasible candidates: the centres in the disc and (without a region) the others
+        # projected on it
+        out = dist > r if region is None else np.zeros(count, dtype=bool)
         scale = r / dist[out]
         px, py = x_o + dx[out] * scale, y_o + dy[out] * scale
         cost, grad, k = posterior_terms(problem, np.concatenate([cx, px]),
                                         np.concatenate([cy, py]))
         candidates = cost.copy()
-        candidates[:count][out] = np.inf
+        candidates[:count][~feasible] = np.inf
         j = int(np.argmin(candidates))
         if candidates[j] < best:
             point = (float(np.concatenate([cx, px])[j]), float(np.concatenate([cy, py])[j]))
@@ -246,14 +280,65 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
                                                                    'levels': levels}
 
 
-def stacked_plan(problem: StackedProblem, method: str, max_cells: int = MAX_CELLS) -> Solution:
+def polish_on_circles(problem: StackedProblem, region: Region, p: tuple[float, float],
+                      cost: float) -> tuple[tuple[float, float], float]:
+    """The best of p (m), a local minimum from p under the region's circles (SLSQP), and, for
+    each circle of ``region``, the feasible points of that circle within POLISH_CELLS
+    first-grid cells of p's projection on it (a bounded search in the angle): the optimum lies
+    between cell centres, on a circle where a constraint is active. Returns (point m, cost
+    m^2)."""
+    from scipy.optimize import minimize, minimize_scalar
+    window = POLISH_CELLS * 2.0 * problem.r / FIRST_GRID
+    scale = problem.r * problem.r
+    constraints = [{'type': 'ineq', 'fun': (lambda z, c=c: (c[2] ** 2 - (
+        (z[0] - c[0]) ** 2 + (z[1] - c[1]) ** 2)) / scale * (1.0 if c[3] else -1.0))}
+        for c in region.circles()]
+    found = minimize(lambda z: problem.cost_at(float(z[0]), float(z[1])), np.array(p),
+                     method='SLSQP', constraints=constraints,
+                     options={'ftol': 1e-16, 'maxiter': 100})
+    q = (float(found.x[0]), float(found.x[1]))
+    if region.contains(q) and problem.cost_at(*q) < cost:
+        p, cost = q, problem.cost_at(*q)
+
+    for ccx, ccy, radius, _ in region.circles():
+        if radius <= 0.0:
+            continue
+
+        def along(angle: float) -> float:
+            q = (ccx + radius * math.cos(angle), ccy + radius * math.sin(angle))
+            return problem.cost_at(*q) if region.contains(q) else 1e300
+        theta = math.atan2(p[1] - ccy, p[0] - ccx)
+        for level in range(POLISH_LEVELS):    # windows shrinking around the best angle: a wide
+            half = min(math.pi, window / radius) / 16.0 ** level   # one may hold other minima
+            found = minimize_scalar(along, bounds=(theta - half, theta + half),
+                                    method='bounded', options={'xatol': 1e-12})
+            for angle in (float(found.x), theta):
+                value = along(angle)
+                if value < cost:
+                    p = (ccx + radius * math.cos(angle), ccy + radius * math.sin(angle))
+                    cost, theta = value, angle
+    return p, cost
+
+
+def stacked_plan(problem: StackedProblem, method: str, max_cells: int = MAX_CELLS,
+                 region: Region | None = None,
+                 seeds: tuple[tuple[float, float], ...] = ()) -> Solution:
     """The certified optimum of a range-bearing problem as a Solution (certificate
     'branch-and-bound' with ``details['certificate_gap']``; an uncapped search always
-    certifies; a capped one returns its best point with ``fallback = 'grid'``)."""
-    p, cost, lower, info = branch_and_bound(problem, max_cells=max_cells)
+    certifies; a capped one returns its best point with ``fallback = 'grid'``). Over a
+    restricting, non-empty ``region`` (module docstring): at most REGION_MAX_CELLS cells,
+    the best point polished along the region's circles."""
+    restricted = region is not None and region.restricts
+    p, cost, lower, info = branch_and_bound(
+        problem, max_cells=min(max_cells, REGION_MAX_CELLS) if restricted else max_cells,
+        region=region if restricted else None, seeds=seeds)
+    if restricted:
+        assert region is not None
+        p, cost = polish_on_circles(problem, region, p, cost)
+        lower = min(lower, cost)
     gap = (cost - lower) / abs(cost) if cost else math.inf
     on_boundary = math.hypot(p[0] - problem.slot[0], p[1] - problem.slot[1]) >= problem.r * (
-        1.0 - 1e-12)
+        1.0 - 1e-12) or (restricted and not region.contains(p, -1e-12))  # type: ignore
     certified = gap <= CERTIFIED_GAP
     details = {'certificate_gap': gap, 'lower_bound': lower, **info}
     if not certified:
@@ -268,4 +353,4 @@ def stacked_plan(problem: StackedProblem, method: str, max_cells: int = MAX_CELL
 
 
 __all__ = ['BRANCH_AND_BOUND', 'CERTIFIED_GAP', 'branch_and_bound', 'cell_bounds',
-           'stacked_plan']
+           'polish_on_circles', 'stacked_plan']
