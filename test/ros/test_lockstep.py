@@ -37,6 +37,8 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
         assert np.min(np.hypot(*ref.waypoints.T)) >= LIMITS['safety_distance'] - 1e-9
     summary = run.estimator.summary()
     assert summary['steps'] == STEPS
+    fell_back = 0 if ref.fallback is None else int(np.sum(ref.fallback))
+    assert sum(summary['plan_fallbacks'].values()) == fell_back, summary['plan_fallbacks']
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(summary['final_covariance'], ref.covariance[-1], rtol=0,
                                atol=TOL)

@@ -115,6 +115,10 @@ class EstimatorPlannerNode(Node):
         self.pending: tuple[Future, Any, int] | None = None
         self.strategy_changes: list[dict[str, Any]] = []
         self.solve_times: list[float] = []
+        #: plans that fell back, by kind (e.g. 'unreachable': the reach disc missed the slot's
+        #: disc; 'rq': RAM could not prove its answer; 'grid': a capped branch and bound)
+        self.plan_fallbacks: dict[str, int] = {}
+        self.last_planned = 0                 # the step of the last plan counted
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',
                                             'truth')}
         self.published = {key: 0 for key in ('estimate', 'waypoint', 'status', 'markers', 'tf',
@@ -335,6 +339,7 @@ class EstimatorPlannerNode(Node):
     def _state(self) -> dict[str, Any]:
         return {'session': self.session, 'last_plan': self.last_plan,
                 'solve_times': self.solve_times, 'received': self.received,
+                'plan_fallbacks': self.plan_fallbacks, 'last_planned': self.last_planned,
                 'published': self.published, 'strategy_changes': self.strategy_changes,
                 'description': self.description.to_json()}
 
@@ -344,6 +349,8 @@ class EstimatorPlannerNode(Node):
         self.session = state['session']
         self.last_plan = state['last_plan']
         self.solve_times = state['solve_times']
+        self.plan_fallbacks = state.get('plan_fallbacks', {})
+        self.last_planned = state.get('last_planned', 0)
         self.received, self.published = state['received'], state['published']
         self.published.setdefault('description', 0)
         self.strategy_changes = state.get('strategy_changes', [])
@@ -388,6 +395,11 @@ class EstimatorPlannerNode(Node):
 
     def _send(self, plan: StepPlan) -> None:
         self.solve_times.append(plan.solution.solve_time_s)
+        if plan.step > self.last_planned:      # each plan once, however often it is resent
+            self.last_planned = plan.step
+            if plan.solution.fallback:
+                kind = str(plan.solution.fallback)
+                self.plan_fallbacks[kind] = self.plan_fallbacks.get(kind, 0) + 1
         self.last_waypoint = conversions.waypoint(
             self._stamp(self.timebase.waypoint_stamp(plan.step)), self.leader_id,
             self.follower_id, plan, self.scenario.slot, self.scenario.r, self.scenario.dt,
@@ -502,6 +514,7 @@ class EstimatorPlannerNode(Node):
             'final_weighted_trace': estimator.weighted_trace(),
             'mean_nees': self.session.mean_nees(),
             'counters': self.session.counters.as_dict(),
+            'plan_fallbacks': dict(self.plan_fallbacks),
             'consistency': watch.summary(),
             'message_counts': {'received': dict(self.received),
                                'published': dict(self.published)},
