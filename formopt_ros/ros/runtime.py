@@ -121,10 +121,18 @@ def check_output_path(name: str, path: str, may_exist: bool = True) -> None:
         raise ParameterError(f"parameter '{name}': {path} is not writable")
 
 
+#: The signals that stopped this node process (set by :func:`node_main`'s handler).
+STOP_SIGNALS: list[int] = []
+
+
 def write_summary(path: str, summary: dict[str, Any]) -> None:
     """Write a node's JSON summary (strict JSON: NaN and inf become null; folders created,
-    written atomically); nothing for an empty path."""
+    written atomically), with ``stopped_by`` naming the signal that ended the process early
+    (SIGINT, or SIGTERM: also the kernel's when the process that started the node died);
+    nothing for an empty path."""
     if path:
+        if STOP_SIGNALS:
+            summary = {**summary, 'stopped_by': signal.Signals(STOP_SIGNALS[0]).name}
         write_json(path, summary)
 
 
@@ -201,7 +209,8 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
         print(f'{program}: error: {str(error).splitlines()[0] if str(error) else error!r}',
               file=sys.stderr)
         return 2
-    stop: list[int] = []
+    stop = STOP_SIGNALS
+    stop.clear()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda received, _frame: stop.append(received))
     node = None
