@@ -89,6 +89,7 @@ def test_one_and_two_workers_give_the_same_table(tmp_path: Path) -> None:
     assert all(r['gain_over_ram_pct'] < -10.0 for r in rows if r['strategy'] == 'mtf')
 
 
+@pytest.mark.slow
 def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path: Path) -> None:
     cells = tiny_cells()
     whole = run_cells(cells, CellCache(tmp_path / 'whole'), workers=2)
@@ -200,6 +201,7 @@ def test_a_separate_dask_cluster_gives_the_same_numbers(tmp_path: Path) -> None:
                 process.wait()
 
 
+@pytest.mark.slow
 def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_computes_the_rest(
         tmp_path: Path) -> None:
     """SIGINT to the command's process group (as Ctrl-C) once the bar shows a finished cell:

@@ -76,6 +76,7 @@ def test_scenarios_are_refused_at_the_boundary_or_run() -> None:
     assert outcomes['refused'] > 40 and outcomes['ran'] > 40, outcomes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_each_documented_bound_runs(kind: str) -> None:
     """Each number of RANGES at its low and at its high bound (the rest the paper's): every

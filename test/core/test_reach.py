@@ -177,11 +177,11 @@ def _check_against_reference(kind: str, count: int, seed: int) -> Counter[str]:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_region_optimum_quick(kind: str) -> None:
-    """100 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
+    """40 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
     region, is certified (a proof or every KKT point enumerated) and costs at most the dense
     reference (1 + 1e-9)."""
-    tally = _check_against_reference(kind, 100, 7)
-    assert sum(tally[c] for c in (*PROVED, CRITICAL_POINTS)) >= 97
+    tally = _check_against_reference(kind, 40, 7)
+    assert tally['proof'] + tally['enumeration'] == 40, tally
 
 
 @pytest.mark.slow
@@ -203,15 +203,15 @@ def test_region_optimum_dense_reference(kind: str) -> None:
 
 
 def test_range_bearing_over_the_region() -> None:
-    """RQ of a range-bearing follower over 30 generated regions (moderate, ill-conditioned and
+    """RQ of a range-bearing follower over 15 generated regions (moderate, ill-conditioned and
     large-r problems; reach and safety circles as above): the point lies in the region and
     costs at most the dense reference (1 + 1e-9); at least 60 % certified by the branch and
-    bound (measured: 39 of 53 on seed 28; the rest stop at the cell cap where a constraint is
-    active and say so, fallback 'grid')."""
+    bound (measured: 358 of 540, scripts/check_range_bearing_region.py; the rest stop at the
+    cell cap where a constraint is active and say so, fallback 'grid')."""
     from formopt_ros.core.strategies.stacked import BRANCH_AND_BOUND
     rng = np.random.default_rng(28)
     solved = certified = 0
-    while solved < 30:
+    while solved < 15:
         problem = stacked_problem(rng, ('moderate', 'ill-conditioned', 'large-r')[solved % 3])
         region = random_region(rng, problem)       # type: ignore[arg-type]
         if region.empty():
@@ -223,7 +223,7 @@ def test_range_bearing_over_the_region() -> None:
         certified += solution.certificate == BRANCH_AND_BOUND
         assert solution.certificate == BRANCH_AND_BOUND or solution.fallback == 'grid'
         solved += 1
-    assert certified >= 18, certified
+    assert certified >= 9, certified
 
 
 # --- strategies in the study -------------------------------------------------------------------

@@ -129,10 +129,11 @@ def test_cell_bounds_hold_on_samples() -> None:
 
 
 def test_solver_matches_dense_reference() -> None:
-    """120 generated problems (20 of each family): see :func:`check_problems`."""
-    out = check_problems(120, SEED)
+    """48 generated problems (8 of each family; the slow tier runs more): see
+    :func:`check_problems`."""
+    out = check_problems(48, SEED)
     for family in CLOSING:
-        assert out[family]['certified'] == 20
+        assert out[family]['certified'] == 8
         assert out[family]['worst_gap'] <= CERTIFIED_GAP
 
 
