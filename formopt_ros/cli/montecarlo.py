@@ -67,7 +67,7 @@ def build_parser() -> ArgumentParser:
     names = tuple(STRATEGIES)                   # the built-in and the plugin strategies
     parser.add_argument('--strategies', type=name_list(names), default=list(METHODS),
                         help=f'comma list among {",".join(names)}, each once (default: the '
-                             f'built-in ones, {",".join(METHODS)})')
+                             f'built-in ones but lookahead, {",".join(METHODS)})')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='worker processes; results do not depend on it (default: all '
                              'cores)')

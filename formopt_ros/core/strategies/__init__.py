@@ -12,6 +12,7 @@ from formopt_ros.core.strategies.base import (
     Strategy, make_solution)
 from formopt_ros.core.strategies.baselines import (
     ActiveSideSteps, ConstrainedRandomMotion, GridSearch, MaintainFormation)
+from formopt_ros.core.strategies.lookahead import RecedingHorizon
 from formopt_ros.core.strategies.periodic import PeriodicPattern
 from formopt_ros.core.strategies.ram import RelaxedAlgebraicMethod
 from formopt_ros.core.strategies.registry import GROUP, StrategyRegistry
@@ -21,7 +22,7 @@ from formopt_ros.core.strategies.rq import RayleighQuotient
 #: plugin written against it.
 STRATEGY_API = 1
 _BUILTIN_CLASSES = (MaintainFormation, ConstrainedRandomMotion, ActiveSideSteps, GridSearch,
-                    RelaxedAlgebraicMethod, RayleighQuotient, PeriodicPattern)
+                    RelaxedAlgebraicMethod, RayleighQuotient, PeriodicPattern, RecedingHorizon)
 #: Names of the built-in strategies, in the order of the paper's comparison, then ours.
 BUILTIN = tuple(cls.name for cls in _BUILTIN_CLASSES)
 #: name -> strategy class: the built-in strategies, then the plugins sorted by name.
