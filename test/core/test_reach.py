@@ -235,7 +235,7 @@ def test_every_strategy_plans_inside_the_region(kind: str) -> None:
     from formopt_ros.core.protocol import held_leader_motion
     from formopt_ros.core.strategies import make_strategy
     s = Scenario.paper(kind, max_speed=1.5, safety_distance=2.1, r=0.3 * math.hypot(1, 2))
-    for name in ('rq', 'ram', 'periodic', 'gbs', 'mtf', 'crm', 'mme'):
+    for name in ('rq', 'ram', 'periodic', 'gbs', 'mtf', 'crm', 'mme', 'lookahead'):
         planner = EstimatorPlanner(s, make_strategy(name), np.random.default_rng(0))
         leader = held_leader_motion((1.0, 0.0))
         for step in range(1, 41):
@@ -248,6 +248,18 @@ def test_every_strategy_plans_inside_the_region(kind: str) -> None:
             assert math.hypot(*plan.solution.p) >= 2.1 * (1 - 1e-12)
             for v, omega in zip(plan.command.linear, plan.command.angular):
                 planner.propagate(v, omega, 1.0, 0.0)
+
+
+@pytest.mark.parametrize('kind', [RANGE, BEARING])
+def test_periodic_plays_greedy_when_its_cycle_does_not_fit(kind: str) -> None:
+    """Under 1.5 m/s the four-point cycle is out of reach: PERIODIC's waypoints are RQ's over
+    the reachable set, step for step; under 20 m/s it fits, and PERIODIC joins it."""
+    tight = Scenario.paper(kind, max_speed=1.5)
+    np.testing.assert_array_equal(run_trial(tight, 'periodic', 0, 0, 120).waypoints,
+                                  run_trial(tight, 'rq', 0, 0, 120).waypoints)
+    loose = Scenario.paper(kind, max_speed=20.0)
+    assert np.max(np.abs(run_trial(loose, 'periodic', 0, 0, 120).waypoints
+                         - run_trial(loose, 'rq', 0, 0, 120).waypoints)) > 0.1
 
 
 def test_follower_motion_of_a_straight_run() -> None:

@@ -16,9 +16,11 @@ transient, and it may take hundreds of steps to pay. So this strategy
 3. follows the cycle, watching the covariance: when it exceeds its forecast by more than
    ``tolerance`` (lost measurements, a disturbance) it returns to 2.
 
-When the leader turns (or the expected leader motion is not constant over the step) it plays
-greedy; when the slot or r change, or a noise level, the leader speed or dt by more than
-``replan_tolerance``, it designs again (or takes the cached design) and starts over at 2.
+When the leader turns (or the expected leader motion is not constant over the step), or the
+cycle does not fit the step's reachable set (a point out of reach of the one before it under
+the speed limit, or inside the safety distance), it plays greedy; when the slot or r change,
+or a noise level, the leader speed or dt by more than ``replan_tolerance``, it designs again
+(or takes the cached design) and starts over at 2.
 Every point is either RQ's (feasible) or on the boundary circle of the problem's own disc.
 ``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
 greedy, turning fallbacks and switch tests.
@@ -32,6 +34,7 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
+from formopt_ros.core.reach import Region, reach_centre
 from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
@@ -113,6 +116,9 @@ class PeriodicPattern(Strategy):
         designed = self._adopt(conditions, context.step)
         if self.design is None:
             return self._greedy(problem, 'no periodic steady state', designed)
+        if context.region is not None and not self._fits(context.region, context):
+            self.mode = GREEDY
+            return self._greedy(problem, 'the cycle does not fit the reachable set', designed)
         x, P = context.estimator.x, context.estimator.P
         if self.mode == PATTERN and not self._on_track(P, context.step):
             self.mode = GREEDY
@@ -143,6 +149,23 @@ class PeriodicPattern(Strategy):
         if design_time_s is not None:
             details['design_time_s'] = design_time_s
         return details
+
+    def _fits(self, region: Region, context: PlanContext) -> bool:
+        """True when every point of the cycle is reachable from the one before it under the
+        region's speed limit and keeps the safety distance (a cycle that does not fit would be
+        projected point by point, and its forecasts would not hold)."""
+        assert self.design is not None
+        points = self.design.points
+        if np.any(np.hypot(points[:, 0], points[:, 1]) < region.safety):
+            return False
+        if region.centre is None or not np.isfinite(region.radius):
+            return True
+        for before, after in zip(points, np.roll(points, -1, axis=0)):
+            centre = reach_centre(np.array([before[0], before[1], 0.0]),
+                                  context.leader_velocities, context.dt, context.kinematics)
+            if np.hypot(after[0] - centre[0], after[1] - centre[1]) > region.radius:
+                return False
+        return True
 
     # --- conditions and design ---------------------------------------------------------------
     def _adopt(self, conditions: SteadyConditions, step: int) -> float | None:

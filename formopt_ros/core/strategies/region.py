@@ -427,10 +427,12 @@ def plan_within(strategy: Strategy, problem: Problem, context: PlanContext) -> S
     * RQ: :func:`rq_in_region` (the certified optimum over the region);
     * RAM: its answer when it lies in the region (the paper's method solves the disc, whose
       optimum is then the region's); otherwise RQ's over the region, ``fallback`` 'rq';
-    * PERIODIC: a greedy step is RQ's over the region; a cycle point is projected onto the
-      region (its nearest point), ``details['projected']``;
+    * PERIODIC: a greedy step is RQ's over the region (it plays greedy when its cycle does
+      not fit the region); a cycle point is projected onto the region (its nearest point),
+      ``details['projected']``;
     * GBS: the best grid point inside the region;
-    * MTF, CRM, MME and plugins: their point projected onto the region.
+    * MTF, CRM, MME, LOOKAHEAD and plugins: their point projected onto the region (LOOKAHEAD
+      plans inside it: its point is its own).
     """
     region = context.region
     if region is None or not region.restricts:
