@@ -120,7 +120,8 @@ def test_discovery_and_options(ring: str) -> None:
     assert 'ring option samples must be an integer in [3, 720]' in result.stderr and \
         'got 1' in result.stderr
     help_text = command('formopt-montecarlo', '--help').stdout
-    assert 'mtf,crm,mme,gbs,ram,rq,periodic,ring' in help_text.replace('\n', '').replace(' ', '')
+    listed = help_text.replace('\n', '').replace(' ', '')
+    assert 'mtf,crm,mme,gbs,ram,rq,periodic,lookahead,ring' in listed
 
 
 def test_a_study_through_formopt_montecarlo(ring: str, tmp_path: Path) -> None:

@@ -125,7 +125,7 @@ class RecedingHorizon(Strategy):
         """The scalar updates of one step: (kind, variance) per row."""
         if hasattr(problem, 'sigma_bearing'):
             return ((RANGE, float(problem.sigma) ** 2),
-                    (BEARING, float(problem.sigma_bearing) ** 2))  # type: ignore[attr-defined]
+                    (BEARING, float(problem.sigma_bearing) ** 2))
         return ((problem.measurement, float(problem.sigma) ** 2),)
 
     def _search(self, problem: Problem, context: PlanContext, x0: np.ndarray, P0: np.ndarray,
