@@ -223,7 +223,7 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
     if recorder is not None:
         recording, problem = audit_recording(out, prefix, leader.summary(), {
             f: (sim.summary(), est.summary()) for f, (sim, est) in nodes.items()},
-            any(p.restarts for p in launcher.processes))
+            sum(len(p.restarts) for p in launcher.processes))
         # the recorder's own write error (a full disk) names the file: it comes first
         failure = problem if recording.get('error') else failure or problem
     steps = min((r['steps'] for r in followers.values()), default=0)

@@ -318,6 +318,9 @@ def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['ok'] and summary['steps'] == steps
     assert summary['restarts'] == {f'follower.{n}': [-9] for n in killed}
+    # a killed node's last step may be lost in flight (its checkpoint counts it): at most that
+    recording = summary['recording']
+    assert recording['complete'] or recording['lost_in_flight'], recording
     ref = run_trial(node_scenario('bearing'), 'rq', 4, 0, steps)
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
     np.testing.assert_allclose(summary['final_truth'], ref.truth[-1], rtol=0, atol=TOL)
