@@ -398,63 +398,71 @@ class FollowerEstimatorNode(Node):
         self.cmd_pub.publish(twist)
 
     # --- health --------------------------------------------------------------------------------
-    def diagnostic_level(self) -> tuple[str, str]:
-        """ERROR: sustained inconsistency or gating (the consistency watch, latched); stamps
-        ahead of this clock; inputs dropped as late, or a stream whose median delay (arrival
-        minus stamp) over the period exceeds reorder_lag (a clock behind this one, or a slow
-        link); a stream silent, or stamped behind this clock, for stale_timeout since input
-        began. WARN: waiting for the first input, a stream older than half the timeout, a
-        delay spike beyond reorder_lag (this process or the link stalled), odometry carried
-        past its last message, gaps, gated ranges."""
+    def health(self) -> list[tuple[str, str]]:
+        """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
+        gating (the consistency watch, latched); stamps ahead of this clock; inputs dropped as
+        late, or a stream whose median delay (arrival minus stamp) over the period exceeds
+        reorder_lag (a clock behind this one, or a slow link); a stream silent, or stamped
+        behind this clock, for stale_timeout since input began. WARN: waiting for the first
+        input, a stream older than half the timeout, a delay spike beyond reorder_lag (this
+        process or the link stalled), odometry carried past its last message, gaps, gated
+        ranges."""
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
+        errors: list[str] = []
         if self.tracker is not None and self.tracker.watch.failed:
             worst = self.tracker.watch.worst
-            return 'ERROR', f'filter inconsistent at measurement {worst.step}: {worst.reason}'
+            errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
         if new.get('refused_future'):
-            return 'ERROR', 'messages stamped ahead of this clock: clocks not synchronised'
+            errors.append('messages stamped ahead of this clock: clocks not synchronised')
         lag = self.params['reorder_lag']
         slow, spikes = delayed_streams(self.delays, lag)
         if slow or new.get('late_odometry') or new.get('late_measurements'):
-            return 'ERROR', (f'inputs arrive later than reorder_lag ({lag:g} s) after their '
-                             'stamps and are dropped: a clock behind this one or a slow link'
-                             + (f" ({', '.join(slow)})" if slow else ''))
+            errors.append(f'inputs arrive later than reorder_lag ({lag:g} s) after their '
+                          'stamps and are dropped: a clock behind this one or a slow link'
+                          + (f" ({', '.join(slow)})" if slow else ''))
         ages, limit = self.ages(), self.params['stale_timeout']
         if self.first_input_ns is None:
-            return 'WARN', 'waiting for input: ' + ', '.join(self.streams)
+            return [('ERROR', e) for e in errors] or \
+                [('WARN', 'waiting for input: ' + ', '.join(self.streams))]
         old = [s for s, a in ages.items() if a is None or a > limit]
         started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
         if old and started:
-            return 'ERROR', f'stale (silent or behind this clock for over {limit:g} s): ' + \
-                ', '.join(s + (f' (its messages are refused: {self.refusal[s]})'
-                               if s in self.refusal else '') for s in old)
+            errors.append(f'stale (silent or behind this clock for over {limit:g} s): '
+                          + ', '.join(s + (f' (its messages are refused: {self.refusal[s]})'
+                                           if s in self.refusal else '') for s in old))
+        if errors:
+            return [('ERROR', e) for e in errors]
         late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
         if late:
-            return 'WARN', 'late: ' + ', '.join(late)
+            return [('WARN', 'late: ' + ', '.join(late))]
         if spikes:
-            return 'WARN', ('inputs delayed beyond reorder_lag (this process or the link '
-                            'stalled): ' + ', '.join(spikes))
+            return [('WARN', 'inputs delayed beyond reorder_lag (this process or the link '
+                             'stalled): ' + ', '.join(spikes))]
         for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
                           ('gaps', f"odometry intervals longer than {self.params['max_gap']:g} "
                                    's (messages lost)'),
                           ('gated_measurements', 'measurements refused by the innovation '
                                                  'gate')):
             if new.get(key):
-                return 'WARN', text
-        return 'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input'
+                return [('WARN', text)]
+        return []
 
     def publish_diagnostics(self) -> None:
         """/diagnostics every status_period; an ERROR is kept for the summary."""
-        level, message = self.diagnostic_level()
+        problems = self.health()
+        level, message = problems[0] if problems else (
+            'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input')
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         self.delays = {s: [] for s in self.streams}
         if level == 'ERROR':
             self.worst = 'ERROR'
-            if message.split(' (')[0] not in [e.split(' (')[0] for e in self.errors]:
-                self.errors.append(message)
-                self.get_logger().error(message)
+            for _, error in problems:       # every cause, not only the worst: a latched
+                if error.split(' (')[0] not in [e.split(' (')[0] for e in self.errors]:
+                    self.errors.append(error)   # inconsistency does not hide an outage
+                    self.get_logger().error(error)
         elif level == 'WARN' and self.worst == 'OK':
             self.worst = 'WARN'
         values: dict[str, object] = {
