@@ -191,8 +191,9 @@ def test_region_optimum_dense_reference(kind: str) -> None:
     r, scaled, ill-conditioned; reach discs that barely meet the disc; safety circles cutting
     it) within 1e-9 relative of the dense reference (1e-8 for reachable dots under a
     micrometre), never uncertified. At least 99 % (range) and 88 % (bearing) proved by the
-    S-lemma (measured: 1,992 and 1,822 of 2,000; 9,945 and 8,899 of 10,000), the rest (corners, where two constraints are
-    active and the S-lemma is only sufficient) by the enumeration of every KKT point.
+    S-lemma (measured: 1,992 and 1,822 of 2,000; 9,945 and 8,899 of 10,000), the rest
+    (corners, where two constraints are active and the S-lemma is only sufficient) by the
+    enumeration of every KKT point.
     FORMOPT_REACH_PROBLEMS sets the count (the issue's bar is 10,000: about 7 minutes per
     sensor)."""
     count = int(os.environ.get('FORMOPT_REACH_PROBLEMS', '2000'))
