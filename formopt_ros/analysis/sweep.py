@@ -12,6 +12,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,17 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
                                silence_logs=logging.ERROR, env={QUIET_ENV: '0'})
     with cluster, Client(cluster) as client:
         yield client
+
+
+@contextlib.contextmanager
+def dask_executor(workers: int | None = None,
+                  scheduler: str | None = None) -> Iterator[tuple[Executor, int]]:
+    """(A :class:`concurrent.futures.Executor` on the Dask client of :func:`dask_client`, the
+    number of worker threads it has), closed on exit; tasks are never deduplicated."""
+    with dask_client(workers, scheduler) as client:
+        threads = sum(int(worker['nthreads'])
+                      for worker in client.scheduler_info()['workers'].values())
+        yield client.get_executor(pure=False), max(1, threads)
 
 
 @contextlib.contextmanager
@@ -338,5 +350,5 @@ def _ticks(axis: Any, xs: list[Any], ys: list[Any], x_axis: str, y_axis: str) ->
     axis.set_ylabel(y_axis)
 
 
-__all__ = ['COLUMNS', 'CellCache', 'SweepOutcome', 'dask_client', 'read_table', 'run_cells',
-           'sweep_figures', 'table_rows', 'write_table']
+__all__ = ['COLUMNS', 'CellCache', 'SweepOutcome', 'dask_client', 'dask_executor', 'read_table',
+           'run_cells', 'sweep_figures', 'table_rows', 'write_table']

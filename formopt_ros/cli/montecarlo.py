@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
+from concurrent.futures import Executor
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -69,8 +72,13 @@ def build_parser() -> ArgumentParser:
                         help=f'comma list among {",".join(names)}, each once (default: the '
                              f'built-in ones but lookahead, {",".join(METHODS)})')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
-                        help='worker processes; results do not depend on it (default: all '
-                             'cores)')
+                        help='processes of the local Dask cluster the study runs on; 1 runs '
+                             'in this process without Dask; results do not depend on it '
+                             '(default: all cores)')
+    parser.add_argument('--scheduler', default=None, metavar='ADDRESS',
+                        help='address of an existing Dask scheduler to run on, e.g. '
+                             'tcp://host:8786, --jobs ignored (default: '
+                             '$DASK_SCHEDULER_ADDRESS, else a local cluster)')
     parser.add_argument('--gbs-cell', type=number(MIN_GBS_CELL, 1.0),
                         default=STUDY_OPTIONS['gbs']['cell'],
                         help=f'GBS grid spacing as a fraction of r, in [{MIN_GBS_CELL}, 1] '
@@ -441,6 +449,33 @@ def comparison_lines(folder: Path) -> list[str]:
     return lines
 
 
+@contextlib.contextmanager
+def study_workers(jobs: int, scheduler: str | None
+                  ) -> Iterator[tuple[Executor | None, int, str]]:
+    """(executor, number of workers, where) of a study: this process for one job without a
+    scheduler, else Dask (:func:`~formopt_ros.analysis.sweep.dask_executor`); without Dask
+    installed, a local process pool. A scheduler that cannot be reached ends the command."""
+    prog = 'formopt-montecarlo'
+    try:
+        from formopt_ros.analysis.sweep import dask_executor, scheduler_address
+        address = scheduler_address(scheduler)
+    except ImportError:
+        if scheduler:
+            fail(prog, "--scheduler: Dask is not installed: pip install 'dask[distributed]'")
+        yield None, jobs, f'{jobs} process(es), no Dask'
+        return
+    if jobs == 1 and not address:
+        yield None, 1, '1 process'
+        return
+    with contextlib.ExitStack() as stack:
+        try:
+            executor, workers = stack.enter_context(dask_executor(jobs, address))
+        except OSError as error:
+            fail(prog, f'--scheduler {address}: {error}')
+        yield executor, workers, f'Dask at {address}' if address else \
+            f'local Dask cluster of {workers} workers'
+
+
 def physical_memory() -> int:
     """This machine's memory, bytes."""
     return os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES')
@@ -477,12 +512,17 @@ def main(argv: list[str] | None = None) -> int:
                           '--steps')
     bar = _progress(args.trials * sum(len(c.strategies) for c in configs + comparison),
                     ' + '.join(kinds))
-    # each kind's outputs (figures take a second) are written as soon as its runs are in
-    results = run_studies(configs, args.jobs, bar.update if bar else None, args.engine,
-                          partial(write_into, args.out, not args.no_figures,
-                                  allow_inconsistent=args.allow_inconsistent))
+    with study_workers(args.jobs, args.scheduler) as (executor, workers, where):
+        # each kind's outputs (figures take a second) are written as soon as its runs are in,
+        # while the workers go on with the other kinds
+        results = run_studies(configs, workers, bar.update if bar else None, args.engine,
+                              partial(write_into, args.out, not args.no_figures,
+                                      allow_inconsistent=args.allow_inconsistent),
+                              executor)
+        if comparison:
+            compared = run_studies(comparison, workers, bar.update if bar else None,
+                                   args.engine, executor=executor)
     if comparison:
-        compared = run_studies(comparison, args.jobs, bar.update if bar else None, args.engine)
         write_comparison(args.out / COMPARISON_FOLDER, compared + [
             r for r in results if r.config.measurement == RANGE_BEARING],
             not args.no_figures)
@@ -500,7 +540,7 @@ def main(argv: list[str] | None = None) -> int:
         print(line)
     print(f'wall time: {time.perf_counter() - start:.1f} s '
           f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
-          f'{args.steps} steps, {args.engine} engine, {args.jobs} jobs); results in {args.out}')
+          f'{args.steps} steps, {args.engine} engine, {where}); results in {args.out}')
     return 0
 
 

@@ -5,7 +5,8 @@ Two engines give the same numbers (a test checks 1e-9; in practice they are iden
 (:func:`~formopt_ros.core.batched.run_trials`), one task per (measurement, strategy);
 'per-trial' runs :func:`~formopt_ros.core.simulation.run_trial`, the reference the ROS nodes
 equal, one task per (measurement, strategy, trial). Every trial is seeded by (seed, trial)
-alone, so results depend neither on the engine nor on the number of worker processes.
+alone, so results depend neither on the engine nor on the number or kind of workers (a
+process pool here; ``formopt-montecarlo`` passes a Dask executor).
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import multiprocessing
 import numbers
 import os
 import signal
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -211,26 +212,32 @@ def _lane_groups(config: StudyConfig, jobs: int) -> list[tuple[str, ...]]:
 
 def run_study(config: StudyConfig, jobs: int | None = None,
               progress: Callable[[int], None] | None = None,
-              engine: str = 'batched') -> StudyResult:
+              engine: str = 'batched', executor: Executor | None = None) -> StudyResult:
     """Run every (strategy, trial) of ``config``; see :func:`run_studies`."""
-    return run_studies([config], jobs, progress, engine)[0]
+    return run_studies([config], jobs, progress, engine, executor=executor)[0]
 
 
 def run_studies(configs: list[StudyConfig], jobs: int | None = None,
                 progress: Callable[[int], None] | None = None,
                 engine: str = 'batched',
-                finish: Callable[[StudyResult], Any] | None = None) -> list[StudyResult]:
-    """Run every (strategy, trial) of every config, in ``jobs`` processes (default: all cores).
+                finish: Callable[[StudyResult], Any] | None = None,
+                executor: Executor | None = None) -> list[StudyResult]:
+    """Run every (strategy, trial) of every config, in parallel (default: one process per core).
 
     Args:
-        configs: the studies (e.g. one per measurement kind); their tasks share one pool.
-        jobs: worker processes; 1 runs in this process. The numbers do not depend on it.
+        configs: the studies (e.g. one per measurement kind); their tasks share the workers.
+        jobs: parallel workers the tasks are balanced over (default: all cores). Without
+            ``executor``, 1 runs in this process and more start a process pool of that size.
+            The numbers do not depend on it.
         progress: called with the number of finished (strategy, trial) runs after each task.
         engine: 'batched' (all trials of groups of strategies advanced together, the groups
             balanced over the workers) or 'per-trial' (the reference, one task per trial).
-        finish: a picklable function run on each config's result as soon as it is complete
-            (in the pool, so that e.g. drawing one kind's figures overlaps the other's
-            simulation); it must not change the result.
+        finish: called in this process on each config's result as soon as it is complete,
+            while the workers go on with the other configs (e.g. drawing one kind's figures
+            overlaps the other's simulation); it must not change the result.
+        executor: where the tasks run, any :class:`concurrent.futures.Executor` (e.g. a Dask
+            client's ``get_executor(pure=False)``: ``formopt-montecarlo`` runs on Dask), left
+            open; None: see ``jobs``.
     """
     if engine not in ENGINES:
         raise ValueError(f'engine must be one of {ENGINES}, got {engine!r}')
@@ -251,45 +258,53 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
         else:
             tasks.extend((_cost(config, s) / config.trials, (config, (s,), (t,)))
                          for s in config.strategies for t in every)
-    # the slow tasks first, so that the pool's tail is short
+    # the slow tasks first, so that the workers' tail is short
     ordered = [task for _, task in sorted(tasks, key=lambda item: item[0], reverse=True)]
     pending = {id(result): sum(1 for task in ordered if task[0] == result.config)
                for result in results}
-    if jobs == 1 or len(ordered) == 1:
-        for output in map(_task, ordered):
-            done = _collect(results, output, progress, pending)
-            if done is not None and finish is not None:
-                finish(done)
-        return results
-    with ProcessPoolExecutor(max_workers=min(jobs, len(ordered))) as pool:
-        try:
-            futures = _submit_ignoring_interrupts(pool, ordered)
-            finishing = []
-            while futures:
-                complete, futures = wait(futures, return_when=FIRST_COMPLETED)
-                for future in complete:
-                    done = _collect(results, future.result(), progress, pending)
-                    if done is not None and finish is not None:
-                        finishing.append(pool.submit(finish, done))
-            for future in finishing:
-                future.result()
-        except KeyboardInterrupt:
-            pool.shutdown(wait=False, cancel_futures=True)
-            for worker in multiprocessing.active_children():   # the pool's workers
-                worker.terminate()
-            raise
+
+    def collect(output: Output) -> None:
+        done = _collect(results, output, progress, pending)
+        if done is not None and finish is not None:
+            finish(done)
+
+    if executor is not None:
+        _run_on({executor.submit(_task, task) for task in ordered}, collect)
+    elif jobs == 1 or len(ordered) == 1:
+        for task in ordered:
+            collect(_task(task))
+    else:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(ordered))) as pool:
+            try:
+                # the workers, forked while tasks are submitted, ignore SIGINT from birth:
+                # Ctrl-C reaches the whole process group, only this process handles it (and
+                # ends the workers, which print no traceback each)
+                previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+                try:
+                    futures = {pool.submit(_task, task) for task in ordered}
+                finally:
+                    signal.signal(signal.SIGINT, previous)
+                _run_on(futures, collect)
+            except KeyboardInterrupt:
+                pool.shutdown(wait=False, cancel_futures=True)
+                for worker in multiprocessing.active_children():   # the pool's workers
+                    worker.terminate()
+                raise
     return results
 
 
-def _submit_ignoring_interrupts(pool: ProcessPoolExecutor, tasks: list[Task]) -> set[Any]:
-    """Submit every task; the workers, forked meanwhile, ignore SIGINT from birth. Ctrl-C
-    reaches the whole process group: only the main process handles it (and ends the workers,
-    which print no traceback each)."""
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _run_on(futures: set[Future[Output]], collect: Callable[[Output], None]) -> None:
+    """Collect each task's output as it comes; on any exception (Ctrl-C included) the
+    unfinished tasks are cancelled."""
     try:
-        return {pool.submit(_task, task) for task in tasks}
-    finally:
-        signal.signal(signal.SIGINT, previous)
+        while futures:
+            complete, futures = wait(futures, return_when=FIRST_COMPLETED)
+            for future in complete:
+                collect(future.result())
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
 
 
 def _collect(results: list[StudyResult],

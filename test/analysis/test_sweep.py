@@ -9,15 +9,17 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip('dask.distributed')
 
 from formopt_ros.analysis.sweep import (  # noqa: E402
-    CellCache, read_table, run_cells, table_rows, write_table)
+    CellCache, dask_executor, read_table, run_cells, table_rows, write_table)
 from formopt_ros.cli import sweep as cli  # noqa: E402
 from formopt_ros.core.scenario import LeaderPath  # noqa: E402
-from formopt_ros.core.study import StudyConfig, run_study, summarize  # noqa: E402
+from formopt_ros.core.study import (  # noqa: E402
+    StudyConfig, run_studies, run_study, summarize)
 from formopt_ros.core.sweep import (  # noqa: E402
     TIMING_COLUMNS, Cell, expand, run_cell, with_gains)
 
@@ -54,6 +56,26 @@ def test_a_cell_is_the_study_of_its_scenario() -> None:
             assert row[column] == study[column], column
         assert row['consistent'] == (cell.strategy not in together['consistency']['flagged'])
         assert (row['nees_band_low'], row['nees_band_high']) == tuple(together['nees_band'])
+
+
+def test_the_study_on_dask_equals_the_study_in_one_process() -> None:
+    """formopt-montecarlo's engine: both kinds' tasks on a two-worker local Dask cluster give
+    the numbers of one process, bit for bit, and each kind's result is handed to ``finish`` in
+    this process."""
+    configs = [StudyConfig(kind, 3, 30, 9, ('ram', 'rq', 'periodic'))
+               for kind in ('range', 'bearing')]
+    alone = run_studies(configs, jobs=1)
+    finished: list[str] = []
+    with dask_executor(workers=2) as (executor, workers):
+        assert workers == 2
+        spread = run_studies(configs, workers, finish=lambda r: finished.append(
+            r.config.measurement), executor=executor)
+    assert sorted(finished) == ['bearing', 'range']
+    for one, two in zip(alone, spread):
+        for name, record in one.records.items():
+            for column in ('weighted_trace', 'nees', 'max_nis', 'gated', 'speed'):
+                np.testing.assert_array_equal(getattr(record, column),
+                                              getattr(two.records[name], column), column)
 
 
 def test_gains_and_winners_follow_the_rows() -> None:
