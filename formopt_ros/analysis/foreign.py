@@ -77,9 +77,6 @@ class ForeignData:
 
 def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
     """Decode the mapped topics of ``bag``; BagError naming a topic the bag lacks."""
-    def stamp(message: Any) -> int:
-        return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
-
     def decoded(topic: str, type_name: str) -> list[Any]:
         if bag.find(topic, required=False) is None:
             raise BagError(f'the topic map names {topic!r}, which the bag does not have '
@@ -95,7 +92,7 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
             if not (math.isfinite(v) and math.isfinite(omega)):
                 refused['not_finite'] += 1
                 continue
-            odometry[robot].append((stamp(m), v, omega, twist_noise(m)))
+            odometry[robot].append((header_ns(m), v, omega, twist_noise(m)))
     ranges = []
     for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
         if not math.isfinite(m.range):
@@ -103,11 +100,11 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
         elif not m.min_range <= m.range < m.max_range:      # max_range: 'no reading'
             refused['out_of_range'] += 1
         else:
-            ranges.append((stamp(m), float(m.range)))
+            ranges.append((header_ns(m), float(m.range)))
     truth = {}
     if topics.leader_truth and topics.follower_truth:
         for robot in ('leader', 'follower'):
-            rows = [(stamp(m), *pose_values(m.pose)) for m in decoded(
+            rows = [(header_ns(m), *pose_values(m.pose)) for m in decoded(
                 getattr(topics, f'{robot}_truth'), 'geometry_msgs/msg/PoseStamped')]
             samples = np.array(sorted(rows), dtype=float)
             samples[:, 3] = np.unwrap(samples[:, 3])

@@ -11,8 +11,9 @@ held over the interval the message ends) is the simulated one, while nothing els
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -92,6 +93,73 @@ def relative_pose(leader: Pose, follower: Pose) -> np.ndarray:
     dx, dy = follower[0] - leader[0], follower[1] - leader[1]
     return np.array([c * dx + s * dy, -s * dx + c * dy,
                      float(wrap_angle(follower[2] - leader[2]))])
+
+
+def dead_reckoned_estimate(start: np.ndarray, start_covariance: np.ndarray, leader: Pose,
+                           follower_odometry: Pose, substeps: int, dt: float,
+                           noise: tuple[float, float, float, float]
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """The follower's relative pose from both robots' odometry poses alone (an estimator that
+    lost its history: :meth:`EstimatorPlannerNode._rejoin`), with a covariance that covers it.
+
+    The leader starts at the origin of the fixed frame, heading +x; the follower's odometry
+    starts at the identity where its relative pose was ``start`` ~ N(start, start_covariance):
+    its fixed-frame pose is F = start o follower_odometry, and the result is the pose of F in
+    the frame of ``leader`` (:func:`relative_pose`). Covariance: J P0 J^T, J the Jacobian of
+    that composition in ``start`` (d position / d start yaw = C(leader)^T C(start yaw) S o, S
+    the 90-degree rotation, o the odometry position), plus the drift of ``substeps`` sub-steps
+    of odometry noise of each robot: yaw (dt sigma_omega)^2 per sub-step; position
+    (dt sigma_v)^2 per sub-step, plus the yaw random walk swinging the straight-line distance D
+    the robot drove (D^2 n (dt sigma_omega)^2 / 3), plus for the leader its yaw error turning
+    the relative position p itself (|p|^2 n (dt sigma_omega_L)^2).
+
+    Args:
+        start: (3,) the relative pose [x m, y m, phi rad] at the start (the estimator's prior).
+        start_covariance: (3, 3) its covariance.
+        leader: the leader's odometry pose (x m, y m, yaw rad) in the fixed frame.
+        follower_odometry: the follower's odometry pose in its own odometry frame.
+        substeps: sub-steps of ``dt`` s driven since the start.
+        noise: (sigma_v, sigma_omega) of the follower, then of the leader (m/s, rad/s).
+
+    Returns:
+        (x (3,), P (3, 3)) in the leader's frame.
+    """
+    c0, s0 = math.cos(start[2]), math.sin(start[2])
+    ox, oy = follower_odometry[0], follower_odometry[1]
+    follower = (start[0] + c0 * ox - s0 * oy, start[1] + s0 * ox + c0 * oy,
+                start[2] + follower_odometry[2])
+    x = relative_pose(leader, follower)
+    cl, sl = math.cos(leader[2]), math.sin(leader[2])
+    to_leader = np.array([[cl, sl], [-sl, cl]])
+    jacobian = np.eye(3)
+    jacobian[:2, :2] = to_leader
+    jacobian[:2, 2] = to_leader @ np.array([-s0 * ox - c0 * oy, c0 * ox - s0 * oy])
+    P = jacobian @ start_covariance @ jacobian.T
+    sigma_v, sigma_omega, sigma_v_l, sigma_omega_l = noise
+    yaw_f, yaw_l = (substeps * (dt * sigma) ** 2 for sigma in (sigma_omega, sigma_omega_l))
+    position = (substeps * dt ** 2 * (sigma_v ** 2 + sigma_v_l ** 2)
+                + (ox ** 2 + oy ** 2) * yaw_f / 3
+                + (leader[0] ** 2 + leader[1] ** 2) * yaw_l / 3 + (x[0] ** 2 + x[1] ** 2) * yaw_l)
+    return x, P + np.diag([position, position, yaw_f + yaw_l])
+
+
+def odometry_pose_at(entries: Iterable[tuple[int, Any, float, float]], stamp_ns: int,
+                     interval_ns: int | None, nearest: bool) -> tuple[float, float, float] | None:
+    """An odometry pose at ``stamp_ns`` from messages (stamp ns, pose after the interval it
+    ends, v, omega held over that interval): one stamped then; else one whose interval of
+    ``interval_ns`` (None: any) contains it, carried back with its own twist (exact); else,
+    with ``nearest``, the nearest message carried to the stamp with its twist; else None."""
+    entries = list(entries)
+    after = [e for e in entries if e[0] >= stamp_ns and (
+        interval_ns is None or e[0] - stamp_ns <= interval_ns)]
+    if after:
+        chosen = min(after, key=lambda e: e[0])
+    elif nearest and entries:
+        chosen = min(entries, key=lambda e: abs(e[0] - stamp_ns))
+    else:
+        return None
+    stamp, pose, v, omega = chosen
+    return integrate_unicycle(tuple(pose), v, omega, (stamp_ns - stamp) * 1e-9)
 
 
 class FieldWorld:

@@ -93,12 +93,33 @@ class StepAssembler:
     _waited: dict[int, int] = field(default_factory=dict, repr=False)
     _gap: tuple[int, int] | None = None     # realtime: (since, resumed at) stamps, ns
 
-    def open_gap(self, resumed_ns: int) -> None:
-        """Realtime, after a resume at ``resumed_ns``: follower odometry missing between the
-        last one used and the first one after the resume is filled with hold sub-steps."""
-        since = self._last_follower_ns if self._last_follower_ns is not None \
-            else self._accounted_ns
-        self._gap = (since, resumed_ns)
+    def open_gap(self, resumed_ns: int, since_ns: int | None = None) -> None:
+        """Realtime, after a resume at ``resumed_ns``: follower odometry missing between
+        ``since_ns`` (default: the last one used) and the first one after the resume is
+        filled with hold sub-steps."""
+        if since_ns is None:
+            since_ns = self._last_follower_ns if self._last_follower_ns is not None \
+                else self._accounted_ns
+        self._gap = (since_ns, resumed_ns)
+
+    def rejoin(self, next_step: int, stamp_ns: int,
+               leader: tuple[float, float] | None = None) -> None:
+        """Continue at ``next_step`` after a restart without history: everything stamped at or
+        before ``stamp_ns`` (the measurement of step next_step - 1, where the estimate is
+        re-initialised) counts as processed and is dropped; ``leader``, when given, becomes
+        the leader velocity held until its odometry comes."""
+        self.next_step = next_step
+        self._accounted_ns = self._leader_used_ns = stamp_ns
+        if not self.lockstep:
+            self._last_follower_ns = stamp_ns
+        for store in (self._follower, self._leader):
+            for stamp in [t for t in store if t <= stamp_ns]:
+                del store[stamp]
+        for step in [k for k in self._measurements if k < next_step]:
+            del self._measurements[step]
+            self._waited.pop(step, None)
+        if leader is not None:
+            self.latest_leader = leader
 
     # --- inputs ------------------------------------------------------------------------------
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,

@@ -21,7 +21,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from formopt_ros.core.model import normalized_estimation_error, state_difference
-from formopt_ros.ros.nodes.follower_estimator import delayed_streams, stamp_ns
+from formopt_ros.ros.nodes.follower_estimator import delayed_streams
+from formopt_ros.wire.messages import header_ns
 from formopt_ros.wire.messages import estimate_values
 
 LEADER_TOPIC = f'{PREFIX}/leader/odom'
@@ -51,14 +52,14 @@ class Probe(Node):
             if status.name.startswith(f'{PREFIX}/follower_estimator'):
                 self.levels.append(status.level)
                 if status.level == DiagnosticStatus.ERROR:
-                    self.errors.append(stamp_ns(message))
+                    self.errors.append(header_ns(message))
 
     def on_estimate(self, message: PoseWithCovarianceStamped) -> None:
-        self.estimates[stamp_ns(message)] = estimate_values(message)
+        self.estimates[header_ns(message)] = estimate_values(message)
 
     def on_truth(self, message: PoseStamped) -> None:
         q = message.pose.orientation
-        self.truth[stamp_ns(message)] = np.array([
+        self.truth[header_ns(message)] = np.array([
             message.pose.position.x, message.pose.position.y,
             2.0 * np.arctan2(q.z, q.w)])
 

@@ -5,6 +5,7 @@ import math
 import sys
 import threading
 import time
+from collections import deque
 from concurrent.futures import Future
 from dataclasses import replace
 from typing import Any
@@ -19,9 +20,9 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from formopt_ros.core.estimator import EstimatorSession, StepOutcome, StepPlan
+from formopt_ros.core.field import dead_reckoned_estimate, odometry_pose_at
 from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
-from formopt_ros.core.simulation import trial_streams
-from formopt_ros.core.stepper import StepAssembler
+from formopt_ros.core.simulation import leader_poses, trial_streams
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
@@ -37,7 +38,7 @@ from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_sum
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
 from formopt_ros.wire.description import StrategyChange
-from formopt_ros.wire.messages import foreign_run
+from formopt_ros.wire.messages import foreign_run, header_ns, pose_values
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_FOLLOWER, follower_frames
 
 PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_PARAMS + \
@@ -55,11 +56,13 @@ SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
-#: A rejoining estimator's prior (see :meth:`EstimatorPlannerNode._rejoin`): the estimate
-#: restarts at the slot, heading 0, with covariance REJOIN_INFLATION * P_1|1 + diag(r^2, r^2, 0):
-#: the run's start uncertainty with twice its standard deviations, plus the disc of radius r
-#: around the slot in which every waypoint lies (where the follower may be, unknown).
+#: A rejoining estimator's prior (see :meth:`EstimatorPlannerNode._rejoin`): the relative pose
+#: dead-reckoned from both robots' odometry poses
+#: (:func:`~formopt_ros.core.field.dead_reckoned_estimate`), its covariance times
+#: REJOIN_INFLATION (twice the standard deviations: the drift terms are approximations).
 REJOIN_INFLATION = 4.0
+#: Odometry poses kept per robot for a rejoin (the last few steps' messages).
+REJOIN_POSES = 8 * SUBSTEPS
 
 
 class EstimatorPlannerNode(Node):
@@ -103,6 +106,10 @@ class EstimatorPlannerNode(Node):
         self.error = ''
         self.resumed: dict[str, Any] | None = None
         self.rejoined: dict[str, Any] | None = None
+        #: (stamp ns, odometry pose (3,), v m/s, omega rad/s) of the last messages of each
+        #: robot, while no step is processed (what a rejoin re-initialises the estimate from)
+        self.odometry_poses: dict[str, deque[tuple[int, Any, float, float]]] = {
+            robot: deque(maxlen=REJOIN_POSES) for robot in ('follower', 'leader')}
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = time.monotonic()
@@ -246,7 +253,7 @@ class EstimatorPlannerNode(Node):
     def on_follower_odom(self, msg: Odometry) -> None:
         """One sub-step of the follower's odometry."""
         self.received['follower_odom'] += 1
-        if self._left_behind(self._stamp_step(msg), 'follower odometry'):
+        if self._left_behind('follower odometry', msg):
             return
         self._refused('follower_odom', inputs.feed_odometry(
             self.session, 'follower', msg, self.follower_id, self._now_ns()))
@@ -254,7 +261,7 @@ class EstimatorPlannerNode(Node):
     def on_leader_odom(self, msg: Odometry) -> None:
         """One sub-step of the leader's odometry."""
         self.received['leader_odom'] += 1
-        if self._left_behind(self._stamp_step(msg), 'leader odometry'):
+        if self._left_behind('leader odometry', msg):
             return
         self._refused('leader_odom', inputs.feed_odometry(
             self.session, 'leader', msg, self.leader_id, self._now_ns()))
@@ -263,7 +270,7 @@ class EstimatorPlannerNode(Node):
         """One range or bearing measurement."""
         self.received['measurement'] += 1
         if foreign_run(msg, self.params['run_id']) is None and \
-                self._left_behind(int(msg.step), 'measurement'):
+                self._left_behind('measurement', msg, int(msg.step)):
             return
         self._refused('measurement', inputs.feed_measurement(
             self.session, msg, self.follower_id, self._now_ns(), self.params['run_id']))
@@ -274,45 +281,96 @@ class EstimatorPlannerNode(Node):
         inputs.feed_truth(self.session, msg)
 
     # --- rejoin ----------------------------------------------------------------------------
-    def _stamp_step(self, msg: Any) -> int | None:
-        """The step of a lockstep odometry message, from its stamp (None off the grid)."""
-        substep = self.timebase.substep_ending_at(
-            msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+    def _left_behind(self, source: str, msg: Any, step: int | None = None) -> bool:
+        """Whether to drop an input because this estimator rejoined after it.
+
+        A started estimator that processed no step and resumed no checkpoint (a restart
+        without one) and hears of step k >= 2 was left behind by its peers: it rejoins after
+        step k (lockstep: k of any input's stamp, the peers repeat step k; realtime: k of a
+        measurement, follower_sim re-sends its last one when it hears waypoint 1). Inputs of
+        step k and before are then dropped and counted in the summary's ``rejoined``.
+        """
+        stamp_ns = header_ns(msg)
+        rejoining = self.rejoined is not None and 'since' in self.rejoined
+        if source != 'measurement' and (self.session.step == 0 or rejoining):
+            robot = 'leader' if source == 'leader odometry' else 'follower'
+            self.odometry_poses[robot].append((stamp_ns, pose_values(msg.pose.pose),
+                                               msg.twist.twist.linear.x,
+                                               msg.twist.twist.angular.z))
+        if self.lockstep and step is None:
+            step = self._stamp_step(stamp_ns)
+        if self.rejoined is None:
+            if step is None or step < 2 or self.resumed is not None or not self.started or \
+                    self.session.step != 0 or (not self.lockstep and source != 'measurement'):
+                return False
+            self._rejoin(step, source, self.timebase.measurement_stamp(step) if self.lockstep
+                         else stamp_ns)
+        elif rejoining:
+            self._settle_rejoin()
+        rejoined = self.rejoined
+        assert rejoined is not None
+        dropped = step <= rejoined['at_step'] if step is not None else \
+            not self.lockstep and stamp_ns <= rejoined['stamp_ns']
+        rejoined['dropped_inputs'] += dropped
+        return dropped
+
+    def _stamp_step(self, stamp_ns: int) -> int | None:
+        """The step of a lockstep odometry stamp (None off the grid)."""
+        substep = self.timebase.substep_ending_at(stamp_ns)
         return None if substep is None else substep // SUBSTEPS + 1
 
-    def _left_behind(self, step: int | None, source: str) -> bool:
-        """Lockstep: a started estimator that processed no step and resumed no checkpoint (a
-        restart without one) and hears of step 2 or later was left behind by its peers:
-        rejoin at that step. True for an input of a step up to the rejoin step (the peers'
-        repeat of it: dropped, counted in the summary's ``rejoined``)."""
-        if step is None or not self.lockstep:
-            return False
-        if self.rejoined is None and self.resumed is None and self.started and \
-                self.session.step == 0 and step >= 2:
-            self._rejoin(step, source)
-        if self.rejoined is not None and step <= self.rejoined['at_step']:
-            self.rejoined['dropped_inputs'] += 1
-            return True
-        return False
-
-    def _rejoin(self, step: int, source: str) -> None:
-        """Continue the run after the peers' step ``step``: the next step is step + 1, the
-        estimate re-initialised at the slot with the inflated prior of :data:`REJOIN_INFLATION`
-        (the estimate of the steps missed is lost); says so in the log, diagnostics, summary."""
-        scenario, session = self.scenario, self.session
-        leader = scenario.leader.velocity(step_substeps(step)[-1], scenario.dt)
-        session.assembler = StepAssembler(True, self.timebase, leader, next_step=step + 1)
-        x, P = scenario.initial_estimate()
-        P = REJOIN_INFLATION * P + np.diag([scenario.r ** 2, scenario.r ** 2, 0.0])
-        estimator = session.estimator
-        estimator.state, estimator.covariance = x, P
-        self.rejoined = {'at_step': step, 'heard_from': source,
-                         'prior_covariance_diagonal': np.diag(P).tolist(), 'dropped_inputs': 0}
+    def _rejoin(self, step: int, source: str, stamp_ns: int) -> None:
+        """Continue the run after the peers' step ``step`` (its measurement stamped
+        ``stamp_ns``): the next step is step + 1; the estimate is re-initialised at that stamp
+        from both robots' odometry poses (:meth:`_settle_rejoin`, once they are in); the
+        estimate of the steps missed is lost. Realtime: the time the follower held still while
+        this node was down is filled with hold sub-steps (counted)."""
+        session = self.session
+        leader = None
+        if self.lockstep:
+            leader = self.scenario.leader.velocity(step_substeps(step)[-1], self.scenario.dt)
+        session.assembler.rejoin(step + 1, stamp_ns, leader)
+        if not self.lockstep:
+            session.assembler.open_gap(self._now_ns(), since_ns=stamp_ns)
+        self.rejoined = {'at_step': step, 'heard_from': source, 'stamp_ns': stamp_ns,
+                         'prior_covariance_diagonal': None, 'dropped_inputs': 0,
+                         'since': time.monotonic()}
         self.get_logger().warning(
-            f'rejoining the run at step {step} (heard from the {source}; no checkpoint): the '
-            f'estimate restarts at the slot with covariance diag {np.diag(P).round(6).tolist()}'
-            f' (the prior x {REJOIN_INFLATION:g} + r^2); steps 1-{step} are not estimated here')
-        self.last_plan = session.plan_next()
+            f'rejoining the run after step {step} (heard from the {source}; no checkpoint): '
+            f'steps 1-{step} are not estimated here; the estimate restarts from both robots\' '
+            'odometry poses')
+        self._settle_rejoin()
+
+    def _settle_rejoin(self, force: bool = False) -> None:
+        """Once both robots' odometry poses at the rejoin stamp T are known (or with ``force``,
+        from the nearest the follower sent): the estimate at T from them, covariance times
+        :data:`REJOIN_INFLATION`; then the plan of the next step is sent. The leader's pose is
+        its path's in lockstep (leader_sim drives it exactly), else its odometry's nearest
+        to T carried to T with its twist."""
+        rejoined = self.rejoined
+        if rejoined is None or rejoined['prior_covariance_diagonal'] is not None:
+            return
+        T, step = rejoined['stamp_ns'], rejoined['at_step']
+        follower = odometry_pose_at(self.odometry_poses['follower'], T, self.timebase.dt_ns,
+                                    force)
+        leader = tuple(leader_poses(self.scenario, step)[-1]) if self.lockstep else \
+            odometry_pose_at(self.odometry_poses['leader'], T, None, True)
+        if follower is None or leader is None:
+            return
+        scenario, estimator = self.scenario, self.session.estimator
+        x0, P0 = scenario.initial_estimate()
+        x, P = dead_reckoned_estimate(
+            x0, P0, leader, follower, SUBSTEPS * step, scenario.dt,
+            (scenario.sigma_v, scenario.sigma_omega, scenario.sigma_v_leader,
+             scenario.sigma_omega_leader))
+        estimator.state, estimator.covariance = x, REJOIN_INFLATION * P
+        rejoined['prior_covariance_diagonal'] = np.diag(estimator.covariance).tolist()
+        del rejoined['since']
+        self.get_logger().warning(
+            f'rejoined after step {step}: estimate {np.round(x, 3).tolist()} from the '
+            'odometry poses, covariance diag '
+            f"{np.round(rejoined['prior_covariance_diagonal'], 6).tolist()}")
+        self.last_plan = self.session.plan_next()
         self._send(self.last_plan)
         self.last_progress = time.monotonic()
 
@@ -421,6 +479,9 @@ class EstimatorPlannerNode(Node):
                     self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
                 self.last_progress = now
+        elif self.rejoined is not None and 'since' in self.rejoined and \
+                now - self.rejoined['since'] > self.params['resend_timeout']:
+            self._settle_rejoin(force=True)     # the odometry of the rejoin step was lost
         elif not self.finished and self.last_waypoint is not None and \
                 now - self.last_progress > self.params['resend_timeout']:
             self.throttle.warn('resend', f'no progress on step {self.session.step + 1}: '

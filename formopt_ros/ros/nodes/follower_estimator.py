@@ -32,7 +32,7 @@ from formopt_ros.ros.run_config import (
     SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
     strategy_options, strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
-from formopt_ros.wire.messages import twist_noise
+from formopt_ros.wire.messages import header_ns, twist_noise
 
 #: The sensors a follower may carry (its measurement stream is named after the sensor).
 SENSORS = ('range', 'bearing')
@@ -97,11 +97,6 @@ SUMMARY = ("A follower on real robots: its nav_msgs/Odometry (odom), the leader'
            'asynchronous EKF (exact integration of each odometry interval, ranges at their '
            'stamps), the strategy re-planned every 2 dt, and geometry_msgs/Twist on cmd_vel '
            'within the base limits; estimate, target and /diagnostics out.')
-
-
-def stamp_ns(message: Any) -> int:
-    """A message header's stamp in integer nanoseconds."""
-    return int(message.header.stamp.sec) * NS_PER_S + int(message.header.stamp.nanosec)
 
 
 def delayed_streams(delays: dict[str, list[float]], lag: float) -> tuple[list[str], list[str]]:
@@ -262,7 +257,7 @@ class FollowerEstimatorNode(Node):
         if not (math.isfinite(v) and math.isfinite(omega)):
             self._refuse('not_finite', stream, f'{stream}: twist is not finite')
             return
-        stamp = stamp_ns(message)
+        stamp = header_ns(message)
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
@@ -283,7 +278,7 @@ class FollowerEstimatorNode(Node):
             return
         if self._mount('range', message.header.frame_id) is None:
             return
-        self._measure('range', stamp_ns(message), value)
+        self._measure('range', header_ns(message), value)
 
     def on_bearing(self, message: Vector3Stamped) -> None:
         """A direction toward the leader in the sensor frame (any length), turned into a
@@ -300,7 +295,7 @@ class FollowerEstimatorNode(Node):
             self._refuse('out_of_range', 'bearing', 'bearing: the direction is vertical in the '
                          'body frame (no bearing)')
             return
-        self._measure('bearing', stamp_ns(message), value)
+        self._measure('bearing', header_ns(message), value)
 
     def on_tf_static(self, message: TFMessage) -> None:
         """Mounting poses: base_frame -> sensor frame transforms (yaw, pitch, roll and the

@@ -183,11 +183,9 @@ class FollowerSim(Node):
             self.counters['stale_waypoints'] = self.counters.get('stale_waypoints', 0) + 1
             self.throttle.warn('stale', f'waypoint of step {msg.step}, a step left behind (step '
                                         f'{self.executed} executed): its estimator restarted?'
-                                        + (f' repeating step {self.executed}' if self.lockstep
-                                           else ''))
-            if self.lockstep:
-                for key, item in self.cache:
-                    self._publish(key, item)
+                                        f' repeating step {self.executed}')
+            for key, item in self.cache:
+                self._publish(key, item)
             return
         if msg.step <= self.executed or (self.pending is not None
                                          and msg.step <= self.pending.step):
