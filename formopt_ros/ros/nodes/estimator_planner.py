@@ -331,7 +331,7 @@ class EstimatorPlannerNode(Node):
             leader = self.scenario.leader.velocity(step_substeps(step)[-1], self.scenario.dt)
         session.assembler.rejoin(step + 1, stamp_ns, leader)
         if not self.lockstep:
-            session.assembler.open_gap(self._now_ns(), since_ns=stamp_ns)
+            session.assembler.open_gap(self.get_clock().now().nanoseconds, since_ns=stamp_ns)
         self.rejoined = {'at_step': step, 'heard_from': source, 'stamp_ns': stamp_ns,
                          'prior_covariance_diagonal': None, 'dropped_inputs': 0,
                          'since': time.monotonic()}
@@ -369,7 +369,7 @@ class EstimatorPlannerNode(Node):
         self.get_logger().warning(
             f'rejoined after step {step}: estimate {np.round(x, 3).tolist()} from the '
             'odometry poses, covariance diag '
-            f"{np.round(rejoined['prior_covariance_diagonal'], 6).tolist()}")
+            f'{np.round(np.diag(estimator.covariance), 6).tolist()}')
         self.last_plan = self.session.plan_next()
         self._send(self.last_plan)
         self.last_progress = time.monotonic()
