@@ -99,15 +99,55 @@ def scheduler_address(given: str | None) -> str | None:
     return str(configured) if configured else None
 
 
+#: How long an existing scheduler may take to answer, and then to have a worker, s.
+CONNECT_TIMEOUT = 30.0
+
+
+def connect(address: str) -> Any:
+    """A Dask client of the existing scheduler at ``address`` with at least one worker; a
+    ConnectionError (an OSError) in one sentence when the address is malformed, nothing
+    answers as a Dask scheduler within :data:`CONNECT_TIMEOUT` s (a connection to another
+    kind of service can hang, so the attempt runs in a daemon thread left behind), or no
+    worker joins within that time."""
+    from dask.distributed import Client
+    outcome: dict[str, Any] = {}
+
+    def attempt() -> None:
+        try:
+            outcome['client'] = Client(address, timeout=f'{CONNECT_TIMEOUT:g}s')
+        except Exception as error:                  # noqa: BLE001 (reported below)
+            outcome['error'] = error
+
+    thread = threading.Thread(target=attempt, daemon=True)
+    thread.start()
+    thread.join(CONNECT_TIMEOUT + 5.0)
+    if thread.is_alive():
+        raise ConnectionError(f'{address} did not answer as a Dask scheduler within '
+                              f'{CONNECT_TIMEOUT:g} s')
+    if 'error' in outcome:
+        error = outcome['error']
+        raise ConnectionError(f'no Dask scheduler at {address}: '
+                              f'{str(error) or type(error).__name__}') from error
+    client = outcome['client']
+    try:
+        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT)
+    except Exception:                               # noqa: BLE001 (a timeout, of some kind)
+        client.close()
+        raise ConnectionError(f'the Dask scheduler at {address} has no worker after '
+                              f'{CONNECT_TIMEOUT:g} s (start one: dask worker {address})'
+                              ) from None
+    return client
+
+
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
-    """A Dask client of the scheduler at ``scheduler`` (or Dask's configured one), else of a
-    new local cluster of ``workers`` single-threaded processes (default: one per core), closed
-    on exit."""
+    """A Dask client of the scheduler at ``scheduler`` (or Dask's configured one,
+    :func:`connect`), else of a new local cluster of ``workers`` single-threaded processes
+    (default: one per core), closed on exit."""
     from dask.distributed import Client, LocalCluster
     address = scheduler_address(scheduler)
     if address:
-        with Client(address, timeout='30s') as client:
+        with connect(address) as client:
             yield client
         return
     # a random dashboard port (no clash with another cluster); the parent has reported any
@@ -350,5 +390,5 @@ def _ticks(axis: Any, xs: list[Any], ys: list[Any], x_axis: str, y_axis: str) ->
     axis.set_ylabel(y_axis)
 
 
-__all__ = ['COLUMNS', 'CellCache', 'SweepOutcome', 'dask_client', 'dask_executor', 'read_table',
-           'run_cells', 'sweep_figures', 'table_rows', 'write_table']
+__all__ = ['COLUMNS', 'CellCache', 'SweepOutcome', 'connect', 'dask_client', 'dask_executor',
+           'read_table', 'run_cells', 'sweep_figures', 'table_rows', 'write_table']

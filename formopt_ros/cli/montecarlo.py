@@ -9,7 +9,7 @@ import os
 import sys
 import time
 from collections.abc import Iterator
-from concurrent.futures import Executor
+from concurrent.futures import CancelledError, Executor
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -73,8 +73,8 @@ def build_parser() -> ArgumentParser:
                              f'built-in ones but lookahead, {",".join(METHODS)})')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='processes of the local Dask cluster the study runs on; 1 runs '
-                             'in this process without Dask; results do not depend on it '
-                             '(default: all cores)')
+                             'in this process without Dask (unless a scheduler is given); '
+                             'results do not depend on it (default: all cores)')
     parser.add_argument('--scheduler', default=None, metavar='ADDRESS',
                         help='address of an existing Dask scheduler to run on, e.g. '
                              'tcp://host:8786, --jobs ignored (default: '
@@ -471,9 +471,13 @@ def study_workers(jobs: int, scheduler: str | None
         try:
             executor, workers = stack.enter_context(dask_executor(jobs, address))
         except OSError as error:
-            fail(prog, f'--scheduler {address}: {error}')
-        yield executor, workers, f'Dask at {address}' if address else \
-            f'local Dask cluster of {workers} workers'
+            fail(prog, f'--scheduler: {error}')
+        try:
+            yield executor, workers, f'Dask at {address}' if address else \
+                f'local Dask cluster of {workers} workers'
+        except CancelledError:
+            fail(prog, 'the Dask cluster dropped the study (its scheduler or its workers '
+                       'stopped); the kinds written before are complete')
 
 
 def physical_memory() -> int:
@@ -539,8 +543,9 @@ def main(argv: list[str] | None = None) -> int:
     for line in comparison_lines(args.out / COMPARISON_FOLDER) if comparison else ():
         print(line)
     print(f'wall time: {time.perf_counter() - start:.1f} s '
-          f'({len(kinds)} kind(s) x {len(strategies)} strategies x {args.trials} trials x '
-          f'{args.steps} steps, {args.engine} engine, {where}); results in {args.out}')
+          f'({sum(len(c.strategies) for c in configs + comparison)} (sensor, strategy) runs x '
+          f'{args.trials} trials x {args.steps} steps, {args.engine} engine, {where}); '
+          f'results in {args.out}')
     return 0
 
 

@@ -109,9 +109,12 @@ def dead_reckoned_estimate(start: np.ndarray, start_covariance: np.ndarray, lead
     that composition in ``start`` (d position / d start yaw = C(leader)^T C(start yaw) S o, S
     the 90-degree rotation, o the odometry position), plus the drift of ``substeps`` sub-steps
     of odometry noise of each robot: yaw (dt sigma_omega)^2 per sub-step; position
-    (dt sigma_v)^2 per sub-step, plus the yaw random walk swinging the straight-line distance D
-    the robot drove (D^2 n (dt sigma_omega)^2 / 3), plus for the leader its yaw error turning
-    the relative position p itself (|p|^2 n (dt sigma_omega_L)^2).
+    (dt sigma_v)^2 per sub-step. The follower's yaw random walk (e_1 .. e_n) swings its
+    displacement d sideways, as if driven at a constant pace: position error
+    S d sum_i e_i (1 - i/n), yaw error sum_i e_i, so n s^2 [[S d d' S' / 3, S d / 2],
+    [d' S' / 2, 1]] with s = dt sigma_omega (correlated: a range that fixes the position then
+    tells the heading too). The leader's yaw walk, uncorrelated here: |L|^2 n s_L^2 / 3 for its
+    own displacement L, plus |p|^2 n s_L^2 for turning the relative position p.
 
     Args:
         start: (3,) the relative pose [x m, y m, phi rad] at the start (the estimator's prior).
@@ -138,9 +141,14 @@ def dead_reckoned_estimate(start: np.ndarray, start_covariance: np.ndarray, lead
     sigma_v, sigma_omega, sigma_v_l, sigma_omega_l = noise
     yaw_f, yaw_l = (substeps * (dt * sigma) ** 2 for sigma in (sigma_omega, sigma_omega_l))
     position = (substeps * dt ** 2 * (sigma_v ** 2 + sigma_v_l ** 2)
-                + (ox ** 2 + oy ** 2) * yaw_f / 3
                 + (leader[0] ** 2 + leader[1] ** 2) * yaw_l / 3 + (x[0] ** 2 + x[1] ** 2) * yaw_l)
-    return x, P + np.diag([position, position, yaw_f + yaw_l])
+    drift = np.diag([position, position, yaw_l])
+    # the follower's yaw random walk swings its displacement d (fixed frame) sideways: the
+    # position error S d sum_i e_i (1 - i/n), the yaw error sum_i e_i, correlated
+    swing = to_leader @ np.array([-(follower[1] - start[1]), follower[0] - start[0]])
+    drift += yaw_f * np.block([[np.outer(swing, swing) / 3, swing[:, None] / 2],
+                               [swing[None, :] / 2, np.ones((1, 1))]])
+    return x, P + drift
 
 
 def odometry_pose_at(entries: Iterable[tuple[int, Any, float, float]], stamp_ns: int,

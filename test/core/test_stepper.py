@@ -233,7 +233,7 @@ def test_the_dead_reckoned_estimate_of_a_rejoin_is_exact_and_covers_its_error(
     odometry poses: without odometry noise and from the true start it is the true pose (1e-9
     m and rad, 40 s, leader on a line or turning at 0.3 rad/s); with noise and from the prior
     mean, its NEES over 200 runs of 2 s and 20 s averages at most 4.5 (3 is exact: the drift
-    terms are approximations, which REJOIN_INFLATION = 4 covers) and at least 1.5."""
+    terms are approximations, which REJOIN_INFLATION = 1.5 covers) and at least 1.5."""
     scenario = Scenario.paper('range', leader=path, kinematics=EXACT)
     noise = (scenario.sigma_v, scenario.sigma_omega, scenario.sigma_v_leader,
              scenario.sigma_omega_leader)

@@ -279,6 +279,20 @@ def test_realtime_restarts_recover(formation, tmp_path: Path) -> None:
     assert math.isfinite(nees) and nees < 20.0, nees
 
 
+def test_an_estimator_started_after_its_run_finished_says_so(formation) -> None:
+    """An estimator (re)started without a checkpoint after its peers' last step has nothing to
+    rejoin: it stops with exit code 1 and an error naming the step, never an ok summary."""
+    steps = 8
+    run = formation({'measurement': 'range', 'strategy': 'ram', 'seed': SEED, 'steps': steps,
+                     'resend_timeout': 0.3})
+    assert run.spin_until(lambda: run.estimator.finished, 30.0)
+    late = run.restart('estimator_planner')
+    assert run.spin_until(lambda: late.finished, 30.0)
+    summary = late.summary()
+    assert late.exit_code == 1 and summary['ok'] is False
+    assert f'last step, {steps}' in summary['error']
+
+
 def test_a_realtime_estimator_restarted_without_checkpoint_rejoins(formation) -> None:
     """Realtime, no checkpoint: the estimator killed after step 20 and back 0.6 s later sends
     waypoint 1; follower_sim re-sends its last measurement, the estimator rejoins after it

@@ -34,7 +34,8 @@ from formopt_ros.ros.run_config import (
     CHECKPOINT_PATH, FOLLOWER_ID, FORMATION_FILE, LEADER_ID, MODE, RECORDERS, RUN_ID,
     SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults,
     strategy_options, strategy_params)
-from formopt_ros.ros.runtime import Throttle, node_main, steady_timer, write_summary
+from formopt_ros.ros.runtime import (
+    Throttle, node_main, steady_timer, stop_run, write_summary)
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
 from formopt_ros.wire.description import StrategyChange
@@ -59,8 +60,10 @@ MARKER_PERIOD = 0.1
 #: A rejoining estimator's prior (see :meth:`EstimatorPlannerNode._rejoin`): the relative pose
 #: dead-reckoned from both robots' odometry poses
 #: (:func:`~formopt_ros.core.field.dead_reckoned_estimate`), its covariance times
-#: REJOIN_INFLATION (twice the standard deviations: the drift terms are approximations).
-REJOIN_INFLATION = 4.0
+#: REJOIN_INFLATION: the drift terms are approximations, and a broader prior makes the range
+#: EKF's linearisation worse (``scripts/measure_rejoin.py``: 1.5 keeps the steps after a rejoin
+#: as consistent as the run's own; 4 lets late rejoins diverge more often).
+REJOIN_INFLATION = 1.5
 #: Odometry poses kept per robot for a rejoin (the last few steps' messages).
 REJOIN_POSES = 8 * SUBSTEPS
 
@@ -308,7 +311,8 @@ class EstimatorPlannerNode(Node):
         elif rejoining:
             self._settle_rejoin()
         rejoined = self.rejoined
-        assert rejoined is not None
+        if rejoined is None:                # a finished run: nothing to rejoin (stopped)
+            return True
         dropped = step <= rejoined['at_step'] if step is not None else \
             not self.lockstep and stamp_ns <= rejoined['stamp_ns']
         rejoined['dropped_inputs'] += dropped
@@ -326,6 +330,10 @@ class EstimatorPlannerNode(Node):
         estimate of the steps missed is lost. Realtime: the time the follower held still while
         this node was down is filled with hold sub-steps (counted)."""
         session = self.session
+        if session.steps and step >= session.steps:
+            stop_run(self, 1, f'the run had finished (the peers are at its last step, {step}) '
+                              'before this estimator started: nothing to rejoin')
+            return
         leader = None
         if self.lockstep:
             leader = self.scenario.leader.velocity(step_substeps(step)[-1], self.scenario.dt)
