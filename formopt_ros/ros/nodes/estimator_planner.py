@@ -294,7 +294,7 @@ class EstimatorPlannerNode(Node):
         step k and before are then dropped and counted in the summary's ``rejoined``.
         """
         stamp_ns = header_ns(msg)
-        rejoining = self.rejoined is not None and 'since' in self.rejoined
+        rejoining = self._rejoining()
         if source != 'measurement' and (self.session.step == 0 or rejoining):
             robot = 'leader' if source == 'leader odometry' else 'follower'
             self.odometry_poses[robot].append((stamp_ns, pose_values(msg.pose.pose),
@@ -304,7 +304,8 @@ class EstimatorPlannerNode(Node):
             step = self._stamp_step(stamp_ns)
         if self.rejoined is None:
             if step is None or step < 2 or self.resumed is not None or not self.started or \
-                    self.session.step != 0 or (not self.lockstep and source != 'measurement'):
+                    self.finished or self.session.step != 0 or \
+                    (not self.lockstep and source != 'measurement'):
                 return False
             self._rejoin(step, source, self.timebase.measurement_stamp(step) if self.lockstep
                          else stamp_ns)
@@ -317,6 +318,10 @@ class EstimatorPlannerNode(Node):
             not self.lockstep and stamp_ns <= rejoined['stamp_ns']
         rejoined['dropped_inputs'] += dropped
         return dropped
+
+    def _rejoining(self) -> bool:
+        """A rejoin waits for the odometry poses its estimate is made from."""
+        return self.rejoined is not None and self.rejoined['prior_covariance_diagonal'] is None
 
     def _stamp_step(self, stamp_ns: int) -> int | None:
         """The step of a lockstep odometry stamp (None off the grid)."""
@@ -356,7 +361,7 @@ class EstimatorPlannerNode(Node):
         its path's in lockstep (leader_sim drives it exactly), else its odometry's nearest
         to T carried to T with its twist."""
         rejoined = self.rejoined
-        if rejoined is None or rejoined['prior_covariance_diagonal'] is not None:
+        if rejoined is None or not self._rejoining():
             return
         T, step = rejoined['stamp_ns'], rejoined['at_step']
         follower = odometry_pose_at(self.odometry_poses['follower'], T, self.timebase.dt_ns,
@@ -487,7 +492,7 @@ class EstimatorPlannerNode(Node):
                     self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
                 self.last_progress = now
-        elif self.rejoined is not None and 'since' in self.rejoined and \
+        elif self.rejoined is not None and self._rejoining() and \
                 now - self.rejoined['since'] > self.params['resend_timeout']:
             self._settle_rejoin(force=True)     # the odometry of the rejoin step was lost
         elif not self.finished and self.last_waypoint is not None and \
