@@ -41,7 +41,15 @@ DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 
-PROFILES = {'stream': STREAM, 'latched': LATCHED, 'clock': CLOCK, 'tf': TF,
+#: Sensor streams of real robots (odometry, range, bearing): best effort and volatile like
+#: rclpy's qos_profile_sensor_data (which drivers publish with), but a reader history of 100
+#: messages instead of 5, so a stall of the subscriber up to 1-2 s at 50-100 Hz loses
+#: nothing.
+SENSOR = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.BEST_EFFORT,
+                    durability=DurabilityPolicy.VOLATILE)
+
+PROFILES = {'stream': STREAM, 'sensor': SENSOR, 'latched': LATCHED, 'clock': CLOCK, 'tf': TF,
             'tf_static': TF_STATIC, 'diagnostics': DIAGNOSTICS,
             'default': qos_profile_system_default}
 

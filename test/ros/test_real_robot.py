@@ -7,6 +7,7 @@ import os
 import shutil
 import signal
 import subprocess
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -66,11 +67,13 @@ class Probe(Node):
 
 def run_pair(tmp_path: Path, sim: dict[str, Any], seconds: float,
              node_process: Callable[..., NodeProcess],
-             estimator_params: dict[str, Any] | None = None) -> tuple[Probe, dict[str, Any]]:
+             estimator_params: dict[str, Any] | None = None,
+             stall: tuple[float, float] | None = None) -> tuple[Probe, dict[str, Any]]:
     """field_sim (``seconds`` long, ``sim`` parameters) and follower_estimator (ESTIMATOR
     updated by ``estimator_params``) in this module's namespace, the probe in this process;
-    the estimator is stopped with SIGINT when the simulation ends. Returns the probe and the
-    estimator's summary."""
+    the estimator is stopped with SIGINT when the simulation ends. ``stall`` (at s, for s):
+    the estimator's process is stopped (SIGSTOP) that long once the truth has run ``at`` s.
+    Returns the probe and the estimator's summary."""
     rclpy.init()
     probe = Probe()
     executor = SingleThreadedExecutor()
@@ -83,6 +86,12 @@ def run_pair(tmp_path: Path, sim: dict[str, Any], seconds: float,
         assert estimator.wait_for_line('follower_estimator ready'), estimator.stderr
         field = node_process('field_sim', {'duration': seconds, 'leader_odom_topic': LEADER_TOPIC,
                                            **sim})
+        if stall:
+            assert spin_until(executor, lambda: len(probe.truth) > 1 and max(probe.truth)
+                              - min(probe.truth) > stall[0] * 1e9, seconds + 30.0)
+            os.killpg(estimator.process.pid, signal.SIGSTOP)
+            time.sleep(stall[1])            # the stall itself
+            os.killpg(estimator.process.pid, signal.SIGCONT)
         assert spin_until(executor, lambda: field.process.poll() is not None, seconds + 30.0)
         spin_until(executor, lambda: False, 0.5)
         os.killpg(estimator.process.pid, signal.SIGINT)
@@ -124,6 +133,21 @@ def test_real_stack_closes_the_loop(tmp_path: Path, node_process: Callable[..., 
     assert len(speeds) > 100 and np.all(speeds[:, 0] >= 0.0) and np.all(speeds[:, 0] <= 2.0)
     assert np.all(np.abs(speeds[:, 1]) <= 3.0) and np.max(speeds[:, 0]) > 0.5
     assert 0.0 < summary['range_bias'] < 0.3
+
+
+def test_a_stall_of_the_estimator_drops_nothing(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """The estimator's process stopped for 0.6 s (six times reorder_lag) after 3 s: its
+    backlog is applied in order (no input dropped as late, every range applied), the pause is
+    counted, and the run stays ok and consistent (mean NEES below 6 after 4 s)."""
+    probe, summary = run_pair(tmp_path, {}, 8.0, node_process, stall=(3.0, 0.6))
+    counters = summary['counters']
+    assert counters['late_odometry'] == counters['late_measurements'] == 0, summary
+    assert summary['pauses']['count'] >= 1 and summary['pauses']['longest_s'] >= 0.5, summary
+    assert summary['ok'], summary
+    assert counters['measurements'] == len(probe.estimates)
+    nees, _, count = consistency(probe, min(probe.truth) + 4 * 10**9)
+    assert count > 50 and nees < 6.0, (nees, count)
 
 
 def test_a_stall_is_told_apart_from_a_clock_behind() -> None:

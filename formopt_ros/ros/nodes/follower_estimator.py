@@ -13,7 +13,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, Twist, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Range
 from tf2_msgs.msg import TFMessage
 
@@ -33,6 +32,15 @@ from formopt_ros.ros.run_config import (
     strategy_options, strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
 from formopt_ros.wire.messages import header_ns, twist_noise
+
+#: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
+MIN_PAUSE = 0.05
+#: The longest catch-up after a pause, s (draining a backlog takes a fraction of the pause).
+MAX_CATCH_UP = 1.0
+
+#: Inputs dropped as late beyond this share of a status period's inputs are an ERROR (fewer:
+#: a delay spike, a WARN).
+LATE_FRACTION = 0.1
 
 #: The sensors a follower may carry (its measurement stream is named after the sensor).
 SENSORS = ('range', 'bearing')
@@ -156,6 +164,13 @@ class FollowerEstimatorNode(Node):
         self.delays: dict[str, list[float]] = {s: [] for s in self.streams}  # this period, s
         self.refusal: dict[str, str] = {}            # the last refusal per stream
         self.first_input_ns: int | None = None
+        # a pause of every input longer than reorder_lag (this process stalled, or every link
+        # at once): until _catch_up_until (monotonic s) the backlog is applied as its odometry
+        # covers it, not by the clock, so its own odometry is not dropped as late
+        self._last_input_s: float | None = None
+        self._catch_up_until = 0.0
+        self.pauses: list[float] = []                 # their lengths, s
+        self._reported_pauses = 0
         self._reported: dict[str, int] = {}          # counts at the last diagnostics
         self.target: np.ndarray | None = None
         self.command = (0.0, 0.0)
@@ -177,15 +192,15 @@ class FollowerEstimatorNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.profile('diagnostics'))
         self.create_subscription(Odometry, 'odom', lambda m: self.on_odometry('odom', m),
-                                 qos_profile_sensor_data)
+                                 qos.SENSOR)
         self.create_subscription(Odometry, 'leader_odom',
                                  lambda m: self.on_odometry('leader_odom', m),
-                                 qos_profile_sensor_data)
+                                 qos.SENSOR)
         if sensor == 'range':
-            self.create_subscription(Range, 'range', self.on_range, qos_profile_sensor_data)
+            self.create_subscription(Range, 'range', self.on_range, qos.SENSOR)
         else:
             self.create_subscription(Vector3Stamped, 'bearing', self.on_bearing,
-                                     qos_profile_sensor_data)
+                                     qos.SENSOR)
         self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
                                  qos.profile('tf_static'))
         self.create_timer(2.0 * scenario.dt, self.plan)
@@ -232,11 +247,23 @@ class FollowerEstimatorNode(Node):
                          'ahead of this clock: are the clocks synchronised?')
             return False
         self.first_input_ns = self.first_input_ns or now
-        self.delays[stream].append((now - stamp) / NS_PER_S)
+        wall = time.monotonic()
+        pause = wall - (self._last_input_s or wall)
+        self._last_input_s = wall
+        if pause > max(self.params['reorder_lag'], MIN_PAUSE):
+            self.pauses.append(pause)
+            self._catch_up_until = wall + min(pause, MAX_CATCH_UP)
+        if not self.catching_up():        # a backlog's delays are the pause's, not the link's
+            self.delays[stream].append((now - stamp) / NS_PER_S)
         self.newest[stream] = max(stamp, self.newest[stream] or stamp)
         if self.tracker is None:
             self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
         return True
+
+    def catching_up(self) -> bool:
+        """Whether the backlog of a pause is still being applied (no measurement is due by the
+        clock meanwhile)."""
+        return time.monotonic() < self._catch_up_until
 
     def _refuse(self, counter: str, stream: str, text: str) -> None:
         self.refused[counter] += 1
@@ -341,7 +368,7 @@ class FollowerEstimatorNode(Node):
         """Apply what the buffer lets through, publish the estimates; time the input from
         ``started`` (perf_counter, s)."""
         assert self.tracker is not None
-        for applied in self.tracker.advance(self.now_ns()):
+        for applied in self.tracker.advance(None if self.catching_up() else self.now_ns()):
             self.estimate_pub.publish(conversions.estimate(
                 conversions.stamp(applied.stamp_ns), self.frame, applied.x, applied.P))
         self.handling['input'].append(time.perf_counter() - started)
@@ -395,13 +422,14 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); stamps ahead of this clock; inputs dropped as
-        late, or a stream whose median delay (arrival minus stamp) over the period exceeds
-        reorder_lag (a clock behind this one, or a slow link); a stream silent, or stamped
-        behind this clock, for stale_timeout since input began. WARN: waiting for the first
-        input, a stream older than half the timeout, a delay spike beyond reorder_lag (this
-        process or the link stalled), odometry carried past its last message, gaps, gated
-        ranges."""
+        gating (the consistency watch, latched); stamps ahead of this clock; more than
+        LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
+        (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or
+        a slow link); a stream silent, or stamped behind this clock, for stale_timeout since
+        input began. WARN: waiting for the first input, a stream older than half the timeout,
+        a delay spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), a
+        pause of every input (this process stalled: its backlog is applied in order, nothing
+        dropped), odometry carried past its last message, gaps, gated ranges."""
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
@@ -413,10 +441,12 @@ class FollowerEstimatorNode(Node):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
         lag = self.params['reorder_lag']
         slow, spikes = delayed_streams(self.delays, lag)
-        if slow or new.get('late_odometry') or new.get('late_measurements'):
+        late = new.get('late_odometry', 0) + new.get('late_measurements', 0)
+        inputs = late + new.get('odometry', 0) + new.get('measurements', 0)
+        if slow or late > LATE_FRACTION * inputs:
             errors.append(f'inputs arrive later than reorder_lag ({lag:g} s) after their '
                           'stamps and are dropped: a clock behind this one or a slow link'
-                          + (f" ({', '.join(slow)})" if slow else ''))
+                          + (f" ({', '.join(slow)})" if slow else f' ({late} of {inputs})'))
         ages, limit = self.ages(), self.params['stale_timeout']
         if self.first_input_ns is None:
             return [('ERROR', e) for e in errors] or \
@@ -429,12 +459,17 @@ class FollowerEstimatorNode(Node):
                                            if s in self.refusal else '') for s in old))
         if errors:
             return [('ERROR', e) for e in errors]
-        late = [f'{s} {a:.2f} s' for s, a in ages.items() if a is not None and a > limit / 2]
-        if late:
-            return [('WARN', 'late: ' + ', '.join(late))]
-        if spikes:
-            return [('WARN', 'inputs delayed beyond reorder_lag (this process or the link '
-                             'stalled): ' + ', '.join(spikes))]
+        old_streams = [f'{s} {a:.2f} s' for s, a in ages.items()
+                       if a is not None and a > limit / 2]
+        if old_streams:
+            return [('WARN', 'late: ' + ', '.join(old_streams))]
+        if spikes or late:
+            return [('WARN', 'inputs delayed beyond reorder_lag (the link stalled)'
+                             + (f': {late} dropped as late' if late else '')
+                             + (': ' + ', '.join(spikes) if spikes else ''))]
+        if len(self.pauses) > self._reported_pauses:
+            return [('WARN', f'every input paused {self.pauses[-1]:.2f} s (this process or '
+                             'every link stalled); the backlog was applied in order')]
         for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
                           ('gaps', f"odometry intervals longer than {self.params['max_gap']:g} "
                                    's (messages lost)'),
@@ -452,6 +487,7 @@ class FollowerEstimatorNode(Node):
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
         self.delays = {s: [] for s in self.streams}
+        self._reported_pauses = len(self.pauses)
         if level == 'ERROR':
             self.worst = 'ERROR'
             for _, error in problems:       # every cause, not only the worst: a latched
@@ -487,6 +523,8 @@ class FollowerEstimatorNode(Node):
             'counters': self.tracker.counters.as_dict() if self.tracker else {},
             'refused': dict(self.refused), 'stops': self.stops, 'plans': self.step,
             'unreachable_targets': self.unreachable,
+            'pauses': {'count': len(self.pauses),
+                       'longest_s': round(max(self.pauses), 3) if self.pauses else 0.0},
             'consistency': self.tracker.watch.summary() if self.tracker else None,
             'handling_ms': {kind: {'count': len(times),
                                    'median': 1e3 * float(np.median(times)) if times else None,
