@@ -146,12 +146,13 @@ def format_value(value: Any) -> str:
 def supervise(estimators: list[Process], others: list[Process], recorder: Process | None,
               respawn: int) -> str:
     """Restart dead nodes while ``respawn`` allows; the failure when one cannot go on ('' if
-    none). An estimator that exited 0 has finished; any other exit before the end is a
-    failure unless the node can be restarted (not after exit code 2, a refused configuration,
-    and never the recorder, whose file would be cut)."""
+    none). A node that exited 0 has finished (an estimator its steps, a simulator once its
+    estimators finished and left: ros/guard.py); any other exit before the end is a failure
+    unless the node can be restarted (not after exit code 2, a refused configuration, and
+    never the recorder, whose file would be cut, nor one that exited 0 early)."""
     for item in estimators + others + ([recorder] if recorder else []):
         code = item.process.poll()
-        if code is None or (item in estimators and code == 0):
+        if code is None or (item is not recorder and code == 0):
             continue
         if item is not recorder and code != CONFIGURATION_EXIT and \
                 len(item.restarts) < respawn:

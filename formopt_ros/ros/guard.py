@@ -6,7 +6,10 @@ Mismatch: the node stops with exit code 2 and one line naming every differing pa
 both values. It stops once every peer that reads its description has been matched (at most
 ``MISMATCH_LINGER`` s later): the description is latched by a publisher that dies with the node,
 so a peer matched only after the node left would wait for the run forever instead of stopping
-too. Intruder: a topic the node reads has more than one publisher for longer than
+too. Run over (a watchdog for simulators started by hand): once the node's part of the run
+is done and no estimator it serves has published its waypoints for ``END_LINGER`` s (they
+finished and left), the node finishes with exit code 0 instead of waiting for good.
+Intruder: a topic the node reads has more than one publisher for longer than
 ``INTRUDER_GRACE`` s; the node stops with exit code 1 and names the publishing nodes. The grace
 covers a restarted peer whose killed predecessor stays in the ROS graph until its discovery
 lease ends (3 s with config/fastdds_discovery.xml, which every formopt_ros node loads unless
@@ -14,6 +17,7 @@ FASTRTPS_DEFAULT_PROFILES_FILE is set).
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -36,6 +40,9 @@ INTRUDER_GRACE = 5.0
 CHECK_PERIOD = 0.5
 #: A node stopped by a mismatch waits at most this long (s) for its description's readers.
 MISMATCH_LINGER = 3.0
+#: A simulator whose part of the run is done ends once its estimators' waypoint topics have
+#: had no publisher this long, s.
+END_LINGER = 2.0
 #: Exit codes: a scenario mismatch is a configuration error; an intruder a run-time failure.
 MISMATCH_EXIT, INTRUDER_EXIT = 2, 1
 
@@ -76,6 +83,9 @@ class RunGuard:
         self.description_pub: Any = None
         self.description_message: Any = None
         self.readers = 0
+        self.texts: dict[str, str] = {}           # description topic -> the agreeing text
+        self._end: tuple[list[str], Callable[[], bool]] | None = None
+        self._idle_since: float | None = None
 
     def announce(self, key: str, description: str, run_id: str, readers: int) -> None:
         """Publish the node's run description (JSON text) latched on topic ``key``; ``readers``
@@ -114,12 +124,24 @@ class RunGuard:
                     f'and {theirs!r} in {msg.node}' for name, mine, theirs in differences)))
                 return
             self.seen[topic] = msg.node
+            self.texts[topic] = msg.description
 
         self.node.create_subscription(RunDescription, topic, on_description, qos.LATCHED)
 
     def watch(self, topic: str) -> None:
         """Expect exactly one publisher on ``topic`` (checked by :meth:`check`)."""
         self.watched.append(topic)
+
+    def end_when(self, waypoint_topics: list[str], done: Callable[[], bool]) -> None:
+        """Finish the node (exit code 0) once ``done()`` holds and none of
+        ``waypoint_topics`` has had a publisher for END_LINGER s (checked by :meth:`check`)."""
+        self._end = (waypoint_topics, done)
+
+    def peer_steps(self, topic: str) -> int:
+        """The run's steps in the agreeing description heard on ``topic`` (0: not heard, or a
+        run until stopped)."""
+        text = self.texts.get(topic)
+        return int(json.loads(text).get('steps', 0)) if text else 0
 
     def missing(self) -> list[str]:
         """The description topics not heard yet."""
@@ -156,6 +178,20 @@ class RunGuard:
                     'another run or node publishes on the topics of this run; its data may '
                     'be mixed in (run formations in separate ROS_DOMAIN_IDs or namespaces)')))
                 return
+        self._check_end(now)
+
+    def _check_end(self, now: float) -> None:
+        if self._end is None:
+            return
+        topics, done = self._end
+        if not done() or any(self.node.count_publishers(t) for t in topics):
+            self._idle_since = None
+            return
+        self._idle_since = self._idle_since or now
+        if now - self._idle_since >= END_LINGER and not self.node.finished:
+            self.node.get_logger().info('the run is over: its estimators finished their steps '
+                                        f'and left {END_LINGER:g} s ago; ending')
+            self.node.finished = True
 
     def fail(self, failure: Failure) -> None:
         """Record the first failure and report it (a mismatch: when :meth:`check` may)."""

@@ -49,3 +49,21 @@ def test_interrupted_replay_says_so(ros_domain: int) -> None:
     stderr = ''.join(lines) + rest
     assert process.returncode == 130, stderr
     assert 'replay: interrupted after ' in stderr and 'Traceback' not in stderr
+
+
+@pytest.mark.parametrize('mode, steps', [('lockstep', 5), ('realtime', 20)])
+def test_hand_started_simulators_end_with_their_run(node_process, tmp_path, mode: str,
+                                                    steps: int) -> None:
+    """leader_sim, follower_sim and estimator_planner started by hand (as ros2 run does) for a
+    run of a set number of steps: the estimator ends with it, and both simulators, having
+    driven every step, end too once it has left (ros/guard.py, END_LINGER), all with exit
+    code 0 and a summary."""
+    common = {'mode': mode, 'recorders': 0}
+    processes = {node: node_process(node, {**common, **params,
+                                           'summary_path': str(tmp_path / f'{node}.json')})
+                 for node, params in (('leader_sim', {}), ('follower_sim', {}),
+                                      ('estimator_planner', {'steps': steps}))}
+    for node, process in processes.items():
+        assert process.wait(timeout=60.0) == 0, (node, process.stderr)
+    assert json.loads((tmp_path / 'estimator_planner.json').read_text())['steps'] == steps
+    assert json.loads((tmp_path / 'follower_sim.json').read_text())['executed_steps'] >= steps

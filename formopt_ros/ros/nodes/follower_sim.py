@@ -35,7 +35,8 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
     RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ('The follower robot: executes the waypoints with noisy velocities and publishes its '
            'odometry, its range or bearing measurement per step (range-bearing: both), its true '
-           'pose and its frames on /tf.')
+           'pose and its frames on /tf. Once its estimator finished a run of a set '
+           'number of steps and left, it ends too (exit 0).')
 #: Publication order of a step's messages: what the estimator reads first (a lockstep step is
 #: published when complete): odometry, the truth (before the measurement, so that the
 #: estimator knows the truth of a step when it processes it, also the last one), the
@@ -121,6 +122,9 @@ class FollowerSim(Node):
                                  self.on_leader_odom, qos.SUBSCRIBED)
         self.guard = follower_guard(self, self.description, self.leader_id, 'sim_description',
                                     'description', ('waypoint',))
+        estimator = self.resolve_topic_name(BY_KEY['description'].name)
+        self.guard.end_when([self.resolve_topic_name(BY_KEY['waypoint'].name)],
+                            lambda: 0 < self.guard.peer_steps(estimator) <= self.executed)
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.scenario.dt, self.on_tick)

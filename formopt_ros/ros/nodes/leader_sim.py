@@ -12,7 +12,7 @@ from rosgraph_msgs.msg import Clock
 from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.model import integrate_unicycle
-from formopt_ros.core.protocol import Timebase, step_substeps
+from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.checkpoint import open_checkpoint
 from formopt_ros.ros.gate import PublisherGate
@@ -32,7 +32,8 @@ PARAMS = [FORMATION_FILE, FOLLOWERS, MODE, DT] + PATH_PARAMS + [
     RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub-step, '
            "odom -> leader on /tf and, in lockstep, /clock (lockstep: a step once every "
-           "follower's waypoint for it is in; realtime: at 1/dt).")
+           "follower's waypoint for it is in; realtime: at 1/dt). Once every estimator "
+           'finished a run of a set number of steps and left, it ends too (exit 0).')
 #: The fixed frame of the leader's odometry (the world of the formation).
 
 
@@ -94,6 +95,8 @@ class LeaderSim(Node):
                                      self._waypoint_callback(follower), qos.SUBSCRIBED)
             self.guard.expect(peer_topic(self, follower, 'description'), self._compare)
             self.guard.watch(peer_topic(self, follower, 'waypoint'))
+        self.guard.end_when([peer_topic(self, f, 'waypoint') for f in self.run.followers],
+                            self._served_all)
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.run.dt, self.on_tick)
@@ -105,6 +108,14 @@ class LeaderSim(Node):
         """How a follower's description disagrees with this leader (this node's value first)."""
         return [(name, mine, theirs) for name, theirs, mine in
                 leader_differences(Description.from_json(text), self.description)]
+
+    def _served_all(self) -> bool:
+        """Every follower's run has a known number of steps and the leader drove them all
+        (realtime: as many sub-steps)."""
+        steps = [self.guard.peer_steps(peer_topic(self, f, 'description'))
+                 for f in self.run.followers]
+        done = self.served_step if self.lockstep else self.substep // SUBSTEPS
+        return min(steps) > 0 and done >= max(steps)
 
     def _state(self) -> dict[str, Any]:
         return {key: getattr(self, key) for key in (
