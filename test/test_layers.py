@@ -129,3 +129,65 @@ def test_nodes_start_without_the_heavy_libraries() -> None:
                             cwd=str(REPO), timeout=120, check=False)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == '[]'
+
+
+def module_graph() -> dict[str, set[str]]:
+    """Every package module -> the package modules it imports anywhere (TYPE_CHECKING and
+    function-level imports included; ``from a import b`` is module a.b when that exists)."""
+    modules = {'.'.join(p.relative_to(REPO).with_suffix('').parts).removesuffix('.__init__')
+               for p in PACKAGE.rglob('*.py')}
+    graph: dict[str, set[str]] = {}
+    for path in PACKAGE.rglob('*.py'):
+        name = '.'.join(path.relative_to(REPO).with_suffix('').parts).removesuffix('.__init__')
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                deps |= {f'{node.module}.{a.name}' if f'{node.module}.{a.name}' in modules
+                         else node.module for a in node.names}
+            elif isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names}
+        graph[name] = {d for d in deps if d in modules and d != name}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = stack[stack.index(v):]
+            del stack[stack.index(v):]
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_import_cycle() -> None:
+    """No two modules of the package import each other, directly or through others."""
+    assert import_cycles(module_graph()) == []
+    assert import_cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
+
+
+def test_every_long_module_says_why() -> None:
+    """A module over 500 lines is named, with its reason, in docs/architecture.md."""
+    notes = (REPO / 'docs' / 'architecture.md').read_text(encoding='utf-8')
+    section = notes.split('## Modules over 500 lines, and why')[1].split('\n## ')[0]
+    long = [str(p.relative_to(PACKAGE)) for p in sorted(PACKAGE.rglob('*.py'))
+            if len(p.read_text(encoding='utf-8').splitlines()) > 500]
+    assert all(f'`{name}`' in section for name in long), (long, section)

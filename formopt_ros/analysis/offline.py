@@ -2,7 +2,7 @@
 
 The bag's odometry, measurements and truth are fed, in recorded (log-time) order, through the
 same functions the estimator node calls (:mod:`formopt_ros.wire.inputs`) into the same
-:class:`~formopt_ros.core.estimator.EstimatorSession`, so a lockstep bag is reproduced exactly
+:class:`~formopt_ros.core.session.EstimatorSession`, so a lockstep bag is reproduced exactly
 (the inputs are matched by their stamps) and a realtime bag as the recorder saw the arrivals
 (the estimator may have seen another order). A strategy changed mid-run (the description's
 ``strategy_changes``) takes over at the step it took over in the node.
@@ -17,7 +17,7 @@ import numpy as np
 
 from formopt_ros.analysis.recording import FollowerRecording, Recording, with_overrides
 from formopt_ros.bag import BagError
-from formopt_ros.core.estimator import EstimatorSession, StepOutcome
+from formopt_ros.core.session import EstimatorSession, StepOutcome
 from formopt_ros.core.model import state_difference
 from formopt_ros.core.simulation import trial_streams
 from formopt_ros.core.strategies import make_strategy

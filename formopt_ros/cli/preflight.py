@@ -9,7 +9,7 @@ from typing import Any
 
 from formopt_ros.cli.common import fail
 from formopt_ros.cli.real_run import REAL_NODES, check_real, node_parameters
-from formopt_ros.core.scenario import Formation, FollowerSpec, check_id
+from formopt_ros.core.formation import Formation, FollowerSpec, check_id
 from formopt_ros.wire.formation import load_formation
 
 PROG = 'run_formation.sh'

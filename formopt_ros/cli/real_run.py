@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from formopt_ros.cli.supervisor import CONFIGURATION_EXIT
-from formopt_ros.core.scenario import Formation, FollowerSpec
+from formopt_ros.core.formation import Formation, FollowerSpec
 from formopt_ros.wire.topics import real_frames
 
 #: Parameters run_formation sets for the real nodes ('real' settings may not).

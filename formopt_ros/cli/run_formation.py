@@ -22,7 +22,7 @@ from formopt_ros.cli.preflight import (
     check_id_ok, formation_of, leader_extra, node_specs, prepare_out, real_names)
 from formopt_ros.cli.real_run import run_real
 from formopt_ros.cli.supervisor import PROG, Launcher, Process, global_remaps, supervise
-from formopt_ros.core.scenario import Formation, check_id
+from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
 

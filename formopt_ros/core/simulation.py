@@ -31,7 +31,8 @@ from formopt_ros.core.model import (
     BEARING, RANGE, RANGE_BEARING, integrate_unicycle, normalized_estimation_error,
     predict_measurement, propagate_state, wrap_angle)
 from formopt_ros.core.protocol import SUBSTEPS, held_leader_motion, step_substeps
-from formopt_ros.core.scenario import Formation, Scenario
+from formopt_ros.core.formation import Formation
+from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from rclpy.node import Node
 
 from formopt_ros.core.checks import InvalidInput
-from formopt_ros.core.scenario import check_id
+from formopt_ros.core.formation import check_id
 from formopt_ros.ros.params import ParameterError
 from formopt_ros.wire.topics import BY_KEY, resolve
 

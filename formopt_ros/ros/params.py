@@ -101,7 +101,7 @@ class Param:
         if not isinstance(value, str):
             raise InvalidInput(name, f'must be a string, got {value!r}')
         if self.identifier and value:
-            from formopt_ros.core.scenario import check_id
+            from formopt_ros.core.formation import check_id
             check_id(name, value)
         return value
 

@@ -11,8 +11,8 @@ from rclpy.node import Node
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS, RANGE_BEARING
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
-from formopt_ros.core.scenario import (
-    PATH_KINDS, RANGES, FollowerSpec, LeaderPath, Scenario, Segment, check_id)
+from formopt_ros.core.formation import FollowerSpec, check_id
+from formopt_ros.core.scenario import PATH_KINDS, RANGES, LeaderPath, Scenario, Segment
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.ros.naming import robot_id
 from formopt_ros.ros.params import Param, ParameterError

@@ -8,7 +8,7 @@ from typing import Any
 import yaml
 
 from formopt_ros.core.domain import check_domain
-from formopt_ros.core.scenario import Formation
+from formopt_ros.core.formation import Formation
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

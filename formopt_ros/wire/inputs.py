@@ -2,7 +2,7 @@
 re-estimation of a bag call exactly these, so the offline check validates the node's logic.
 
 Each function checks the message (wrong follower, wrong kind, non-finite values), hands its
-values to :class:`~formopt_ros.core.estimator.EstimatorSession` and returns the reason when the
+values to :class:`~formopt_ros.core.session.EstimatorSession` and returns the reason when the
 message was refused (and counted), else None. ``now_ns`` is the receiving clock (realtime stamps
 far in its future are refused); None skips that check.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from formopt_ros.core.estimator import EstimatorSession
+from formopt_ros.core.session import EstimatorSession
 from formopt_ros.wire.messages import (
     KIND_NAMES, foreign_run, header_ns, measurement_problem, odometry_problem, odometry_values,
     pose_values)

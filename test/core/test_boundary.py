@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from formopt_ros.core.checks import InvalidInput
-from formopt_ros.core.scenario import Formation, Scenario
+from formopt_ros.core.formation import Formation
+from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_formation, run_trial
 from formopt_ros.core.study import StudyConfig
 

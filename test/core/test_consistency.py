@@ -10,7 +10,7 @@ import pytest
 from formopt_ros.core.consistency import (
     ERROR, OK, WARN, ConsistencyWatch, WatchSettings, capped_moments, window_band)
 from formopt_ros.core.domain import check_deviation_domain, check_domain, check_input_domain
-from formopt_ros.core.estimator import EstimatorSession
+from formopt_ros.core.session import EstimatorSession
 from formopt_ros.core.protocol import Timebase
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import TrialResult, run_trial, trial_streams

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from formopt_ros.core.estimator import (
-    GATE_PATIENCE, INNOVATION_GATE, EstimatorPlanner, EstimatorSession, InputBounds)
+    GATE_PATIENCE, INNOVATION_GATE, EstimatorPlanner, InputBounds)
 from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.protocol import Timebase, held_leader_motion, step_substeps
 from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.session import EstimatorSession
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import make_strategy
 

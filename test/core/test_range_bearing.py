@@ -191,7 +191,7 @@ def test_formation_files_take_range_bearing_followers() -> None:
     """config/formation_range_bearing.yaml loads (its third follower measures both, RQ by
     default) and round-trips; a single noise, RAM, real interfaces, or bearing_every on a
     single-sensor follower are refused naming the field."""
-    from formopt_ros.core.scenario import Formation
+    from formopt_ros.core.formation import Formation
     from formopt_ros.wire.formation import load_formation
     path = Path(__file__).resolve().parents[2] / 'config' / 'formation_range_bearing.yaml'
     formation = load_formation(path)

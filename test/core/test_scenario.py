@@ -83,7 +83,7 @@ def test_leader_path_velocities() -> None:
     ('a b', 'letters, digits')])
 def test_ids_at_the_door_name_the_id_and_the_rule(value: str, rule: str) -> None:
     """An id with '__', longer than ID_MAX_LENGTH or a reserved frame name is refused."""
-    from formopt_ros.core.scenario import FollowerSpec, check_id
+    from formopt_ros.core.formation import FollowerSpec, check_id
     with pytest.raises(InvalidInput) as refused:
         check_id('follower id', value)
     assert refused.value.name == 'follower id' and rule in refused.value.reason
@@ -93,7 +93,7 @@ def test_ids_at_the_door_name_the_id_and_the_rule(value: str, rule: str) -> None
 
 def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
     """64 characters pass; the longest derived file name stays under 255 bytes."""
-    from formopt_ros.core.scenario import ID_MAX_LENGTH, check_id
+    from formopt_ros.core.formation import ID_MAX_LENGTH, check_id
     longest = 'f' * ID_MAX_LENGTH
     assert check_id('follower id', longest) == longest
     for node in ('estimator_planner', 'follower_estimator', 'follower_sim', 'field_sim'):

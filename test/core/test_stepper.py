@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formopt_ros.core.estimator import EstimatorSession
+from formopt_ros.core.session import EstimatorSession
 from formopt_ros.core.field import dead_reckoned_estimate, odometry_pose_at
 from formopt_ros.core.model import (
     EXACT, integrate_unicycle, normalized_estimation_error, state_difference)

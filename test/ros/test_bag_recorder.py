@@ -180,8 +180,9 @@ def test_a_full_disk_names_the_file_and_the_run_still_summarises(
 
     from formopt_ros.bag.writer import BagWriter
     from formopt_ros.cli.run_formation import write_summary
-    from formopt_ros.core.scenario import Formation as Plan
-    from formopt_ros.core.scenario import FollowerSpec, Scenario
+    from formopt_ros.core.formation import Formation as Plan
+    from formopt_ros.core.formation import FollowerSpec
+    from formopt_ros.core.scenario import Scenario
     from formopt_ros.ros.nodes.recorder import Recorder
     write = BagWriter.write
     written = []

@@ -464,7 +464,7 @@ def test_a_real_followers_limits_reach_both_of_its_nodes() -> None:
     them the nodes keep their own default speed and plan over the whole disc."""
     from formopt_ros.cli.preflight import real_names
     from formopt_ros.cli.real_run import node_parameters
-    from formopt_ros.core.scenario import Formation
+    from formopt_ros.core.formation import Formation
     follower = {'id': 'a', 'sensor': 'range', 'slot': [-1.0, -2.0], 'interfaces': 'real'}
     limited = Formation.from_dict({'followers': [{**follower, 'max_speed': 1.5,
                                                   'safety_distance': 2.0}]})
@@ -480,7 +480,8 @@ def test_a_real_followers_limits_reach_both_of_its_nodes() -> None:
 
 def test_overlapping_discs_are_a_warning() -> None:
     from formopt_ros.cli.preflight import check_discs
-    from formopt_ros.core.scenario import Formation, FollowerSpec, Scenario
+    from formopt_ros.core.formation import Formation, FollowerSpec
+    from formopt_ros.core.scenario import Scenario
     near = [FollowerSpec(name, Scenario.paper('range', p_o=slot, r=0.3))
             for name, slot in (('a', (-1.0, -2.0)), ('b', (-1.0, -2.5)))]
     import contextlib

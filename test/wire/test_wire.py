@@ -171,7 +171,7 @@ def test_twist_noise_takes_plausible_covariances_only(variances: tuple, expected
 
 def test_the_frames_of_a_run_are_reserved_ids() -> None:
     """No robot id can take a frame name of the run (a TF cycle: id 'odom')."""
-    from formopt_ros.core.scenario import RESERVED_FRAMES
+    from formopt_ros.core.formation import RESERVED_FRAMES
     from formopt_ros.wire.topics import ODOM_FRAME, follower_frames, real_frames
     leaves = {name.rpartition('/')[2] for frames in (follower_frames('x'),
                                                      real_frames('x', 'range'),

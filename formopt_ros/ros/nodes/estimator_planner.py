@@ -19,7 +19,8 @@ from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from formopt_ros.core.estimator import EstimatorSession, StepOutcome, StepPlan
+from formopt_ros.core.estimator import StepPlan
+from formopt_ros.core.session import EstimatorSession, StepOutcome
 from formopt_ros.core.field import dead_reckoned_estimate, odometry_pose_at
 from formopt_ros.core.protocol import SUBSTEPS, Timebase, step_substeps
 from formopt_ros.core.simulation import leader_poses, trial_streams
@@ -69,7 +70,7 @@ REJOIN_POSES = 8 * SUBSTEPS
 
 
 class EstimatorPlannerNode(Node):
-    """Feeds its inputs to an :class:`~formopt_ros.core.estimator.EstimatorSession` and
+    """Feeds its inputs to an :class:`~formopt_ros.core.session.EstimatorSession` and
     publishes what each processed step produced.
 
     lockstep: step k is processed once its measurement and the leader's and follower's odometry
