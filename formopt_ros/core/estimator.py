@@ -236,6 +236,8 @@ class UpdateResult:
             for a scalar update; for a stacked one the squared components of the whitened
             innovation L^-1 nu (S = L L', range first: its own NIS, then the bearing's given
             the range), which sum to nis.
+        measured: False when the step had no measurement (NaN: refused before it came):
+            nothing was updated or gated, innovation and nis are NaN.
     """
 
     innovation: float | np.ndarray
@@ -244,6 +246,7 @@ class UpdateResult:
     inflation: float = 1.0
     weight: float = 1.0
     parts: tuple[float, ...] = ()
+    measured: bool = True
 
     def nis_parts(self) -> tuple[float, ...]:
         """:attr:`parts`, or (nis,) when none were set."""
@@ -428,6 +431,8 @@ class EstimatorPlanner:
             return self._update_stacked(step, z, variance)
         kind = s.measurement if kind is None else kind
         variance = s.sigma ** 2 if variance is None else variance
+        if math.isnan(z):
+            return UpdateResult(math.nan, math.nan, False, measured=False)
         x, P, innovation, S = ekf_update(self.state, self.covariance, z, kind,
                                          variance, self.sensor_offset)
         nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row,
@@ -454,7 +459,8 @@ class EstimatorPlanner:
             (float(variance[0]), float(variance[1]))
         if math.isnan(d) or math.isnan(beta):
             if math.isnan(d) and math.isnan(beta):
-                raise ValueError(f'measurement of step {step} has neither range nor bearing')
+                return UpdateResult(np.array([math.nan, math.nan]), math.nan, False,
+                                    measured=False)
             if math.isnan(beta):
                 return self.update(step, d, variances[0], kind=RANGE)
             return self.update(step, beta, variances[1], kind=BEARING)

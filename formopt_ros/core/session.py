@@ -12,7 +12,7 @@ from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.estimator import (
     INNOVATION_GATE, EstimatorPlanner, InputBounds, StepPlan, UpdateResult)
 from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING, normalized_estimation_error
-from formopt_ros.core.protocol import Timebase, held_leader_motion
+from formopt_ros.core.protocol import Timebase, held_leader_motion, step_substeps
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.stepper import ReadyStep, StepAssembler
 from formopt_ros.core.strategies import Strategy
@@ -81,6 +81,10 @@ class EstimatorSession:
     # ns, value, variance)}}
     _parts: dict[int, dict[str, tuple[int, float, float]]] = field(default_factory=dict,
                                                                    repr=False)
+    # the last accepted twist of each robot (lockstep: carried over a refused one)
+    _plan: StepPlan | None = field(default=None, repr=False)      # the last plan_next()
+    _twists: dict[str, tuple[float, float]] = field(
+        default_factory=lambda: {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}, repr=False)
 
     @property
     def bounds(self) -> InputBounds:
@@ -95,7 +99,9 @@ class EstimatorSession:
         """A session at step 0 for ``scenario``."""
         assembler = StepAssembler(lockstep, Timebase.from_dt(scenario.dt),
                                   scenario.leader.velocity(0, scenario.dt))
-        return cls(EstimatorPlanner(scenario, strategy, rng), assembler, steps)
+        session = cls(EstimatorPlanner(scenario, strategy, rng), assembler, steps)
+        session._twists['leader'] = scenario.leader.velocity(0, scenario.dt)
+        return session
 
     @property
     def step(self) -> int:
@@ -109,17 +115,40 @@ class EstimatorSession:
 
     def plan_next(self) -> StepPlan:
         """The decision for the step after the last processed one."""
-        return self.estimator.plan(self.step + 1, held_leader_motion(self.assembler.latest_leader))
+        self._plan = self.estimator.plan(self.step + 1,
+                                         held_leader_motion(self.assembler.latest_leader))
+        return self._plan
+
+    def _stand_in(self, robot: str, stamp_ns: int) -> tuple[float, float]:
+        """The twist a refused lockstep odometry message of ``robot`` is replaced with."""
+        substep = self.assembler.timebase.substep_ending_at(stamp_ns)
+        plan = self._plan
+        if robot == 'follower' and plan is not None and substep is not None and \
+                substep in step_substeps(plan.step):
+            j = substep - step_substeps(plan.step)[0]
+            return float(plan.command.linear[j]), float(plan.command.angular[j])
+        return self._twists[robot]
 
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
                      now_ns: int | None = None) -> str | None:
         """Odometry of one sub-step of robot 'follower' or 'leader'; the refusal reason, or
-        None."""
+        None. Lockstep: an implausible finite twist (a simulator with absurd noise) is
+        refused (counted) and its sub-step carries
+        another instead, so that its step is not waited for in vain: the follower's commanded
+        twist of that sub-step (the leader's, or one off the planned step: the robot's last
+        accepted twist)."""
         problem = self.bounds.odometry_problem(v, omega)
         if problem is not None:
-            return self.reject('rejected_odometry', f'{robot} odometry {problem}')
-        return self._count(self.assembler.add_odometry(robot, stamp_ns, v, omega, now_ns),
-                           'rejected_odometry')
+            refusal = self.reject('rejected_odometry', f'{robot} odometry {problem}')
+            if self.assembler.lockstep and math.isfinite(v) and math.isfinite(omega):
+                self.assembler.add_odometry(robot, stamp_ns, *self._stand_in(robot, stamp_ns),
+                                            now_ns)
+            return refusal
+        reason = self._count(self.assembler.add_odometry(robot, stamp_ns, v, omega, now_ns),
+                             'rejected_odometry')
+        if reason is None:
+            self._twists[robot] = (v, omega)
+        return reason
 
     def add_measurement(self, step: int, stamp_ns: int, value: float, variance: float,
                         now_ns: int | None = None, kind: str | None = None) -> str | None:
@@ -130,7 +159,9 @@ class EstimatorSession:
         A range-bearing step goes to the assembler once its parts are in (the range, and the
         bearing on the steps that have one, ``Scenario.bearing_at``), as z = [d, beta] with
         both stamps equal; in realtime a part of a later step sends an earlier incomplete step
-        on with what it has (NaN for the missing part)."""
+        on with what it has (NaN for the missing part). Lockstep: a finite value outside the
+        plausibility bounds (a simulator with absurd noise: a negative range) is refused
+        (counted) and its step goes on without it (no update), instead of waiting for good."""
         scenario = self.estimator.scenario
         kind = scenario.measurement if kind is None else kind
         stacked = scenario.measurement == RANGE_BEARING
@@ -142,7 +173,14 @@ class EstimatorSession:
                                f'follower has one every {scenario.bearing_every} steps')
         problem = self.bounds.measurement_problem(kind, value, variance)
         if problem is not None:
-            return self.reject('rejected_measurements', f'measurement {problem}')
+            refusal = self.reject('rejected_measurements', f'measurement {problem}')
+            if self.assembler.lockstep and math.isfinite(value) and \
+                    math.isfinite(variance):    # its step goes on without it (NaN: no update)
+                if stacked:
+                    self._add_part(step, stamp_ns, kind, math.nan, variance, now_ns)
+                else:
+                    self.assembler.add_measurement(step, stamp_ns, math.nan, variance, now_ns)
+            return refusal
         if stacked:
             reason = self._add_part(step, stamp_ns, kind, value, variance, now_ns)
         else:
@@ -222,9 +260,11 @@ class EstimatorSession:
         for m in ready.motions:
             estimator.propagate(m.v_f, m.omega_f, m.v_l, m.omega_l)
         update = estimator.update(ready.step, ready.value, ready.variance)
-        for part in update.nis_parts():
+        for part in update.nis_parts() if update.measured else ():
             self.watch.add_nis(part, not update.used, ready.step)
-        if not update.used:
+        if not update.measured:
+            pass                            # refused before it came (counted there)
+        elif not update.used:
             self.reject('gated_measurements', f'measurement of step {ready.step} gated: '
                         f'normalised innovation {update.nis:.4g} > {INNOVATION_GATE:g}')
         elif update.inflation > 1.0:

@@ -89,7 +89,8 @@ def foreign_run(msg: Any, run_id: str) -> str | None:
 def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
     """Why a measurement must be refused (None when it is acceptable): another follower, its
     header frame not the follower's body frame (``follower_id``), another kind, a value or
-    variance that is not finite, a negative range."""
+    variance that is not finite (the plausibility of a value is the session's rule:
+    :class:`~formopt_ros.core.estimator.InputBounds`)."""
     if msg.follower_id != follower_id:
         return f'for follower {msg.follower_id!r}, not {follower_id!r}'
     if msg.header.frame_id != follower_id:
@@ -101,8 +102,6 @@ def measurement_problem(msg: Any, follower_id: str, kind: str) -> str | None:
         return f'value {msg.value} is not finite'
     if not (math.isfinite(msg.variance) and msg.variance > 0.0):
         return f'variance {msg.variance} is not a finite number > 0'
-    if KIND_NAMES[int(msg.kind)] == RANGE and msg.value < 0.0:
-        return f'range {msg.value} m is negative'
     return None
 
 

@@ -147,6 +147,43 @@ def test_lockstep_refusals_change_nothing() -> None:
     assert (counters.rejected_measurements, counters.rejected_odometry) == (2, 4)
 
 
+@pytest.mark.parametrize('kind', ['range', 'range-bearing'])
+def test_lockstep_goes_on_past_an_implausible_input(kind: str) -> None:
+    """A simulator with absurd noise sends a negative range at step 7 (twice: it repeats the
+    step) and a follower twist of 1e4 m/s in step 12: each is refused and counted, step 7 goes
+    on without the range (range-bearing: with its bearing alone) and the refused twist is
+    replaced by the last accepted one, so the run reaches its last step instead of waiting for
+    good; every other step is updated as usual."""
+    scenario = Scenario.paper(kind)
+    ref = run_trial(scenario, 'mtf', SEED, 0, STEPS)
+    timebase = Timebase.from_dt(scenario.dt)
+    session = session_for(scenario, 'mtf')
+    session.plan_next()
+    outcomes = []
+    bad_twist = timebase.substep_end(step_substeps(12)[0])
+    for event in lockstep_inputs(ref, timebase):
+        if event[0] == 'measurement' and event[1] == 7:
+            value = np.array([-0.5, event[3][1]]) if kind == 'range-bearing' else -0.5
+            for _ in range(2):                       # the step and its repeat
+                assert 'outside' in feed(session, (*event[:3], value), scenario.sigma ** 2)
+        elif event[0] == 'follower' and event[1] == bad_twist:
+            assert 'plausible' in session.add_odometry('follower', bad_twist, 1e4, 0.0)
+        else:
+            assert feed(session, event, scenario.sigma ** 2) is None, event
+        outcomes += session.advance()
+    assert session.step == STEPS and [o.step for o in outcomes] == list(range(1, STEPS + 1))
+    seventh = outcomes[6].update
+    if kind == 'range':
+        assert not seventh.measured and np.isnan(seventh.nis)
+        assert outcomes[6].weighted_trace > outcomes[5].weighted_trace     # propagated only
+    else:
+        assert seventh.measured and seventh.used and np.ndim(seventh.innovation) == 0
+    assert [o.step for o in outcomes if not (o.update.measured and o.update.used)] == (
+        [7] if kind == 'range' else [])
+    assert session.counters.rejected_odometry == 1 and session.counters.gated_measurements == 0
+    assert session.counters.rejected_measurements >= 2
+
+
 def test_realtime_pairs_each_odometry_with_the_latest_leader_and_skips_lost_steps() -> None:
     """Realtime: a measurement takes the follower odometry stamped up to it, each with the
     latest leader odometry at or before it; a lost measurement is skipped and counted; a stamp

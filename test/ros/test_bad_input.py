@@ -96,3 +96,16 @@ def test_bad_inputs_are_rejected_and_counted(formation) -> None:
         np.testing.assert_allclose(x, ref.estimate[k], rtol=0, atol=TOL, err_msg=f'step {k + 1}')
         np.testing.assert_allclose(P, ref.covariance[k], rtol=0, atol=TOL,
                                    err_msg=f'step {k + 1}')
+
+
+def test_a_simulator_with_absurd_noise_does_not_stall_the_run(formation) -> None:
+    """range_sigma 1 m at 2.2 m (allowed): follower_sim sends a negative range at step 3
+    (seed 4), which the estimator refuses as implausible; lockstep goes on to the last step
+    without that update instead of waiting for good."""
+    steps = 8
+    run = formation({'measurement': 'range', 'strategy': 'mtf', 'seed': 4, 'steps': steps,
+                     'range_sigma': 1.0})
+    assert run.run(timeout=30.0), f'estimator at step {run.estimator.session.step}'
+    status = run.probe.statuses[-1]
+    assert status.step == steps and status.rejected_measurements >= 1
+    assert status.accepted_measurements == steps - 1
