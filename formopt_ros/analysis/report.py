@@ -11,6 +11,7 @@ import numpy as np
 from formopt_ros.analysis.figures import nees_figure, trace_figure, trajectory_figure
 from formopt_ros.analysis.recording import FollowerRecording, Recording
 from formopt_ros.bag import BagError
+from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.model import normalized_estimation_error
 from formopt_ros.core.protocol import SUBSTEPS, Timebase
 from formopt_ros.core.study import nees_band, steady_window
@@ -172,11 +173,17 @@ def _follower_summary(recording: Recording, run: Run,
     window = steady_window(n)
     valid = np.isfinite(run.nees)
     status = run.last_status
-    missing = sorted(set(range(1, int(status.step) + 1)) - {int(k) for k in run.steps})
+    steps = max(int(status.step), follower.description.steps)   # a cut end is missing too
+    missing = sorted(set(range(1, steps + 1)) - {int(k) for k in run.steps})
+    watch = ConsistencyWatch()           # the estimator's own rule, on the recorded NEES
+    for step, nees in zip(run.steps, run.nees):
+        if math.isfinite(nees):
+            watch.add_nees(float(nees), int(step))
+    worst = watch.summary()['worst']
     return {
         'follower_id': follower.follower_id,
         'description': 'reconstructed from the messages' if follower.legacy else 'recorded',
-        'steps': int(status.step),
+        'steps': steps,
         'estimates': n,
         'missing_steps': len(missing),
         'missing_ranges': step_ranges(missing),
@@ -190,6 +197,9 @@ def _follower_summary(recording: Recording, run: Run,
         'steady_window_steps': window,
         'final_weighted_trace': float(run.weighted_trace[-1]),
         'mean_nees': float(np.mean(run.nees[valid])) if np.any(valid) else None,
+        'consistent': not watch.failed,
+        'inconsistency': None if not watch.failed else
+        f"at step {worst['step']}: {worst['reason']}",
         'nees_steps': int(np.sum(valid)),
         'rejected_measurements': int(status.rejected_measurements),
         'rejected_odometry': int(status.rejected_odometry),
@@ -225,6 +235,7 @@ def _markdown(s: dict[str, Any]) -> str:
              '|---|---|---|---|---|---|---|---|---|---|']
     for f, row in s['followers'].items():
         nees = 'n/a' if row['mean_nees'] is None else f"{row['mean_nees']:.3f}"
+        nees += '' if row['consistent'] else ' (inconsistent)'
         lines.append(
             f"| {f} | {row['measurement']} | {row['strategy']} | "
             f"[{row['slot_m'][0]:g}, {row['slot_m'][1]:g}] | {row['r_m']:.4g} | "

@@ -157,6 +157,14 @@ def offline_main(args: Any) -> int:
     print('consistency of the re-estimate: ' + (
         'ok' if worst['level'] == 'ok' else
         f"{worst['level'].upper()} at step {worst['step']}: {worst['reason']}"))
+    planned = follower.description.steps
+    cut = planned > max(result.steps, result.recorded_steps)
+    inconsistent = not result.consistent
+    if cut:
+        first = max(result.steps, result.recorded_steps) + 1
+        gone = f'step {planned} is' if first == planned else f'steps {first}-{planned} are'
+        print(f'the run had {planned} steps; {gone} missing from the recording (a cut or '
+              'repaired bag?)')
     if result.steps != result.recorded_steps:
         both = min(result.steps, result.recorded_steps)
         short = 'recording' if result.recorded_steps < result.steps else 're-estimate'
@@ -169,11 +177,15 @@ def offline_main(args: Any) -> int:
               f"{'agree' if agree else 'differ'}: max difference {result.compared_diff:.3e} "
               f"{'<=' if agree else '>'} tolerance {args.tolerance:.1e}. FAILED: incomplete")
     else:
+        verdict = 'FAILED' if not ok else 'FAILED: incomplete' if cut else \
+            'reproduced, but the filter was inconsistent: FAILED' if inconsistent else 'OK'
         print(f"max difference {result.max_diff:.3e} {'<=' if ok else '>'} tolerance "
-              f"{args.tolerance:.1e}: {'OK' if ok else 'FAILED'}")
+              f'{args.tolerance:.1e}: {verdict}')
+    ok = ok and not cut and not inconsistent
     if args.json:
         write_json(args.json, {'bag': str(args.bag), **result.as_dict(),
-                               'tolerance': args.tolerance, 'ok': ok})
+                               'tolerance': args.tolerance, 'planned_steps': planned,
+                               'ok': ok})
     return 0 if ok else 1
 
 

@@ -36,9 +36,14 @@ def main(argv: list[str] | None = None) -> int:
         fail('formopt-report', str(error))
     for follower, row in summary['followers'].items():
         nees = 'n/a' if row['mean_nees'] is None else f"{row['mean_nees']:.3f}"
+        nees += '' if row['consistent'] else ' (inconsistent)'
         print(f"{args.bag} {follower}: {steps_text(row)} steps, {row['strategy']}, "
               f"{row['measurement']}; steady tr(W P W) {row['steady_weighted_trace']:.6g} m^2; "
               f'mean NEES {nees}')
+        if not row['consistent']:
+            print(f"formopt-report: warning: {follower}: the filter was inconsistent "
+                  f"{row['inconsistency']} (the estimator's consistency watch on the recorded "
+                  'NEES): the run is not ok', file=sys.stderr)
         if row['missing_steps']:
             print(f"formopt-report: warning: {follower}: the bag lacks steps "
                   f"{row['missing_ranges']} ({row['missing_steps']} of {row['steps']}: a "

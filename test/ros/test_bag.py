@@ -23,7 +23,7 @@ from formopt_ros.ros.conversions import message_class
 from formopt_ros.wire.messages import estimate_values, header_ns
 from formopt_ros.wire.topics import formation_topics
 
-SEED, STEPS, KIND, STRATEGY = 3, 40, 'bearing', 'ram'
+SEED, STEPS, KIND, STRATEGY = 3, 60, 'bearing', 'ram'
 DEADLINE = 60.0                     # s, for every spin-until-condition loop
 INPUTS = ['leader/odom', 'follower/odom', 'follower/measurement', 'follower/truth']
 
@@ -45,7 +45,7 @@ class Recording:
 
 @pytest.fixture(scope='module')
 def recording(tmp_path_factory) -> Recording:
-    """40 lockstep steps (bearing, RAM, seed 3) recorded in-process, on one executor; the nodes
+    """60 lockstep steps (bearing, RAM, seed 3) recorded in-process, on one executor; the nodes
     wait for the recorder and the test probe (recorders:=2) before the run starts."""
     from formopt_ros.ros.nodes.recorder import Recorder
     folder = tmp_path_factory.mktemp('recording')
@@ -362,24 +362,20 @@ def test_truncated_bag_names_the_repair(recording: Recording, tmp_path: Path) ->
         assert 'truncated' in result.stderr and 'formopt-bag repair' in result.stderr
 
 
-def test_offline_replay_of_a_cut_recording_names_the_missing_steps(recording: Recording,
-                                                                   tmp_path: Path) -> None:
-    """The recording without the estimates of its last 40 % (a damaged stretch of the
-    estimate topic): replay --offline compares the steps both have (equal), names the steps
-    missing from the recording and fails, exit 1."""
-    from mcap.reader import make_reader
+def copy_recording(source: Path, target: Path, keep, change=None) -> Path:
+    """``source`` rewritten to ``target`` with the messages keep(topic, log_time, first, last)
+    selects (first, last: the recording's first and last log times), each passed through
+    change(topic, data) -> data when given."""
     from mcap.writer import Writer
-    cut = tmp_path / 'cut.mcap'
-    with open(recording.path, 'rb') as source, open(cut, 'wb') as target:
-        messages = list(make_reader(source).iter_messages())
+    with open(source, 'rb') as stream, open(target, 'wb') as out:
+        messages = list(make_reader(stream).iter_messages())
         first, last = messages[0][2].log_time, messages[-1][2].log_time
-        end = first + 0.6 * (last - first)
-        writer = Writer(target)
+        writer = Writer(out)
         writer.start()
         schemas: dict[int, int] = {}
         channels: dict[int, int] = {}
         for schema, channel, message in messages:
-            if message.log_time > end and channel.topic.endswith('/estimate'):
+            if not keep(channel.topic, message.log_time, first, last):
                 continue
             if schema is not None and schema.id not in schemas:
                 schemas[schema.id] = writer.register_schema(schema.name, schema.encoding,
@@ -388,11 +384,75 @@ def test_offline_replay_of_a_cut_recording_names_the_missing_steps(recording: Re
                 channels[channel.id] = writer.register_channel(
                     channel.topic, channel.message_encoding,
                     schemas.get(channel.schema_id, 0), channel.metadata)
-            writer.add_message(channels[channel.id], message.log_time, message.data,
+            data = change(channel.topic, message.data) if change else message.data
+            writer.add_message(channels[channel.id], message.log_time, data,
                                message.publish_time, message.sequence)
         writer.finish()
+    return target
+
+
+def test_offline_replay_of_a_cut_recording_names_the_missing_steps(recording: Recording,
+                                                                   tmp_path: Path) -> None:
+    """The recording without the estimates of its last 40 % (a damaged stretch of the
+    estimate topic): replay --offline compares the steps both have (equal), names the steps
+    missing from the recording and fails, exit 1."""
+    cut = copy_recording(recording.path, tmp_path / 'cut.mcap', lambda topic, t, first, last:
+                         not (t > first + 0.6 * (last - first) and topic.endswith('/estimate')))
     result = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(cut),
                              '--offline'], capture_output=True, text=True, timeout=120)
     assert result.returncode == 1, result.stdout + result.stderr
     line = next(x for x in result.stdout.splitlines() if x.startswith('step counts differ'))
     assert 'missing from the recording' in line and 'both have agree' in line, line
+
+
+def test_a_recording_cut_at_its_end_is_not_complete(recording: Recording,
+                                                    tmp_path: Path) -> None:
+    """Every topic cut after half the run (a recorder killed, then repaired): the report
+    counts the steps of the run's description (60), names the missing end and warns;
+    replay --offline, whose re-estimate and recording agree on the steps they have, says the
+    run had 60 steps and fails, exit 1."""
+    cut = copy_recording(recording.path, tmp_path / 'cut.mcap', lambda topic, t, first, last:
+                         t <= first + 0.5 * (last - first))
+    report = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.report', str(cut),
+                             '--out', str(tmp_path / 'report')], capture_output=True,
+                            text=True, timeout=120)
+    assert report.returncode == 0, report.stderr
+    summary = json.loads((tmp_path / 'report' / 'summary.json').read_text())
+    assert summary['steps'] == STEPS and 0 < summary['estimates'] < STEPS
+    assert summary['missing_steps'] == STEPS - summary['estimates']
+    assert summary['missing_ranges'] == f"{summary['estimates'] + 1}-{STEPS}"
+    assert 'the bag lacks steps' in report.stderr
+    replay = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(cut),
+                             '--offline'], capture_output=True, text=True, timeout=120)
+    assert replay.returncode == 1, replay.stdout + replay.stderr
+    assert f'the run had {STEPS} steps' in replay.stdout
+
+
+def test_an_inconsistent_run_is_flagged_by_report_and_replay(recording: Recording,
+                                                             tmp_path: Path) -> None:
+    """The recording with its truth moved 1 m (a filter that lost the follower, as seen by the
+    truth): formopt-report marks the follower inconsistent (summary field, table and a
+    warning) and replay --offline, though it reproduces every estimate, fails (exit 1)."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import serialize_message
+
+    def moved(topic: str, data: bytes) -> bytes:
+        if not topic.endswith('/truth'):
+            return data
+        message = deserialize_message(data, PoseStamped)
+        message.pose.position.x += 1.0
+        return serialize_message(message)
+
+    bad = copy_recording(recording.path, tmp_path / 'bad.mcap', lambda *_: True, moved)
+    report = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.report', str(bad),
+                             '--out', str(tmp_path / 'report')], capture_output=True,
+                            text=True, timeout=120)
+    assert report.returncode == 0, report.stderr
+    summary = json.loads((tmp_path / 'report' / 'summary.json').read_text())
+    assert summary['consistent'] is False and summary['inconsistency'].startswith('at step')
+    assert '(inconsistent)' in (tmp_path / 'report' / 'summary.md').read_text()
+    assert 'the filter was inconsistent' in report.stderr
+    replay = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(bad),
+                             '--offline'], capture_output=True, text=True, timeout=120)
+    assert replay.returncode == 1, replay.stdout + replay.stderr
+    assert 'reproduced, but the filter was inconsistent' in replay.stdout
