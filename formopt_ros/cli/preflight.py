@@ -11,6 +11,7 @@ from formopt_ros.cli.common import fail
 from formopt_ros.cli.real_run import REAL_NODES, check_real, node_parameters
 from formopt_ros.core.formation import Formation, FollowerSpec, check_id
 from formopt_ros.wire.formation import load_formation
+from formopt_ros.wire.outputs import broken_link_on
 
 PROG = 'run_formation.sh'
 
@@ -171,7 +172,11 @@ def real_names() -> dict[str, set[str]]:
 
 
 def prepare_out(out: Path) -> Path:
-    """Create OUT; refuse one that is not empty (nothing is overwritten)."""
+    """Create OUT; refuse one that is not empty (nothing is overwritten), or one the nodes
+    cannot be given (:func:`~formopt_ros.wire.outputs.broken_link_on`)."""
+    problem = broken_link_on(out)
+    if problem:
+        fail(PROG, f'--out: {problem}')
     if out.exists() and not out.is_dir():
         fail(PROG, f'--out {out}: exists and is not a folder')
     earlier = sorted(p.name for p in out.iterdir())[:3] if out.is_dir() else []

@@ -434,6 +434,16 @@ def test_paths_with_yaml_characters_stay_inside_the_output_folder(
     assert (out / 'run.mcap').is_file() and (out / 'follower.estimator_planner.json').is_file()
 
 
+def test_an_output_path_with_a_newline_is_refused_at_start(tmp_path: Path,
+                                                            ros_domain: int) -> None:
+    """--out with a newline (a ROS parameter would carry a space instead, and the nodes would
+    write to another folder): one line, exit 2, nothing created."""
+    result = run('--steps', '5', '--out', str(tmp_path / 'a\nb'), '--domain-id',
+                 str(ros_domain), timeout=60)
+    assert result.returncode == 2 and 'control character' in result.stderr, result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize('followers, text', [
     ('[{id: a, sensor: range, slot: [-1, -2]}, {id: b, sensor: range, slot: [-1, -2]}]',
      "followers 'a' and 'b' share the slot [-1.0, -2.0]"),
