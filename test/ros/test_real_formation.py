@@ -73,3 +73,22 @@ def test_real_interfaces_run_in_real_time(tmp_path: Path) -> None:
     result = run('--formation', str(REAL), '--mode', 'lockstep', '--out', str(tmp_path / 'o'),
                  timeout=30)
     assert result.returncode == 2 and '--mode lockstep' in result.stderr, result.stderr
+
+
+def test_a_run_inconsistent_with_its_truth_is_not_ok(tmp_path: Path, ros_domain: int) -> None:
+    """The UWB follower alone (seed 1), its leader's clock 80 ms behind: inside reorder_lag,
+    so the estimator sees nothing wrong, but its estimates miss the simulated truth (mean NEES
+    above cli/real_run.TRACKING_NEES_LIMIT): the run is not ok, exit 1, and says why."""
+    data = yaml.safe_load(REAL.read_text())
+    ranger = data['formation']['followers'][0]
+    ranger['real']['leader_clock_offset'] = -0.08
+    data['formation'].update(followers=[ranger], seed=1)
+    formation = tmp_path / 'formation.yaml'
+    formation.write_text(yaml.safe_dump(data))
+    out = tmp_path / 'out'
+    result = run('--formation', str(formation), '--steps', '200', '--out', str(out),
+                 '--domain-id', str(ros_domain))
+    assert result.returncode == 1, result.stdout + result.stderr
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['followers']['ranger']['tracking']['mean_nees'] > 9.0, summary
+    assert 'inconsistent with the simulated truth' in summary['failure']
