@@ -250,15 +250,16 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
 
 @command(PROG)
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of scripts/run_formation.sh; SIGTERM and SIGHUP (the terminal closed) stop
-    the run like Ctrl-C: every node ends, the summary is written, exit 1."""
+    """Entry point of scripts/run_formation.sh; SIGINT, SIGTERM and SIGHUP (the terminal
+    closed) stop the run like Ctrl-C: every node ends, the summary is written, exit 1. SIGINT
+    too when the shell started the run in the background (`&`), which ignores it by default."""
     args = build_parser().parse_args(argv)
 
     def interrupt(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, interrupt)
-    signal.signal(signal.SIGHUP, interrupt)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, interrupt)
     return run(args)
 
 

@@ -341,17 +341,21 @@ def _alive_with(marker: str) -> list[str]:
     return alive
 
 
-@pytest.mark.parametrize('signum', [signal.SIGHUP, signal.SIGTERM, signal.SIGINT],
-                         ids=['SIGHUP', 'SIGTERM', 'SIGINT'])
+@pytest.mark.parametrize('signum, background', [
+    (signal.SIGHUP, False), (signal.SIGTERM, False), (signal.SIGINT, False),
+    (signal.SIGINT, True)], ids=['SIGHUP', 'SIGTERM', 'SIGINT', 'SIGINT-background'])
 def test_a_signal_ends_every_process_and_writes_the_summary(
-        tmp_path: Path, ros_domain: int, signum: int) -> None:
+        tmp_path: Path, ros_domain: int, signum: int, background: bool) -> None:
     """A realtime run of 100 s, signalled once its nodes started (the terminal closed, a
-    kill, Ctrl-C): exit 1, summary.json says why, and 5 s later no process of the run lives."""
+    kill, Ctrl-C, or `kill -INT` of a run a script started with `&`, which inherits SIGINT
+    ignored): exit 1, summary.json says why, and 5 s later no process of the run lives."""
     out = tmp_path / 'signalled'
     process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--mode', 'realtime',
                                 '--steps', '1000', '--out', str(out), '--domain-id',
                                 str(ros_domain)], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True, preexec_fn=(
+                                   lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+                               if background else None)
     assert process.stdout is not None
     for line in process.stdout:                  # blocks per line until the nodes started
         if 'started' in line:
@@ -435,7 +439,7 @@ def test_paths_with_yaml_characters_stay_inside_the_output_folder(
 
 
 def test_an_output_path_with_a_newline_is_refused_at_start(tmp_path: Path,
-                                                            ros_domain: int) -> None:
+                                                           ros_domain: int) -> None:
     """--out with a newline (a ROS parameter would carry a space instead, and the nodes would
     write to another folder): one line, exit 2, nothing created."""
     result = run('--steps', '5', '--out', str(tmp_path / 'a\nb'), '--domain-id',
