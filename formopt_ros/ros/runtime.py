@@ -241,4 +241,9 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
             node.destroy_node()
         rclpy.try_shutdown()
     sys.stdout.flush()
+    # the node is done: a SIGINT or SIGTERM now (a supervisor ending the run as this node
+    # ends by itself) must not kill the interpreter's exit, which restores the default
+    # handlers of the signals it handles (exit code -2 instead of the node's own)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_IGN)
     return code
