@@ -100,3 +100,17 @@ def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
         for suffix in ('json.tmp', 'pkl.tmp', 'log'):
             assert len(f'{longest}.{node}.{suffix}'.encode()) < 255
     assert check_id('run id', 'odom', frame=False) == 'odom'     # not a frame
+
+
+def test_the_largest_bearing_deviation_named_in_a_refusal_passes() -> None:
+    """A refused bearing deviation names the largest one allowed, and that one is accepted
+    (with a 1e-4 m^2 initial covariance the steady-state rule binds: 0.8 |p_o|)."""
+    import math
+
+    from formopt_ros.core.domain import check_deviation_domain
+    covariance = (1e-4, 1e-4, 1e-4)
+    d_o = math.hypot(*Scenario.paper('bearing').p_o)
+    with pytest.raises(ValueError, match='at most 0.8$'):
+        check_deviation_domain(Scenario.paper('bearing', r=0.81 * d_o,
+                                              initial_covariance=covariance))
+    check_deviation_domain(Scenario.paper('bearing', r=0.8 * d_o, initial_covariance=covariance))
