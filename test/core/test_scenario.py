@@ -105,8 +105,6 @@ def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
 def test_the_largest_bearing_deviation_named_in_a_refusal_passes() -> None:
     """A refused bearing deviation names the largest one allowed, and that one is accepted
     (with a 1e-4 m^2 initial covariance the steady-state rule binds: 0.8 |p_o|)."""
-    import math
-
     from formopt_ros.core.domain import check_deviation_domain
     covariance = (1e-4, 1e-4, 1e-4)
     d_o = math.hypot(*Scenario.paper('bearing').p_o)
