@@ -34,7 +34,15 @@ import numpy as np
 
 from formopt_ros.core.consistency import ConsistencyWatch
 from formopt_ros.core.estimator import EstimatorPlanner, StepPlan, UpdateResult
+from formopt_ros.core.field import dead_reckoned_estimate, odometry_pose_at, relative_pose
 from formopt_ros.core.protocol import NS_PER_S, held_leader_motion
+
+#: How long the odometry poses of each robot are kept, ns (the longest outage bridged by
+#: dead reckoning).
+POSE_MEMORY_NS = 60 * NS_PER_S
+#: A robot whose twists say it travelled more than this (m) while its pose stayed put
+#: publishes no odometry pose.
+POSE_CHECK_M = 0.05
 
 #: The two odometry streams.
 ROBOTS = ('follower', 'leader')
@@ -73,6 +81,7 @@ class AsyncCounters:
     gated_measurements: int = 0        # refused by the innovation gate
     downweighted_measurements: int = 0  # used with Huber weight < 1
     covariance_inflations: int = 0     # the filter re-opened after gated measurements
+    outage_resets: int = 0             # the state made again by dead reckoning after an outage
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict (for JSON and status messages)."""
@@ -162,14 +171,22 @@ class AsyncEstimator:
         self._previous = {robot: start_ns for robot in ROBOTS}   # end of the last interval
         self._waiting: list[tuple[int, float, float]] = []      # heap of measurements
         self.applied = 0
+        # odometry poses (stamp ns, pose, v, omega) of each robot over the last POSE_MEMORY_NS,
+        # and, per robot carried past its last message, the state when that began
+        self._poses: dict[str, list[tuple[int, tuple[float, float, float], float, float]]] = {
+            robot: [] for robot in ROBOTS}
+        self._carried_from: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
         self.watch = ConsistencyWatch()          # every update's NIS and whether it was gated
 
     # --- inputs ------------------------------------------------------------------------------
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
-                     noise: tuple[float, float] | None = None) -> str | None:
+                     noise: tuple[float, float] | None = None,
+                     pose: tuple[float, float, float] | None = None) -> str | None:
         """The twist ``robot`` ('follower' or 'leader') held up to ``stamp_ns``, with its own
-        noise standard deviations (m/s, rad/s; None: the scenario's); the reason when refused
-        (late, duplicate), else None."""
+        noise standard deviations (m/s, rad/s; None: the scenario's) and, when the message
+        carries one, the robot's odometry pose at ``stamp_ns`` (x m, y m, yaw rad in its own
+        odometry frame: with both robots' poses an outage is bridged by dead reckoning,
+        :meth:`_reset_after_outage`); the reason when refused (late, duplicate), else None."""
         if stamp_ns <= self.time_ns:
             self.counters.late_odometry += 1
             timeline = self.timelines[robot]
@@ -181,7 +198,49 @@ class AsyncEstimator:
             self.counters.duplicates += 1
             return f'duplicate {robot} odometry stamped {stamp_ns} ns'
         self.counters.odometry += 1
+        carried = self._carried_from.pop(robot, None)
+        if pose is not None:
+            log = self._poses[robot]
+            log.append((stamp_ns, pose, v, omega))
+            while log and log[0][0] < stamp_ns - POSE_MEMORY_NS:
+                log.pop(0)
+            if carried is not None and self.time_ns - carried[0] > self.settings.max_gap_ns:
+                self._reset_after_outage(carried)
         return None
+
+    def _reset_after_outage(self, carried: tuple[int, np.ndarray, np.ndarray]) -> None:
+        """A robot was carried on its last twist for longer than max_gap (its messages lost)
+        and is heard again: the updates meanwhile were made with motion that did not happen,
+        so the state is made again from the state when the carrying began, moved by both
+        robots' odometry poses since (:func:`~formopt_ros.core.field.dead_reckoned_estimate`:
+        the prior plus the odometry's drift). Skipped unless both robots' poses cover the span
+        and move with their twists (a base that publishes no pose reports a constant one)."""
+        then, x0, P0 = carried
+        moves = []
+        for robot in ROBOTS:
+            log = self._poses[robot]
+            start = odometry_pose_at(log, then, None, True)
+            end = odometry_pose_at(log, self.time_ns, None, True)
+            if start is None or end is None or not log or log[0][0] > then:
+                return
+            moves.append(relative_pose(start, end))
+            span = (log[-1][0] - log[0][0]) / NS_PER_S
+            travelled = max(abs(v) for _, _, v, _ in log) * span
+            if travelled > POSE_CHECK_M and np.hypot(*(np.subtract(log[-1][1][:2],
+                                                                   log[0][1][:2]))) < 1e-6:
+                return                      # a pose that never moves: not an odometry pose
+        follower_move, leader_move = moves
+        s = self.estimator.scenario
+        x, P = dead_reckoned_estimate(
+            x0[:3], P0[:3, :3], tuple(leader_move), tuple(follower_move),
+            max(1, round((self.time_ns - then) / NS_PER_S / s.dt)), s.dt,
+            (s.sigma_v, s.sigma_omega, s.sigma_v_leader, s.sigma_omega_leader))
+        state = x0.copy()
+        state[:3] = x
+        covariance = np.diag(np.diag(P0)).astype(float)
+        covariance[:3, :3] = P
+        self.estimator.state, self.estimator.covariance = state, covariance
+        self.counters.outage_resets += 1
 
     def add_measurement(self, stamp_ns: int, value: float, variance: float) -> str | None:
         """A range (m) or bearing (rad) with its variance, taken at ``stamp_ns``; the reason
@@ -235,6 +294,10 @@ class AsyncEstimator:
         while self.time_ns < stamp_ns:
             pieces = {robot: t.twist_until(self.time_ns + 1)
                       for robot, t in self.timelines.items()}
+            for robot, (_, _, message_end) in pieces.items():
+                if message_end is None and robot not in self._carried_from:
+                    self._carried_from[robot] = (self.time_ns, self.estimator.state.copy(),
+                                                 self.estimator.covariance.copy())
             ends = [s for _, _, s in pieces.values() if s is not None and s < stamp_ns]
             end = min(ends, default=stamp_ns)
             (v_f, omega_f, _), (v_l, omega_l, _) = pieces['follower'], pieces['leader']

@@ -77,12 +77,16 @@ class FieldRun:
         truth: stamp ns -> true pose [x, y, phi] of the follower in the leader's frame, at
             each range stamp (sent or dropped).
         outliers: ranges sent with an outlier; dropouts: ranges not sent.
+        poses: robot ('follower', 'leader') -> stamp ns -> the pose its odometry message of
+            that stamp carries (the true pose in the fixed frame: this base does not drift).
     """
 
     follower_odometry: list[tuple[int, float, float]] = field(default_factory=list)
     leader_odometry: list[tuple[int, float, float]] = field(default_factory=list)
     ranges: list[tuple[int, float]] = field(default_factory=list)
     truth: dict[int, np.ndarray] = field(default_factory=dict)
+    poses: dict[str, dict[int, Pose]] = field(
+        default_factory=lambda: {'follower': {}, 'leader': {}})
     outliers: int = 0
     dropouts: int = 0
 
@@ -269,9 +273,11 @@ def simulate_field(duration_s: float, start: np.ndarray,
         what, stamp, values = event
         if what == 'follower':
             out.follower_odometry.append((stamp, values[0], values[1]))
+            out.poses['follower'][stamp] = world.follower
             world.command = follower_command(world.time, world.relative())
         elif what == 'leader':
             out.leader_odometry.append((stamp, values[0], values[1]))
+            out.poses['leader'][stamp] = world.leader
         else:
             out.truth[stamp] = world.relative()
             if what in ('range', 'bearing'):

@@ -31,7 +31,7 @@ from formopt_ros.ros.run_config import (
     SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
     strategy_options, strategy_params)
 from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
-from formopt_ros.wire.messages import header_ns, twist_noise
+from formopt_ros.wire.messages import header_ns, pose_values, twist_noise
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -288,8 +288,14 @@ class FollowerEstimatorNode(Node):
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
+        resets = self.tracker.counters.outage_resets
+        x, y, yaw = (float(c) for c in pose_values(message.pose.pose))
+        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)
         self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega,
-                                  twist_noise(message))
+                                  twist_noise(message), (x, y, yaw) if finite else None)
+        if self.tracker.counters.outage_resets > resets:
+            self.get_logger().warning(f'{stream} is back after an outage: the estimate was made '
+                                      "again from both robots' odometry poses")
         self._advance(started)
 
     def on_range(self, message: Range) -> None:
