@@ -180,7 +180,9 @@ def summarise(formation: Formation, pairs: dict[str, tuple[Any, Any]], recording
             result['tracking'] = tracking = tracking_errors(
                 bag, f'{ns}/estimate', f'{ns}/truth') \
                 if counts.get(f'{ns}/estimate') and counts.get(f'{ns}/truth') else None
-            if tracking and (tracking['mean_nees'] or 0.0) > TRACKING_NEES_LIMIT:
+            if tracking:
+                tracking['consistent'] = (tracking['mean_nees'] or 0.0) <= TRACKING_NEES_LIMIT
+            if tracking and not tracking['consistent']:
                 failure = failure or (
                     f"{follower_id}: the estimate is inconsistent with the simulated truth: "
                     f"mean NEES {tracking['mean_nees']:.3g} > {TRACKING_NEES_LIMIT:g} "

@@ -90,5 +90,7 @@ def test_a_run_inconsistent_with_its_truth_is_not_ok(tmp_path: Path, ros_domain:
                  '--domain-id', str(ros_domain))
     assert result.returncode == 1, result.stdout + result.stderr
     summary = json.loads((out / 'summary.json').read_text())
-    assert summary['followers']['ranger']['tracking']['mean_nees'] > 9.0, summary
-    assert 'inconsistent with the simulated truth' in summary['failure']
+    tracking = summary['followers']['ranger']['tracking']
+    assert tracking['mean_nees'] > 9.0 and tracking['consistent'] is False, summary
+    assert not summary['ok']      # the failure names this, or the estimator's own ERROR
+    # (on a loaded machine the clock behind also drops inputs as late) that came first
