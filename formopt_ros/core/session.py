@@ -83,6 +83,7 @@ class EstimatorSession:
                                                                    repr=False)
     # the last accepted twist of each robot (lockstep: carried over a refused one)
     _plan: StepPlan | None = field(default=None, repr=False)      # the last plan_next()
+    _refused: set[tuple[object, ...]] = field(default_factory=set, repr=False)
     _twists: dict[str, tuple[float, float]] = field(
         default_factory=lambda: {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}, repr=False)
 
@@ -119,6 +120,17 @@ class EstimatorSession:
                                          held_leader_motion(self.assembler.latest_leader))
         return self._plan
 
+    def _repeated(self, refused: tuple[object, ...]) -> bool:
+        """Lockstep: whether this finite refused input (kind, stamp and values) came before:
+        a source that repeats it will not send another (an injected message that a good one
+        follows is refused once and harms nothing)."""
+        values = [v for v in refused if isinstance(v, float)]
+        if not self.assembler.lockstep or not all(math.isfinite(v) for v in values):
+            return False
+        seen = refused in self._refused
+        self._refused.add(refused)
+        return seen
+
     def _stand_in(self, robot: str, stamp_ns: int) -> tuple[float, float]:
         """The twist a refused lockstep odometry message of ``robot`` is replaced with."""
         substep = self.assembler.timebase.substep_ending_at(stamp_ns)
@@ -132,15 +144,15 @@ class EstimatorSession:
     def add_odometry(self, robot: str, stamp_ns: int, v: float, omega: float,
                      now_ns: int | None = None) -> str | None:
         """Odometry of one sub-step of robot 'follower' or 'leader'; the refusal reason, or
-        None. Lockstep: an implausible finite twist (a simulator with absurd noise) is
-        refused (counted) and its sub-step carries
-        another instead, so that its step is not waited for in vain: the follower's commanded
-        twist of that sub-step (the leader's, or one off the planned step: the robot's last
-        accepted twist)."""
+        None. Lockstep: an implausible finite twist is refused (counted); when its source
+        sends it again (a simulator with absurd noise repeats its step on a resent
+        waypoint), its sub-step carries another instead, so that the step is not waited
+        for in vain: the follower's commanded twist of that sub-step (the leader's, or one
+        off the planned step: the robot's last accepted twist)."""
         problem = self.bounds.odometry_problem(v, omega)
         if problem is not None:
             refusal = self.reject('rejected_odometry', f'{robot} odometry {problem}')
-            if self.assembler.lockstep and math.isfinite(v) and math.isfinite(omega):
+            if self._repeated(('odometry', robot, stamp_ns, v, omega)):
                 self.assembler.add_odometry(robot, stamp_ns, *self._stand_in(robot, stamp_ns),
                                             now_ns)
             return refusal
@@ -161,7 +173,8 @@ class EstimatorSession:
         both stamps equal; in realtime a part of a later step sends an earlier incomplete step
         on with what it has (NaN for the missing part). Lockstep: a finite value outside the
         plausibility bounds (a simulator with absurd noise: a negative range) is refused
-        (counted) and its step goes on without it (no update), instead of waiting for good."""
+        (counted); sent again by its source (a simulator repeats its step on a resent
+        waypoint), its step goes on without it (no update), instead of waiting for good."""
         scenario = self.estimator.scenario
         kind = scenario.measurement if kind is None else kind
         stacked = scenario.measurement == RANGE_BEARING
@@ -174,8 +187,8 @@ class EstimatorSession:
         problem = self.bounds.measurement_problem(kind, value, variance)
         if problem is not None:
             refusal = self.reject('rejected_measurements', f'measurement {problem}')
-            if self.assembler.lockstep and math.isfinite(value) and \
-                    math.isfinite(variance):    # its step goes on without it (NaN: no update)
+            if self._repeated(('measurement', kind, step, stamp_ns, value, variance)):
+                # its step goes on without it (NaN: no update)
                 if stacked:
                     self._add_part(step, stamp_ns, kind, math.nan, variance, now_ns)
                 else:

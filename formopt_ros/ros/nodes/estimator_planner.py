@@ -249,10 +249,11 @@ class EstimatorPlannerNode(Node):
         return None if self.lockstep else self.get_clock().now().nanoseconds
 
     def _refused(self, key: str, reason: str | None) -> None:
+        """Warn of a refused input; advance either way (a refused input may stand in for its
+        step in lockstep: core/session.py)."""
         if reason is not None:
             self.throttle.warn(key, f'rejected {key}: {reason}')
-        else:
-            self._advance()
+        self._advance()
 
     def on_follower_odom(self, msg: Odometry) -> None:
         """One sub-step of the follower's odometry."""
