@@ -179,7 +179,6 @@ def _follower_summary(recording: Recording, run: Run,
     for step, nees in zip(run.steps, run.nees):
         if math.isfinite(nees):
             watch.add_nees(float(nees), int(step))
-    worst = watch.summary()['worst']
     return {
         'follower_id': follower.follower_id,
         'description': 'reconstructed from the messages' if follower.legacy else 'recorded',
@@ -199,7 +198,7 @@ def _follower_summary(recording: Recording, run: Run,
         'mean_nees': float(np.mean(run.nees[valid])) if np.any(valid) else None,
         'consistent': not watch.failed,
         'inconsistency': None if not watch.failed else
-        f"at step {worst['step']}: {worst['reason']}",
+        f'at step {watch.worst.step}: {watch.worst.reason}',
         'nees_steps': int(np.sum(valid)),
         'rejected_measurements': int(status.rejected_measurements),
         'rejected_odometry': int(status.rejected_odometry),

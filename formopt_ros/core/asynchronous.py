@@ -28,6 +28,7 @@ from __future__ import annotations
 import bisect
 import copy
 import heapq
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,8 +174,8 @@ class AsyncEstimator:
         self.applied = 0
         # odometry poses (stamp ns, pose, v, omega) of each robot over the last POSE_MEMORY_NS,
         # and, per robot carried past its last message, the state when that began
-        self._poses: dict[str, list[tuple[int, tuple[float, float, float], float, float]]] = {
-            robot: [] for robot in ROBOTS}
+        self._poses: dict[str, deque[tuple[int, tuple[float, float, float], float, float]]] = {
+            robot: deque() for robot in ROBOTS}
         self._carried_from: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
         self.watch = ConsistencyWatch()          # every update's NIS and whether it was gated
 
@@ -203,7 +204,7 @@ class AsyncEstimator:
             log = self._poses[robot]
             log.append((stamp_ns, pose, v, omega))
             while log and log[0][0] < stamp_ns - POSE_MEMORY_NS:
-                log.pop(0)
+                log.popleft()
             if carried is not None and self.time_ns - carried[0] > self.settings.max_gap_ns:
                 self._reset_after_outage(carried)
         return None

@@ -81,9 +81,10 @@ class EstimatorSession:
     # ns, value, variance)}}
     _parts: dict[int, dict[str, tuple[int, float, float]]] = field(default_factory=dict,
                                                                    repr=False)
-    # the last accepted twist of each robot (lockstep: carried over a refused one)
     _plan: StepPlan | None = field(default=None, repr=False)      # the last plan_next()
+    # lockstep: the finite refused inputs seen (kind, stamp, values), whose repeat stands in
     _refused: set[tuple[object, ...]] = field(default_factory=set, repr=False)
+    # the last accepted twist of each robot (lockstep: carried over a refused one)
     _twists: dict[str, tuple[float, float]] = field(
         default_factory=lambda: {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}, repr=False)
 

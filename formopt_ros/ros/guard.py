@@ -17,7 +17,6 @@ FASTRTPS_DEFAULT_PROFILES_FILE is set).
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -141,7 +140,7 @@ class RunGuard:
         """The run's steps in the agreeing description heard on ``topic`` (0: not heard, or a
         run until stopped)."""
         text = self.texts.get(topic)
-        return int(json.loads(text).get('steps', 0)) if text else 0
+        return Description.from_json(text).steps if text else 0
 
     def missing(self) -> list[str]:
         """The description topics not heard yet."""

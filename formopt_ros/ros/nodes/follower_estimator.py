@@ -170,7 +170,6 @@ class FollowerEstimatorNode(Node):
         self._last_input_s: float | None = None
         self._catch_up_until = 0.0
         self.pauses: list[float] = []                 # their lengths, s
-        self._reported_pauses = 0
         self._reported: dict[str, int] = {}          # counts at the last diagnostics
         self.target: np.ndarray | None = None
         self.command = (0.0, 0.0)
@@ -436,9 +435,7 @@ class FollowerEstimatorNode(Node):
         a delay spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), a
         pause of every input (this process stalled: its backlog is applied in order, nothing
         dropped), odometry carried past its last message, gaps, gated ranges."""
-        counters = self.tracker.counters.as_dict() if self.tracker else {}
-        counts = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
-        new = {k: v - self._reported.get(k, 0) for k, v in counts.items()}
+        new = {k: v - self._reported.get(k, 0) for k, v in self.counts().items()}
         errors: list[str] = []
         if self.tracker is not None and self.tracker.watch.failed:
             worst = self.tracker.watch.worst
@@ -473,7 +470,7 @@ class FollowerEstimatorNode(Node):
             return [('WARN', 'inputs delayed beyond reorder_lag (the link stalled)'
                              + (f': {late} dropped as late' if late else '')
                              + (': ' + ', '.join(spikes) if spikes else ''))]
-        if len(self.pauses) > self._reported_pauses:
+        if new.get('pauses'):
             return [('WARN', f'every input paused {self.pauses[-1]:.2f} s (this process or '
                              'every link stalled); the backlog was applied in order')]
         for key, text in (('bridged', 'odometry carried past its last message (bridged)'),
@@ -485,15 +482,20 @@ class FollowerEstimatorNode(Node):
                 return [('WARN', text)]
         return []
 
+    def counts(self) -> dict[str, int]:
+        """The filter's counters, the refusals (refused_*) and the pauses, as reported on
+        /diagnostics (:meth:`health` judges what changed since the last report)."""
+        counters = self.tracker.counters.as_dict() if self.tracker else {}
+        return {**counters, **{f'refused_{k}': v for k, v in self.refused.items()},
+                'pauses': len(self.pauses)}
+
     def publish_diagnostics(self) -> None:
         """/diagnostics every status_period; an ERROR is kept for the summary."""
         problems = self.health()
         level, message = problems[0] if problems else (
             'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input')
-        counters = self.tracker.counters.as_dict() if self.tracker else {}
-        self._reported = {**counters, **{f'refused_{k}': v for k, v in self.refused.items()}}
+        self._reported = self.counts()
         self.delays = {s: [] for s in self.streams}
-        self._reported_pauses = len(self.pauses)
         if level == 'ERROR':
             self.worst = 'ERROR'
             for _, error in problems:       # every cause, not only the worst: a latched
