@@ -136,11 +136,11 @@ class RunGuard:
         ``waypoint_topics`` has had a publisher for END_LINGER s (checked by :meth:`check`)."""
         self._end = (waypoint_topics, done)
 
-    def peer_steps(self, topic: str) -> int:
-        """The run's steps in the agreeing description heard on ``topic`` (0: not heard, or a
-        run until stopped)."""
+    def peer_steps(self, topic: str) -> int | None:
+        """The run's steps in the agreeing description heard on ``topic`` (0: a run until
+        stopped; None: not heard)."""
         text = self.texts.get(topic)
-        return Description.from_json(text).steps if text else 0
+        return Description.from_json(text).steps if text else None
 
     def missing(self) -> list[str]:
         """The description topics not heard yet."""

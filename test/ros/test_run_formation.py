@@ -373,8 +373,8 @@ def test_a_signal_ends_every_process_and_writes_the_summary(
 
 def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int) -> None:
     """run_formation killed by SIGKILL once its nodes are up (no handler of it runs): the kernel
-    sends each node SIGTERM, each writes its summary saying so, and 5 s later no process of the
-    run lives."""
+    sends each node SIGTERM, each writes its summary saying so (not ok: stopped before the last
+    of its 1000 steps), and 5 s later no process of the run lives."""
     out = tmp_path / 'killed'
     process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--mode', 'realtime',
                                 '--steps', '1000', '--out', str(out), '--domain-id',
@@ -393,7 +393,10 @@ def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int)
         time.sleep(0.1)
     assert not _alive_with(str(out))
     for name in names:
-        assert json.loads((out / f'{name}.json').read_text())['stopped_by'] == 'SIGTERM'
+        summary = json.loads((out / f'{name}.json').read_text())
+        assert summary['stopped_by'] == 'SIGTERM' and not summary['ok'], summary
+    for name in names[:2]:
+        assert json.loads((out / f'{name}.json').read_text())['complete'] is False
 
 
 def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: int,

@@ -122,9 +122,8 @@ class FollowerSim(Node):
                                  self.on_leader_odom, qos.SUBSCRIBED)
         self.guard = follower_guard(self, self.description, self.leader_id, 'sim_description',
                                     'description', ('waypoint',))
-        estimator = self.resolve_topic_name(BY_KEY['description'].name)
         self.guard.end_when([self.resolve_topic_name(BY_KEY['waypoint'].name)],
-                            lambda: 0 < self.guard.peer_steps(estimator) <= self.executed)
+                            lambda: self._complete() is True)
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.scenario.dt, self.on_tick)
@@ -326,9 +325,18 @@ class FollowerSim(Node):
          'tf': self.tf_pub}[key].publish(msg)
         self.published[key] += 1
 
+    def _complete(self) -> bool | None:
+        """Whether the follower executed every step of its estimator's run (None: a run until
+        stopped; False too when the estimator's run was never heard of)."""
+        steps = self.guard.peer_steps(self.resolve_topic_name(BY_KEY['description'].name))
+        return None if steps == 0 else steps is not None and self.executed >= steps
+
     def summary(self) -> dict[str, Any]:
-        """What the follower did: steps executed, counters, its final true pose."""
-        return {'ok': not self.error, 'error': self.error or None,
+        """What the follower did: steps executed, counters, its final true pose; not ok when
+        it failed or was stopped before the last step of a run of known length."""
+        complete = self._complete()
+        return {'ok': not self.error and complete is not False, 'error': self.error or None,
+                'complete': complete,
                 'run_id': self.params['run_id'], 'follower_id': self.follower_id,
                 'executed_steps': self.executed, 'resumed': self.resumed,
                 'counters': dict(self.counters), 'published': dict(self.published),

@@ -34,7 +34,6 @@ SUMMARY = ('The leader robot: drives its path and publishes its odometry per sub
            "odom -> leader on /tf and, in lockstep, /clock (lockstep: a step once every "
            "follower's waypoint for it is in; realtime: at 1/dt). Once every estimator "
            'finished a run of a set number of steps and left, it ends too (exit 0).')
-#: The fixed frame of the leader's odometry (the world of the formation).
 
 
 class LeaderSim(Node):
@@ -112,10 +111,19 @@ class LeaderSim(Node):
     def _served_all(self) -> bool:
         """Every follower's run has a known number of steps and the leader drove them all
         (realtime: as many sub-steps)."""
-        steps = [self.guard.peer_steps(peer_topic(self, f, 'description'))
+        return self._complete() is True
+
+    def _complete(self) -> bool | None:
+        """Whether the leader drove every step of its followers' runs (None: a run until
+        stopped; False too when a follower's run was never heard of)."""
+        heard = [self.guard.peer_steps(peer_topic(self, f, 'description'))
                  for f in self.run.followers]
-        done = self.served_step if self.lockstep else self.substep // SUBSTEPS
-        return min(steps) > 0 and done >= max(steps)
+        steps = [s for s in heard if s is not None]
+        if len(steps) < len(heard):
+            return False
+        if min(steps) == 0:
+            return None
+        return (self.served_step if self.lockstep else self.substep // SUBSTEPS) >= max(steps)
 
     def _state(self) -> dict[str, Any]:
         return {key: getattr(self, key) for key in (
@@ -211,8 +219,11 @@ class LeaderSim(Node):
             self.checkpoint.save(self._state())
 
     def summary(self) -> dict[str, Any]:
-        """What the leader did: steps served, messages published, its final pose."""
-        return {'ok': not self.error, 'error': self.error or None,
+        """What the leader did: steps served, messages published, its final pose; not ok when
+        it failed or was stopped before the last step of a run of known length."""
+        complete = self._complete()
+        return {'ok': not self.error and complete is not False, 'error': self.error or None,
+                'complete': complete,
                 'run_id': self.params['run_id'], 'resumed': self.resumed,
                 'foreign_waypoints': self.foreign_waypoints,
                 'stale_waypoints': self.stale_waypoints,
