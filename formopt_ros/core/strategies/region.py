@@ -57,7 +57,7 @@ from formopt_ros.core.strategies.certificate import (
 from formopt_ros.core.strategies.stacked import BRANCH_AND_BOUND, stacked_plan
 from formopt_ros.core.strategies.verify import exact_forms
 from formopt_ros.core.strategies.rq import (
-    _circle_series, rq_optimum, top_generalized_eigenvector)
+    _circle_series, range_stationary_directions, rq_optimum, top_generalized_eigenvector)
 
 #: Samples per circle added to the stationary points (a safeguard for lost roots).
 CIRCLE_SAMPLES = 24
@@ -308,16 +308,10 @@ def _range_candidates(problem: Problem, region: Region,
     """The range gain's KKT points over the region: the stationary bearings inside the
     interval and its ends, each at its ray's feasible point nearest p_o."""
     low, high = interval
-    (a00, a01, _, a11, _, _), _ = problem.forms
-    p00, p01, _, p11, _, _ = problem.entries
-    b00, b01, b11 = p00 + problem.R, p01, p11 + problem.R
-    alpha, beta, gamma = a00 * b01 - a01 * b00, a00 * b11 - a11 * b00, a01 * b11 - a11 * b01
-    K, C, S = alpha + gamma, alpha - gamma, beta
-    amplitude = math.hypot(C, S)
+    stationary, amplitude, K = range_stationary_directions(problem)
     thetas = [low, high]
     if amplitude > 0.0 and abs(K) <= amplitude:
-        turn = math.acos(max(-1.0, min(1.0, -K / amplitude)))
-        for theta in (0.5 * (math.atan2(S, C) + turn), 0.5 * (math.atan2(S, C) - turn)):
+        for theta in stationary:
             shifted = low + (theta - low) % math.pi
             if shifted <= high:
                 thetas.append(shifted)

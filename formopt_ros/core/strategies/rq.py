@@ -378,11 +378,10 @@ def _plan_range(problem: Problem, method: str) -> Solution:
     return solution
 
 
-def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
-    """Range when the Cholesky reduction of :func:`_plan_range` breaks down: the directions
-    u = (cos t, sin t) where A u and B u are parallel (the stationary points of u'Au / u'Bu),
-    K + C cos 2t + S sin 2t = 0 with K = alpha + gamma, C = alpha - gamma, S = beta, where
-    alpha = a00 b01 - a01 b00, beta = a00 b11 - a11 b00, gamma = a01 b11 - a11 b01."""
+def range_stationary_directions(problem: Problem) -> tuple[list[float], float, float]:
+    """The two solutions t [rad] of K + C cos 2t + S sin 2t = 0 (see
+    :func:`_plan_range_by_stationarity`; when |K| > amplitude, the directions nearest one),
+    the amplitude hypot(C, S) and K."""
     (a00, a01, _, a11, _, _), _ = problem.forms
     p00, p01, _, p11, _, _ = problem.entries
     b00, b01, b11 = p00 + problem.R, p01, p11 + problem.R
@@ -390,7 +389,15 @@ def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
     K, C, S = alpha + gamma, alpha - gamma, beta
     amplitude = math.hypot(C, S)
     turn = math.acos(max(-1.0, min(1.0, -K / amplitude))) if amplitude > 0.0 else 0.5 * math.pi
-    thetas = [0.5 * (math.atan2(S, C) + turn), 0.5 * (math.atan2(S, C) - turn)]
+    return [0.5 * (math.atan2(S, C) + turn), 0.5 * (math.atan2(S, C) - turn)], amplitude, K
+
+
+def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
+    """Range when the Cholesky reduction of :func:`_plan_range` breaks down: the directions
+    u = (cos t, sin t) where A u and B u are parallel (the stationary points of u'Au / u'Bu),
+    K + C cos 2t + S sin 2t = 0 with K = alpha + gamma, C = alpha - gamma, S = beta, where
+    alpha = a00 b01 - a01 b00, beta = a00 b11 - a11 b00, gamma = a01 b11 - a11 b01."""
+    thetas, amplitude, K = range_stationary_directions(problem)
     gains = [problem.gain_at(math.cos(t), math.sin(t)) for t in thetas]
     best = int(gains[1] > gains[0])
     flat = amplitude == 0.0 and K == 0.0 or gains_tie(problem, max(gains), min(gains))
