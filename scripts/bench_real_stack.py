@@ -8,7 +8,9 @@ seed, and the same scenario's ideal lockstep run (run_trial: the paper's protoco
 ranges once per step, no bias, no outliers) over 20 trials. Each leader runs twice: with the
 radio of the file (its 0.1 m bias estimated by the bias state) and with the same radio without
 its bias (plain filter: outliers, jitter and dropouts kept), which separates what the unknown
-bias costs from what the interfaces cost. Prints a table: mean NEES of the
+bias costs from what the interfaces cost, and a third time with the bias and MME's side steps
+on every leader path (``while_turning``, sides switched every 5 plans: the widest swing the
+base's 2 m/s reach), the motion that reveals the bias. Prints a table: mean NEES of the
 real runs (3 is consistent), RMS position errors after the first 3 s and their ratio, and
 the estimator's p99 wall time per input (an odometry message or a range, with the updates it
 lets through and their estimates published) and per plan (with its target published) against
@@ -39,9 +41,11 @@ PATHS = {'straight': {'kind': 'straight', 'speed': 1.0},
 SKIP_STEPS = 30                       # 3 s, as the real runs' tracking skips
 
 
-#: Radio variants: changes of the UWB follower's real settings.
+#: Radio variants: changes of the UWB follower's real settings, and of its strategy.
 RADIOS = {'bias 0.1 m, bias state': {},
           'no bias, plain filter': {'range_bias': 0.0, 'bias_sigma': 0.0}}
+STRATEGIES = {'bias 0.1 m, bias state, MME side steps': {
+    'strategy': 'mme', 'options': {'while_turning': True, 'period': 5}}}
 
 
 def formation_file(folder: Path, path: dict, seed: int, radio: str = '') -> Path:
@@ -51,6 +55,7 @@ def formation_file(folder: Path, path: dict, seed: int, radio: str = '') -> Path
     data['formation']['leader']['path'] = path
     follower = data['formation']['followers'][0]
     follower['real'].update(RADIOS.get(radio, {}))
+    follower.update(STRATEGIES.get(radio, {}))
     data['formation']['followers'] = [dict(follower, seed=seed)]
     target = folder / f"{path['kind']}_{seed}_{len(radio)}.yaml"
     target.write_text(yaml.safe_dump(data))
@@ -97,7 +102,7 @@ def main(argv: list[str]) -> int:
     print('|---|---|---|---|---|---|---|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        for (name, path), radio in itertools.product(PATHS.items(), RADIOS):
+        for (name, path), radio in itertools.product(PATHS.items(), [*RADIOS, *STRATEGIES]):
             runs = [real_run(folder, path, seed, steps, domain, radio) for seed in range(seeds)]
             nees = [r['mean_nees'] for r in runs]
             rms = float(np.sqrt(np.mean([r['rms_position_error_m'] ** 2 for r in runs])))

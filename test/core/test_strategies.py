@@ -436,7 +436,7 @@ def test_crm_uniform_in_disc() -> None:
 
 def test_mme_alternates_perpendicular_sides() -> None:
     """MME steps r sideways, perpendicular to p_o, alternating with the step parity; it
-    returns p_o when the leader does not drive straight."""
+    returns p_o when the leader does not drive straight, unless told to step while it turns."""
     rng = np.random.default_rng(9200)
     for _ in range(50):
         problem = hard_problem(rng, BEARING)
@@ -453,12 +453,17 @@ def test_mme_alternates_perpendicular_sides() -> None:
         turning = PlanContext(step=1, leader_velocities=((1.0, 0.1), (1.0, 0.1)))
         straight = solve_problem(problem, 'mme', context=turning)
         assert np.array_equal(straight.p, problem.p_o)
+        sideways = solve_problem(problem, 'mme', context=turning, while_turning=True)
+        np.testing.assert_allclose(sideways.p - problem.p_o, offsets[1], rtol=0,
+                                   atol=1e-12 * problem.r)
 
 
 def test_mme_amplitude_and_period_options() -> None:
     """MME's options: amplitude 0.4 steps 0.4 r sideways; period 3 keeps a side for three
-    steps (steps 0-2 one side, 3-5 the other, 6 the first again); the defaults are 1 and 1."""
-    assert make_strategy('mme').settings == {'amplitude': 1.0, 'period': 1}
+    steps (steps 0-2 one side, 3-5 the other, 6 the first again); the defaults are 1 and 1,
+    and the slot while the leader turns."""
+    assert make_strategy('mme').settings == {'amplitude': 1.0, 'period': 1,
+                                             'while_turning': False}
     rng = np.random.default_rng(9201)
     for _ in range(20):
         problem = hard_problem(rng, RANGE)

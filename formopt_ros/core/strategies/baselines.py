@@ -70,19 +70,24 @@ class ActiveSideSteps(Strategy):
     drives straight, step sideways by ``amplitude`` r, perpendicular to the leader-follower line
     of sight, switching sides every ``period`` steps; otherwise go to p_o. The defaults (full
     amplitude, switching every step) are the reading used in the study (docs/results.md).
+    ``while_turning`` steps sideways whatever the leader does: the widest change of direction
+    to the leader that the disc allows, which is what reveals a range bias (docs/real_robots.md).
     """
 
     name = 'mme'
     OPTIONS = {
         'amplitude': OptionSpec(1.0, 'sideways step as a fraction of r', 0.0, 1.0),
         'period': OptionSpec(1, 'measurement steps on one side before switching', 1, 10**6),
+        'while_turning': OptionSpec(False, 'step sideways also while the leader turns, which '
+                                    'reveals a range bias'),
     }
 
     def target(self, p_o: np.ndarray, r: float, context: PlanContext | BatchContext
                ) -> tuple[tuple[float, float], bool]:
         """(point m, on the boundary) for slot p_o, deviation r and the step's context."""
         x_o, y_o = float(p_o[0]), float(p_o[1])
-        if not all(omega == 0.0 for _, omega in context.leader_velocities):
+        if not self.settings['while_turning'] and not all(
+                omega == 0.0 for _, omega in context.leader_velocities):
             return (x_o, y_o), False
         theta_o = math.atan2(y_o, x_o)
         side = 1.0 if (int(context.step) // int(self.settings['period'])) % 2 == 0 else -1.0
@@ -91,7 +96,7 @@ class ActiveSideSteps(Strategy):
             float(self.settings['amplitude']) == 1.0
 
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
-        """Sideways off the slot while the leader drives straight, else the slot."""
+        """Sideways off the slot while the leader drives straight (or always), else the slot."""
         point, on_boundary = self.target(problem.p_o, problem.r, context)
         return make_solution(problem, point, self.name, on_boundary=on_boundary)
 
