@@ -12,7 +12,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Executor
+from concurrent.futures import CancelledError, Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -109,7 +109,13 @@ def connect(address: str) -> Any:
     answers as a Dask scheduler within :data:`CONNECT_TIMEOUT` s (a connection to another
     kind of service can hang, so the attempt runs in a daemon thread left behind), or no
     worker joins within that time."""
+    from urllib.parse import urlsplit
+
     from dask.distributed import Client
+    try:
+        urlsplit(address if '://' in address else f'tcp://{address}').port
+    except ValueError as malformed:                 # e.g. a port above 65535
+        raise ConnectionError(f'{address} is not a scheduler address: {malformed}') from None
     outcome: dict[str, Any] = {}
 
     def attempt() -> None:
@@ -147,8 +153,18 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     from dask.distributed import Client, LocalCluster
     address = scheduler_address(scheduler)
     if address:
-        with connect(address) as client:
-            yield client
+        # a lost scheduler is reported by the caller in one line: not by the client's own
+        # reconnection tracebacks as well
+        loggers = [logging.getLogger(name) for name in ('distributed', 'distributed.client')]
+        levels = [logger.level for logger in loggers]
+        for logger in loggers:
+            logger.setLevel(logging.CRITICAL)
+        try:
+            with connect(address) as client:
+                yield client
+        finally:
+            for logger, level in zip(loggers, levels):
+                logger.setLevel(level)
         return
     # a random dashboard port (no clash with another cluster); the parent has reported any
     # broken plugin already: the workers stay quiet; they are born ignoring SIGINT, so that
@@ -157,7 +173,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     with _ignoring_interrupts():
         cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
                                processes=True, host='127.0.0.1', dashboard_address=':0',
-                               silence_logs=logging.ERROR, env={QUIET_ENV: '0'})
+                               silence_logs=logging.CRITICAL, env={QUIET_ENV: '0'})
     with cluster, Client(cluster) as client:
         yield client
 
@@ -203,7 +219,8 @@ def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = Non
 
     A KeyboardInterrupt (Ctrl-C) cancels the remaining cells and propagates; every cell
     finished before it is in the cache. A cell whose computation raises is reported in
-    ``failures`` and the others go on.
+    ``failures`` and the others go on. A cluster that drops the cells (its scheduler or every
+    worker stopped) raises ConnectionError; the cells finished before are in the cache.
     """
     keys = [cell_key(cell, versions_of(cell.strategy)) for cell in cells]
     found: dict[str, dict[str, Any]] = {}
@@ -224,6 +241,9 @@ def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = Non
                     key = str(future.key)
                     try:
                         row = future.result()
+                    except CancelledError as error:
+                        raise ConnectionError('the Dask cluster dropped the sweep (its scheduler '
+                                              'or every worker stopped)') from error
                     except Exception as error:      # the cell's strategy failed: report it
                         outcome.failures[key] = ' '.join(
                             f'{type(error).__name__}: {error}'.split())

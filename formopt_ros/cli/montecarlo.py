@@ -25,6 +25,7 @@ from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_B
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
+from formopt_ros.core.solver import OutsideTheDisc
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.strategies.baselines import MIN_GBS_CELL
 from formopt_ros.core.study import (
@@ -141,12 +142,12 @@ def strategy_options(settings: list[tuple[str, str, float | int | bool]],
     return options
 
 
-def _progress(total: int, label: str):
-    """A tqdm bar on an interactive terminal outside CI, else a silent counter."""
+def progress_bar(total: int, label: str, unit: str = 'trial') -> Any:
+    """A tqdm bar on an interactive terminal outside CI, else None."""
     if sys.stderr.isatty() and not os.environ.get('CI'):
         try:
             from tqdm import tqdm
-            return tqdm(total=total, desc=label, unit='trial')
+            return tqdm(total=total, desc=label, unit=unit)
         except ImportError:
             pass
     return None
@@ -501,31 +502,38 @@ def main(argv: list[str] | None = None) -> int:
                                scenario_overrides(kind, args))
                    for kind in kinds]
         comparison = comparison_configs(configs, strategies)
-        if not args.allow_inconsistent:
-            for config in configs:
-                check_domain(Scenario.paper(config.measurement, **config.scenario), 'slot',
-                             '--r-fraction')
     except ValueError as error:
-        fail(parser.prog, f'{error}' + ('' if args.allow_inconsistent else
-                                        ' (--allow-inconsistent runs it anyway, flagged)'))
+        fail(parser.prog, str(error))
+    try:
+        for config in configs if not args.allow_inconsistent else []:
+            check_domain(Scenario.paper(config.measurement, **config.scenario), 'slot',
+                         '--r-fraction')
+    except ValueError as error:
+        fail(parser.prog, f'{error} (--allow-inconsistent runs it anyway, flagged)')
     need, have = memory_estimate(configs), physical_memory()
     if need > have // 2:
         fail(parser.prog, f'--trials {args.trials} x --steps {args.steps}: the study would hold '
                           f'about {need / 2**30:.1f} GiB of records, more than half of the '
                           f"{have / 2**30:.1f} GiB of this machine's memory; lower --trials or "
                           '--steps')
-    bar = _progress(args.trials * sum(len(c.strategies) for c in configs + comparison),
-                    ' + '.join(kinds))
+    bar = progress_bar(args.trials * sum(len(c.strategies) for c in configs + comparison),
+                       ' + '.join(kinds))
     with study_workers(args.jobs, args.scheduler) as (executor, workers, where):
         # each kind's outputs (figures take a second) are written as soon as its runs are in,
         # while the workers go on with the other kinds
-        results = run_studies(configs, workers, bar.update if bar else None, args.engine,
-                              partial(write_into, args.out, not args.no_figures,
-                                      allow_inconsistent=args.allow_inconsistent),
-                              executor)
-        if comparison:
-            compared = run_studies(comparison, workers, bar.update if bar else None,
-                                   args.engine, executor=executor)
+        try:
+            results = run_studies(configs, workers, bar.update if bar else None, args.engine,
+                                  partial(write_into, args.out, not args.no_figures,
+                                          allow_inconsistent=args.allow_inconsistent),
+                                  executor)
+            if comparison:
+                compared = run_studies(comparison, workers, bar.update if bar else None,
+                                       args.engine, executor=executor)
+        except OutsideTheDisc as error:             # a plugin's point is never scored
+            if bar:
+                bar.close()
+            print(f'{parser.prog}: error: {error}', file=sys.stderr)
+            return 1
     if comparison:
         write_comparison(args.out / COMPARISON_FOLDER, compared + [
             r for r in results if r.config.measurement == RANGE_BEARING],

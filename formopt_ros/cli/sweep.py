@@ -11,8 +11,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from formopt_ros.cli.common import ArgumentParser, command, fail, integer, name_list
-from formopt_ros.cli.montecarlo import option_setting, strategy_options
+from formopt_ros.cli.common import (
+    INTERRUPTED_EXIT, ArgumentParser, command, fail, integer, name_list)
+from formopt_ros.cli.montecarlo import option_setting, progress_bar, strategy_options
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.sweep import AXES, NAMED_AXES, Cell, expand, scenario_of
@@ -186,14 +187,6 @@ def heatmap_axes(spec: dict[str, Any], rows: list[dict[str, Any]]) -> tuple[str,
     return (swept[0], swept[1]) if len(swept) >= 2 else None
 
 
-def _bar(total: int) -> Any:
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, desc='cells', unit='cell', file=sys.stderr, mininterval=0.0)
-
-
 @command('formopt-sweep')
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
@@ -224,18 +217,20 @@ def main(argv: list[str] | None = None) -> int:
                               'scheduler': address or f'local, {args.workers or os.cpu_count()}'
                               ' workers'})
     start = time.perf_counter()
-    bar = _bar(len(cells))
+    bar = progress_bar(len(cells), 'cells', 'cell')
     try:
         outcome = run_cells(cells, cache, args.workers, address,
                             bar.update if bar else None)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ConnectionError) as error:
         if bar:
             bar.close()
         kept = sum(1 for cell in cells if cache.get(_key(cell)) is not None)
-        print(f'{parser.prog}: interrupted; {kept} of {len(cells)} cells are finished and kept '
-              f'in {cache.folder}: run the same command again to compute only the others',
-              file=sys.stderr)
-        raise
+        kept_text = (f'{kept} of {len(cells)} cells are finished and kept in {cache.folder}: '
+                     'run the same command again to compute only the others')
+        if isinstance(error, KeyboardInterrupt):
+            print(f'{parser.prog}: interrupted; {kept_text}', file=sys.stderr)
+            return INTERRUPTED_EXIT
+        fail(parser.prog, f"{'--scheduler: ' if address else ''}{error}; {kept_text}")
     if bar:
         bar.close()
     rows = table_rows(outcome.rows)
@@ -245,11 +240,16 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_figures and axes and rows:
         figures = sweep_figures(rows, axes[0], axes[1], out / 'figures')
     print(summary_text(rows))
+    workers = args.workers or os.cpu_count() or 1
+    where = ('' if not outcome.computed and not outcome.failures else
+             f" on {address or f'a local cluster of {workers} worker' + 's' * (workers > 1)}")
     print(f'{len(cells)} cells ({len(outcome.computed)} computed, {len(outcome.reused)} '
-          f'reused from {cache.folder}) in {time.perf_counter() - start:.1f} s on '
-          f"{address or f'a local cluster of {args.workers or os.cpu_count()} workers'}; "
+          f'reused from {cache.folder}) in {time.perf_counter() - start:.1f} s{where}; '
           f'table {out / "sweep.csv"}' + (f', {len(figures)} figures in {out / "figures"}'
                                           if figures else ''))
+    if not args.no_figures and rows and 'ram' not in spec['strategies']:
+        print(f'{parser.prog}: no figures: they show each strategy\'s gain over RAM; add ram '
+              'to the strategies', file=sys.stderr)
     for key, message in outcome.failures.items():
         print(f'{parser.prog}: error: cell {key} failed: {message}', file=sys.stderr)
     return 1 if outcome.failures else 0

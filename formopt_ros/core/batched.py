@@ -44,7 +44,7 @@ from formopt_ros.core.reach import reach_region
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.simulation import (
     TrialResult, draws_per_step, initial_truth, trial_streams, true_measurement, true_motion)
-from formopt_ros.core.solver import timed_plan
+from formopt_ros.core.solver import outside_the_disc, timed_plan
 from formopt_ros.core.strategies import (
     BatchContext, EstimatorView, PlanContext, StepRecord, Strategy, make_strategy)
 
@@ -196,6 +196,10 @@ def run_lanes(scenario: Scenario, strategies: Sequence[str], seed: int, trials: 
                                                              s.kinematics))
             decision_time[lane, k] = (time.perf_counter() - start) / T
             p[lane] = plan.p
+            distances = np.hypot(p[lane, 0] - slot[0], p[lane, 1] - slot[1])
+            if np.max(distances) > s.r * (1.0 + 1e-9):      # (a batch is never limited)
+                worst = int(np.argmax(distances))
+                raise outside_the_disc(planner.name, p[lane][worst], slot, s.r)
             if plan.fallback is not None:
                 fallback[lane, k] = plan.fallback
         speed, turn_rate = command_velocities(x, p, s.dt, leader[0][0], leader[0][1],

@@ -1,8 +1,10 @@
 """The public entry point: ``solve(P, p_o, r, sigma, *, measurement, method) -> Solution``."""
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -24,6 +26,18 @@ _SHARED: dict[str, Strategy] = {
     name: STRATEGIES[name]() for name in BUILTIN if STRATEGIES[name].stateless}
 
 
+class OutsideTheDisc(ValueError):
+    """A strategy (a plugin: the built-in ones stay in the disc) planned a point outside it."""
+
+
+def outside_the_disc(strategy: str, point: Any, slot: Any, r: float) -> OutsideTheDisc:
+    """The error of a strategy that planned ``point`` (2,) farther than r (1 + 1e-9) from
+    ``slot`` (2,), m."""
+    distance = math.hypot(float(point[0]) - float(slot[0]), float(point[1]) - float(slot[1]))
+    return OutsideTheDisc(f'strategy {strategy!r} planned a point {distance:.6g} m from the '
+                          f'slot, outside its disc (r = {r:.6g} m)')
+
+
 def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
     """``strategy.plan(problem, context)`` with its wall time in ``Solution.solve_time_s``;
     with a reachable set in ``context.region``, the answer restricted to it
@@ -36,6 +50,8 @@ def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> So
     solution = strategy.plan(problem, context) if context.region is None else plan_within(
         strategy, problem, context)
     elapsed = time.perf_counter() - start
+    if context.region is None and not problem.feasible(solution.p):
+        raise outside_the_disc(strategy.name, solution.p, problem.slot, float(problem.r))
     if solution.solve_time_s:
         return solution.with_solve_time(elapsed)
     object.__setattr__(solution, 'solve_time_s', elapsed)

@@ -161,6 +161,7 @@ def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
     (['--option', 'crm.speed=1'], "method 'crm' accepts options"),
     (['--heatmap', 'r_fraction,colour'], 'heatmap must name two axes'),
     (['--measurement', 'bearing', '--r-fraction', '0.6'], '--allow-inconsistent runs it'),
+    (['--scheduler', 'tcp://127.0.0.1:99999'], 'is not a scheduler address'),
 ])
 def test_bad_sweeps_stop_with_one_line(tmp_path: Path, args: list[str], message: str) -> None:
     result = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.sweep', *args, '--out',
@@ -253,3 +254,15 @@ def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_computes_the_rest(
     assert again.returncode == 0, again.stderr
     assert f'12 cells ({12 - kept} computed, {kept} reused' in again.stdout
     assert len(read_table(tmp_path / 'o' / 'sweep.csv')) == 12
+
+
+def test_the_documented_sweep_file_is_accepted(tmp_path: Path) -> None:
+    """The sweep file of docs/sweeps.md, as written, gives its 13 scenarios x 4 strategies."""
+    docs = (Path(__file__).resolve().parents[2] / 'docs' / 'sweeps.md').read_text()
+    text = docs.split('## A sweep file', 1)[1].split('```yaml\n', 1)[1].split('```', 1)[0]
+    (tmp_path / 'sweep.yaml').write_text(text)
+    args = cli.build_parser().parse_args(['--config', str(tmp_path / 'sweep.yaml'), '--out',
+                                          str(tmp_path / 'o')])
+    cells = cli.make_cells(cli.sweep_spec(args), allow_inconsistent=False)
+    assert len(cells) == 13 * 4 and {cell.strategy for cell in cells} == {
+        'ram', 'rq', 'gbs', 'periodic'}

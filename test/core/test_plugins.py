@@ -51,6 +51,14 @@ class Misnamed(Ring):
 
 class Unplanned(Strategy):
     name = 'unplanned'
+
+
+class Outside(Strategy):
+    name = 'outside'
+
+    def plan(self, problem, context):
+        x_o, y_o = problem.slot
+        return make_solution(problem, (x_o + 3.0 * problem.r, y_o), self.name)
 '''
 
 
@@ -126,6 +134,20 @@ def test_a_plugin_runs_in_solve_and_the_study(plugin_module: str,
     per_trial = summarize(run_study(config, jobs=1, engine='per-trial'))
     assert per_trial['strategies']['ring']['steady_trace'] == pytest.approx(
         ring_row['steady_trace'], rel=1e-9)
+
+
+@pytest.mark.parametrize('engine', ['batched', 'per-trial'])
+def test_a_plugin_that_leaves_the_disc_stops_the_study(plugin_module: str, engine: str,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plugin's point 3 r from the slot is never scored: the study stops with an error
+    naming the strategy, as a node refuses such a waypoint."""
+    installed(monkeypatch, [entry('outside', f'{plugin_module}:Outside')])
+    monkeypatch.setattr(STRATEGIES, '_table', None)
+    monkeypatch.setattr(STRATEGIES, 'problems', [])
+    config = StudyConfig('range', trials=2, steps=5, seed=0, strategies=('ram', 'outside'))
+    with pytest.raises(ValueError, match=r"strategy 'outside' planned a point 0\.67082 m from "
+                                         r'the slot, outside its disc \(r = 0\.223607 m\)'):
+        run_study(config, jobs=1, engine=engine)
 
 
 BROKEN = [('missing', 'no_such_formopt_module:Thing', "cannot be imported: ModuleNotFoundError: "
