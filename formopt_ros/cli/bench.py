@@ -332,7 +332,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of the problem generator (default: 0)')
     every = (*STRATEGIES, *EXTRA_METHODS)       # with the plugin strategies
-    parser.add_argument('--methods', type=name_list(every), default=list(DEFAULT_METHODS),
+    parser.add_argument('--methods', type=name_list(every, STRATEGIES.left_out()),
+                        default=list(DEFAULT_METHODS),
                         help=f'comma-separated methods among {",".join(every)} '
                              f'(default: {",".join(DEFAULT_METHODS)})')
     parser.add_argument('--batch-size', type=integer(1, 10**7), default=None,

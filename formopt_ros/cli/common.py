@@ -8,7 +8,7 @@ import math
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -83,9 +83,10 @@ def number(low: float, high: float = math.inf, low_open: bool = False) -> Callab
     return parse
 
 
-def name_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
+def name_list(choices: Sequence[str], left_out: Mapping[str, str] | None = None
+              ) -> Callable[[str], list[str]]:
     """argparse type: a comma list of names among ``choices``, each once, none empty (in the
-    order given)."""
+    order given); ``left_out``: name -> why it is not among them (a broken plugin)."""
     def parse(text: str) -> list[str]:
         names = [name.strip() for name in text.split(',')]
         if not all(names):
@@ -93,6 +94,10 @@ def name_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
                 f'must be a comma list of names among {",".join(choices)}, got {text!r} (an '
                 'empty name)')
         unknown = [name for name in names if name not in choices]
+        broken = [name for name in unknown if name in (left_out or {})]
+        if broken:
+            raise argparse.ArgumentTypeError('; '.join(
+                f'{name!r} is a plugin left out: {(left_out or {})[name]}' for name in broken))
         if unknown:
             raise argparse.ArgumentTypeError(
                 f'unknown {", ".join(map(repr, unknown))}: the names are {",".join(choices)}')

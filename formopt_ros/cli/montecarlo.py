@@ -69,7 +69,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--seed', type=integer(0, 2**63 - 1), default=0,
                         help='seed of all random numbers; trial i uses (seed, i) (default: 0)')
     names = tuple(STRATEGIES)                   # the built-in and the plugin strategies
-    parser.add_argument('--strategies', type=name_list(names), default=list(METHODS),
+    parser.add_argument('--strategies', type=name_list(names, STRATEGIES.left_out()),
+                        default=list(METHODS),
                         help=f'comma list among {",".join(names)}, each once (default: the '
                              f'built-in ones but lookahead, {",".join(METHODS)})')
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,

@@ -76,7 +76,7 @@ def build_parser() -> ArgumentParser:
                              'strategies, options, trials, steps, seed, heatmap; flags given '
                              'here override it')
     names = tuple(STRATEGIES)
-    parser.add_argument('--strategies', type=name_list(names), default=None,
+    parser.add_argument('--strategies', type=name_list(names, STRATEGIES.left_out()), default=None,
                         help=f'comma list among {",".join(names)} (default: '
                              f'{",".join(DEFAULT_STRATEGIES)})')
     parser.add_argument('--option', type=option_setting, action='append', default=[],

@@ -3,6 +3,7 @@ report of a broken plugin (entry points made here; test/ros/test_plugin_package.
 package)."""
 from __future__ import annotations
 
+import argparse
 import importlib.metadata
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from formopt_ros.cli.common import name_list
 from formopt_ros.core import solve
 from formopt_ros.core.strategies import BUILTIN, STRATEGIES, Strategy, make_strategy
 from formopt_ros.core.strategies.registry import GROUP, StrategyRegistry
@@ -179,6 +181,10 @@ def test_broken_plugins_are_reported_once_and_hide_nothing(
     list(registry)
     assert capsys.readouterr().err == ''                     # once per process
     assert [p.name for p in registry.problems] == sorted(n for n, _, _ in BROKEN)
+    parse = name_list(tuple(registry), registry.left_out())     # what --strategies says
+    with pytest.raises(argparse.ArgumentTypeError,
+                       match="'missing' is a plugin left out: cannot be imported"):
+        parse('ram,missing')
 
 
 def test_two_plugins_of_one_name_are_both_refused(plugin_module: str,

@@ -171,6 +171,11 @@ class StrategyRegistry(MutableMapping[str, type[Strategy]]):
         """Names of the usable plugin strategies, sorted."""
         return tuple(name for name in self._all() if name not in self._builtin)
 
+    def left_out(self) -> dict[str, str]:
+        """name -> why, of the plugins left out (each problem's reason)."""
+        self._all()
+        return {problem.name: problem.reason for problem in self.problems}
+
     def origin(self, name: str) -> str:
         """The distribution ('name version') a plugin strategy comes from; '' for the
         built-in ones (and for names not registered)."""
