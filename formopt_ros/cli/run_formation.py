@@ -159,7 +159,7 @@ def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
     others = [leader] + [s for s, _ in nodes.values()]
     failure = ''
     try:
-        while not failure and not all(e.process.poll() == 0 for e in estimators):
+        while not failure and not all(e.ended for e in estimators):
             failure = supervise(estimators, others, recorder, args.respawn)
             if not failure and time.monotonic() - started > args.timeout:
                 failure = f'timeout after {args.timeout:g} s'

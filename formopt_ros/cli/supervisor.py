@@ -49,6 +49,15 @@ class Process:
     summary_path: Path | None = None
     code: int | None = None
     restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
+    ended: bool = False                  # exited 0 having done its part (checked once)
+
+    def stopped_by(self) -> str:
+        """The signal that stopped the node before it had done its part (its summary says
+        ``stopped_by`` and not ok: a ``kill`` from outside the run), else ''."""
+        summary = self.summary()
+        if summary is None or summary.get('ok', True) or 'stopped_by' not in summary:
+            return ''
+        return str(summary['stopped_by'])
 
     def restart(self) -> None:
         """Start the process again (same arguments; the log continues)."""
@@ -147,20 +156,26 @@ def supervise(estimators: list[Process], others: list[Process], recorder: Proces
               respawn: int) -> str:
     """Restart dead nodes while ``respawn`` allows; the failure when one cannot go on ('' if
     none). A node that exited 0 has finished (an estimator its steps, a simulator once its
-    estimators finished and left: ros/guard.py); any other exit before the end is a failure
+    estimators finished and left: ros/guard.py), unless its summary says a signal stopped it
+    first (a ``kill`` from outside the run); any other exit before the end is a failure
     unless the node can be restarted (not after exit code 2, a refused configuration, and
-    never the recorder, whose file would be cut, nor one that exited 0 early)."""
+    never the recorder, whose file would be cut)."""
     for item in estimators + others + ([recorder] if recorder else []):
         code = item.process.poll()
-        if code is None or (item is not recorder and code == 0):
+        if code is None or item.ended:
             continue
+        signal_name = item.stopped_by() if code == 0 and item is not recorder else ''
+        if code == 0 and item is not recorder and not signal_name:
+            item.ended = True
+            continue
+        how = f'was stopped by {signal_name}' if signal_name else f'exited with code {code}'
         if item is not recorder and code != CONFIGURATION_EXIT and \
                 len(item.restarts) < respawn:
-            print(f'{PROG}: {item.name} exited with code {code}; restarting it '
+            print(f'{PROG}: {item.name} {how}; restarting it '
                   f'({len(item.restarts) + 1}/{respawn})', file=sys.stderr)
             item.restart()
             continue
-        return f'{item.name} exited with code {code} before the run finished:\n{item.tail()}'
+        return f'{item.name} {how} before the run finished:\n{item.tail()}'
     return ''
 
 

@@ -327,6 +327,39 @@ def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None
     assert summary['resumed']['from_step'] > 0
 
 
+@pytest.mark.parametrize('node, respawn', [('leader_sim', 0), ('follower_sim', 1)])
+def test_a_node_stopped_from_outside_fails_the_run_or_is_restarted(
+        tmp_path: Path, ros_domain: int, node: str, respawn: int) -> None:
+    """A `kill` (SIGTERM) of one simulator mid-run, which the node answers with exit code 0
+    and a summary saying so: without --respawn the run fails at once naming the node and the
+    signal; with it the node is restarted from its checkpoint and the run ends ok."""
+    import os
+    out, prefix = tmp_path / 'killed', f'/killed_{node}'
+    process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--steps', '600',
+                                '--out', str(out), '--domain-id', str(ros_domain), '--respawn',
+                                str(respawn), '--prefix', prefix, '--timeout', '120'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    name = node if node == 'leader_sim' else f'follower.{node}'
+    log = out / 'follower.estimator_planner.log'
+    deadline = time.monotonic() + 60
+    while not (log.exists() and ' ready ' in log.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)                             # mid-run: 600 lockstep steps take 5-20 s
+    pid = node_pid(f'lib/formopt_ros/{node}', f'__ns:={prefix}')
+    assert pid is not None and process.poll() is None, process.poll()
+    os.kill(pid, signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=150)
+    summary = json.loads((out / 'summary.json').read_text())
+    if respawn:
+        assert process.returncode == 0 and summary['ok'], stdout + stderr
+        assert summary['restarts'] == {name: [0]}
+        assert f'{name} was stopped by SIGTERM; restarting it' in stderr
+    else:
+        assert process.returncode == 1 and not summary['ok'], stdout + stderr
+        assert summary['failure'].startswith(f'{name} was stopped by SIGTERM before the run '
+                                             'finished'), summary['failure']
+
+
 def _alive_with(marker: str) -> list[str]:
     """Command lines of live processes that mention ``marker`` (the run's output folder)."""
     alive = []
