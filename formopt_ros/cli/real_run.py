@@ -11,7 +11,7 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
-from formopt_ros.cli.supervisor import CONFIGURATION_EXIT
+from formopt_ros.cli.supervisor import CONFIGURATION_EXIT, interrupted
 from formopt_ros.core.formation import Formation, FollowerSpec
 from formopt_ros.wire.topics import real_frames
 
@@ -138,7 +138,7 @@ def run_real(formation: Formation, launcher: Any, out: Path, prefix: str, steps:
                 break
             time.sleep(0.05)
     except KeyboardInterrupt:
-        failure = 'interrupted'
+        failure = interrupted()
     # the estimators first (their summaries judge fresh streams), then the sims, the recorder
     launcher.stop([e for _, e in pairs.values()])
     launcher.stop([s for s, _ in pairs.values()])

@@ -21,7 +21,8 @@ from formopt_ros.cli.common import ArgumentParser, command, fail, integer, numbe
 from formopt_ros.cli.preflight import (
     check_id_ok, formation_of, leader_extra, node_specs, prepare_out, real_names)
 from formopt_ros.cli.real_run import run_real
-from formopt_ros.cli.supervisor import PROG, Launcher, Process, global_remaps, supervise
+from formopt_ros.cli.supervisor import (
+    PROG, RECEIVED_SIGNALS, Launcher, Process, global_remaps, interrupted, supervise)
 from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
@@ -101,7 +102,7 @@ def run(args: Any) -> int:
             return run_simulated(args, formation, formation_file, extra, launcher, out, prefix,
                                  run_id)
         except (OSError, KeyboardInterrupt) as error:
-            failure = 'interrupted before the run was summarised' \
+            failure = f'{interrupted()} before the run was summarised' \
                 if isinstance(error, KeyboardInterrupt) else f'cannot run the nodes: {error}'
             launcher.stop(launcher.processes)
             try:
@@ -166,7 +167,7 @@ def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
             time.sleep(0.05)
         failure = failure or supervise(estimators, others, recorder, 0)
     except KeyboardInterrupt:
-        failure = 'interrupted'
+        failure = interrupted()
     wall = time.monotonic() - started
     # the formation first, the recorder last, so that it keeps their last messages
     launcher.stop(estimators + others)
@@ -251,11 +252,17 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
 @command(PROG)
 def main(argv: list[str] | None = None) -> int:
     """Entry point of scripts/run_formation.sh; SIGINT, SIGTERM and SIGHUP (the terminal
-    closed) stop the run like Ctrl-C: every node ends, the summary is written, exit 1. SIGINT
-    too when the shell started the run in the background (`&`), which ignores it by default."""
+    closed) stop the run like Ctrl-C: every node ends, the summary is written (naming the
+    signal), exit 1; signals after the first are ignored while the run stops. SIGINT too when
+    the shell started the run in the background (`&`), which ignores it by default."""
     args = build_parser().parse_args(argv)
 
     def interrupt(signum: int, frame: Any) -> None:
+        # once: the stop that follows (bounded by the stop's grace periods) must not be cut
+        # short by a second Ctrl-C, or nothing would write the summary
+        RECEIVED_SIGNALS.append(signal.Signals(signum).name)
+        for other in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(other, signal.SIG_IGN)
         raise KeyboardInterrupt
 
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):

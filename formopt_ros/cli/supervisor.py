@@ -38,6 +38,15 @@ def die_with_parent() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
+#: Names of the signals that stopped the run (set by run_formation's handler).
+RECEIVED_SIGNALS: list[str] = []
+
+
+def interrupted() -> str:
+    """'interrupted by SIGHUP' (the first signal received), or 'interrupted'."""
+    return f'interrupted by {RECEIVED_SIGNALS[0]}' if RECEIVED_SIGNALS else 'interrupted'
+
+
 @dataclass
 class Process:
     """One node process: its command, log file and (after the run) exit code and summary."""
@@ -185,5 +194,5 @@ def global_remaps(prefix: str) -> list[str]:
     return [f'{t.name}:={prefix}{t.name}' for t in GLOBAL_TOPICS] if prefix else []
 
 
-__all__ = ['CONFIGURATION_EXIT', 'Launcher', 'Process', 'format_value', 'global_remaps',
-           'supervise']
+__all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'format_value',
+           'global_remaps', 'interrupted', 'supervise']
