@@ -46,6 +46,13 @@ class OfflineResult:
     #: the re-estimate's consistency watch (:meth:`ConsistencyWatch.summary`), the verdict the
     #: estimator node reaches on the same inputs
     consistency: dict[str, Any] = field(default_factory=dict)
+    #: steps re-estimated whose recorded estimate is missing, and recorded steps not
+    #: re-estimated (their inputs are missing); the differences cover the steps both have
+    not_recorded: list[int] = field(default_factory=list)
+    not_reestimated: list[int] = field(default_factory=list)
+    #: the last step either has, and the steps before it that neither has
+    last_step: int = 0
+    absent: list[int] = field(default_factory=list)
 
     @property
     def consistent(self) -> bool:
@@ -55,15 +62,16 @@ class OfflineResult:
     @property
     def max_diff(self) -> float:
         """Largest difference over states, covariances, waypoints (m) and, in lockstep, stamps
-        (s); inf when the step counts differ. The verdict of the replay: a planner that sends
-        other waypoints than the recorded ones fails it even when the estimates agree."""
-        if self.steps != self.recorded_steps:
+        (s); inf when a step is missing from either. The verdict of the replay: a planner that
+        sends other waypoints than the recorded ones fails it even when the estimates agree."""
+        if self.not_recorded or self.not_reestimated or self.absent:
             return math.inf
         return self.compared_diff
 
     @property
     def compared_diff(self) -> float:
-        """The largest difference over the steps both the re-estimate and the recording have."""
+        """The largest difference over the steps both the re-estimate and the recording have
+        (paired by step number)."""
         return max(self.max_state_diff, self.max_covariance_diff,
                    self.max_waypoint_diff or 0.0, self.max_stamp_diff_ns * 1e-9)
 
@@ -76,7 +84,8 @@ class OfflineResult:
                 'max_covariance_diff': self.max_covariance_diff,
                 'max_waypoint_diff': self.max_waypoint_diff,
                 'max_stamp_diff_ns': self.max_stamp_diff_ns, 'max_diff': self.max_diff,
-                'consistency': self.consistency}
+                'consistency': self.consistency, 'missing_from_recording': self.absent,
+                'not_reestimated': self.not_reestimated, 'not_recorded': self.not_recorded}
 
 
 def _inputs(recording: Recording, follower: FollowerRecording) -> list[tuple[int, str, Any]]:
@@ -135,14 +144,19 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
             outcomes.append(outcome)
             if outcome.plan is not None:
                 plans[outcome.plan.step] = outcome.plan.solution.p
-    recorded = [(header_ns(m), *estimate_values(m))
-                for m in recording.follower_messages(follower, 'estimate')]
-    n = min(len(outcomes), len(recorded))
-    state = max((float(np.max(np.abs(state_difference(outcomes[i].x, recorded[i][1]))))
-                 for i in range(n)), default=0.0)
-    covariance = max((float(np.max(np.abs(outcomes[i].P - recorded[i][2]))) for i in range(n)),
-                     default=0.0)
-    stamps = max((abs(outcomes[i].stamp_ns - recorded[i][0]) for i in range(n)), default=0)
+    # each recorded estimate's step from the status of its stamp (as formopt-report), so that
+    # a bag with a damaged stretch is compared step by step, not by position
+    step_of = {header_ns(m): int(m.step) for m in recording.follower_messages(follower, 'status')}
+    recorded = {}
+    for index, msg in enumerate(recording.follower_messages(follower, 'estimate')):
+        recorded[step_of.get(header_ns(msg), index + 1)] = (header_ns(msg), *estimate_values(msg))
+    pairs = [(o, recorded[o.step]) for o in outcomes if o.step in recorded]
+    state = max((float(np.max(np.abs(state_difference(o.x, r[1])))) for o, r in pairs),
+                default=0.0)
+    covariance = max((float(np.max(np.abs(o.P - r[2]))) for o, r in pairs), default=0.0)
+    stamps = max((abs(o.stamp_ns - r[0]) for o, r in pairs), default=0)
+    estimated = {o.step for o in outcomes}
+    last = max(estimated | set(recorded), default=0)
     chosen = {int(w.step): np.array([w.position.x, w.position.y])
               for w in recording.follower_messages(follower, 'waypoint')}
     common = [step for step in plans if step in chosen]
@@ -152,7 +166,9 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
                          '+'.join(description.strategies()), description.scenario.measurement,
                          description.mode, follower.legacy, state, covariance, waypoint,
                          stamps if lockstep else 0, [o.x for o in outcomes],
-                         [o.P for o in outcomes], session.watch.summary())
+                         [o.P for o in outcomes], session.watch.summary(),
+                         sorted(estimated - set(recorded)), sorted(set(recorded) - estimated),
+                         last, sorted(set(range(1, last + 1)) - estimated - set(recorded)))
 
 
 def _prepared(recording: Recording, description: RunDescription, change: StrategyChange) -> Any:

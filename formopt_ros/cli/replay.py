@@ -8,6 +8,7 @@ from typing import Any
 
 from formopt_ros.analysis.offline import offline
 from formopt_ros.analysis.recording import load_recording
+from formopt_ros.analysis.report import step_ranges
 from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import (
     INTERRUPTED_EXIT, ArgumentParser, command, existing_file, fail, integer, new_file, number)
@@ -158,22 +159,24 @@ def offline_main(args: Any) -> int:
         'ok' if worst['level'] == 'ok' else
         f"{worst['level'].upper()} at step {worst['step']}: {worst['reason']}"))
     planned = follower.description.steps
-    cut = planned > max(result.steps, result.recorded_steps)
+    cut = planned > result.last_step
     inconsistent = not result.consistent
     if cut:
-        first = max(result.steps, result.recorded_steps) + 1
+        first = result.last_step + 1
         gone = f'step {planned} is' if first == planned else f'steps {first}-{planned} are'
         print(f'the run had {planned} steps; {gone} missing from the recording (a cut or '
               'repaired bag?)')
-    if result.steps != result.recorded_steps:
-        both = min(result.steps, result.recorded_steps)
-        short = 'recording' if result.recorded_steps < result.steps else 're-estimate'
-        last = max(result.steps, result.recorded_steps)
-        gone = f'step {last} is' if last == both + 1 else f'steps {both + 1}-{last} are'
+    if result.not_recorded or result.not_reestimated or result.absent:
+        both = result.steps - len(result.not_recorded)
+        parts = [f'{what} {step_ranges(steps)}' for what, steps in (
+            ('missing from the recording:', result.absent),
+            ('recorded but not re-estimated (their inputs are missing):',
+             result.not_reestimated),
+            ('re-estimated but missing from the recording:', result.not_recorded)) if steps]
         agree = result.compared_diff <= args.tolerance
         print(f'step counts differ: {result.steps} re-estimated, {result.recorded_steps} '
-              f'recorded; {gone} missing from the {short} (a cut or repaired bag?). The '
-              f'{both} steps both have '
+              f"recorded; steps {'; steps '.join(parts)} (a damaged, cut or repaired bag?). "
+              f'The {both} steps both have '
               f"{'agree' if agree else 'differ'}: max difference {result.compared_diff:.3e} "
               f"{'<=' if agree else '>'} tolerance {args.tolerance:.1e}. FAILED: incomplete")
     else:

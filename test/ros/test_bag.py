@@ -405,6 +405,29 @@ def test_offline_replay_of_a_cut_recording_names_the_missing_steps(recording: Re
     assert 'missing from the recording' in line and 'both have agree' in line, line
 
 
+def test_offline_replay_of_a_recording_damaged_in_the_middle_pairs_steps_by_number(
+        recording: Recording, tmp_path: Path) -> None:
+    """Every topic lost over the middle fifth of the run (a damaged stretch, then repaired):
+    the re-estimate stops where its inputs stop; replay --offline compares the steps both have
+    by their numbers (equal), names the steps missing from the recording and those recorded
+    after the gap but not re-estimated, and fails, exit 1."""
+    damaged = copy_recording(recording.path, tmp_path / 'damaged.mcap',
+                             lambda topic, t, first, last:
+                             not first + 0.4 * (last - first) < t < first + 0.6 * (last - first))
+    report = tmp_path / 'replay.json'
+    result = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(damaged),
+                             '--offline', '--json', str(report)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 1, result.stdout + result.stderr
+    data = json.loads(report.read_text())
+    gap, after = data['missing_from_recording'], data['not_reestimated']
+    assert gap and after and gap[-1] < after[0] and after[-1] == STEPS, data
+    assert data['steps'] < gap[0] + 1 and data['not_recorded'] in ([], [data['steps']]), data
+    line = next(x for x in result.stdout.splitlines() if x.startswith('step counts differ'))
+    assert f'missing from the recording: {gap[0]}-{gap[-1]}' in line, line
+    assert 'both have agree' in line, line
+
+
 def test_a_recording_cut_at_its_end_is_not_complete(recording: Recording,
                                                     tmp_path: Path) -> None:
     """Every topic cut after half the run (a recorder killed, then repaired): the report
