@@ -172,24 +172,25 @@ def real_names() -> dict[str, set[str]]:
 
 
 def prepare_out(out: Path) -> Path:
-    """Create OUT; refuse one that is not empty (nothing is overwritten), or one the nodes
-    cannot be given (:func:`~formopt_ros.wire.outputs.broken_link_on`)."""
-    problem = broken_link_on(out)
-    if problem:
-        fail(PROG, f'--out: {problem}')
-    if out.exists() and not out.is_dir():
-        fail(PROG, f'--out {out}: exists and is not a folder')
-    earlier = sorted(p.name for p in out.iterdir())[:3] if out.is_dir() else []
-    if earlier:
-        fail(PROG, f'--out {out}: is not empty ({", ".join(earlier)}, ...); choose a new '
-                   'folder (nothing is overwritten)')
+    """Create OUT; refuse one that is not empty (nothing is overwritten), one the nodes cannot
+    be given (:func:`~formopt_ros.wire.outputs.broken_link_on`) or one the system refuses (a
+    name too long)."""
     try:
+        problem = broken_link_on(out)
+        if problem:
+            fail(PROG, f'--out: {problem}')
+        if out.exists() and not out.is_dir():
+            fail(PROG, f'--out {out}: exists and is not a folder')
+        earlier = sorted(p.name for p in out.iterdir())[:3] if out.is_dir() else []
+        if earlier:
+            fail(PROG, f'--out {out}: is not empty ({", ".join(earlier)}, ...); choose a new '
+                       'folder (nothing is overwritten)')
         out.mkdir(parents=True, exist_ok=True)
         probe = out / '.write-test'
         probe.write_text('')
         probe.unlink()
     except OSError as error:
-        fail(PROG, f'--out {out}: cannot write there: {error.strerror}')
+        fail(PROG, f'--out {out}: cannot write there: {error.strerror or error}')
     return out.resolve()
 
 

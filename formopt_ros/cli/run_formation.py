@@ -92,6 +92,13 @@ def run(args: Any) -> int:
                        all(part and check_id_ok(part) for part in prefix[1:].split('/'))):
         fail(PROG, f'--prefix must look like /name or /name/name, got {args.prefix!r}')
     out = prepare_out(args.out)
+    # until the run writes its own: what a run that ends without one (a full disk, SIGKILL)
+    # leaves behind
+    write_json(out / 'summary.json', {
+        'ok': False, 'run_id': run_id, 'failure': 'the run ended before it wrote its summary '
+        '(killed, or its disk full): see the node logs in this folder'})
+    # rcl's own log files too go into OUT, not ~/.ros/log
+    os.environ['ROS_LOG_DIR'] = str(out / 'ros_log')
     if args.domain_id is not None:
         os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -126,6 +126,7 @@ class EstimatorPlannerNode(Node):
         self.pending: tuple[Future, Any, int] | None = None
         self.strategy_changes: list[dict[str, Any]] = []
         self.solve_times: list[float] = []
+        self.slow_plans = 0                    # realtime plans that took longer than a step
         #: plans that fell back, by kind (e.g. 'unreachable': the reach disc missed the slot's
         #: disc; 'rq': RAM could not prove its answer; 'grid': a capped branch and bound)
         self.plan_fallbacks: dict[str, int] = {}
@@ -413,7 +414,8 @@ class EstimatorPlannerNode(Node):
         return {'session': self.session, 'last_plan': self.last_plan,
                 'solve_times': self.solve_times, 'received': self.received,
                 'plan_fallbacks': self.plan_fallbacks, 'last_planned': self.last_planned,
-                'published': self.published, 'strategy_changes': self.strategy_changes,
+                'slow_plans': self.slow_plans, 'published': self.published,
+                'strategy_changes': self.strategy_changes,
                 'description': self.description.to_json()}
 
     def _restore(self, state: dict[str, Any]) -> None:
@@ -424,6 +426,7 @@ class EstimatorPlannerNode(Node):
         self.solve_times = state['solve_times']
         self.plan_fallbacks = state.get('plan_fallbacks', {})
         self.last_planned = state.get('last_planned', 0)
+        self.slow_plans = state.get('slow_plans', 0)
         self.received, self.published = state['received'], state['published']
         self.published.setdefault('description', 0)
         self.strategy_changes = state.get('strategy_changes', [])
@@ -470,6 +473,14 @@ class EstimatorPlannerNode(Node):
         self.solve_times.append(plan.solution.solve_time_s)
         if plan.step > self.last_planned:      # each plan once, however often it is resent
             self.last_planned = plan.step
+            step_period = SUBSTEPS * self.scenario.dt
+            if not self.lockstep and plan.solution.solve_time_s > step_period:
+                self.slow_plans += 1
+                self.throttle.warn('slow plan', (
+                    f'planning step {plan.step} took {plan.solution.solve_time_s:.2f} s, longer '
+                    f'than a step ({step_period:g} s): the node falls behind the run and its '
+                    'status and /diagnostics wait meanwhile; choose cheaper strategy settings '
+                    '(e.g. a smaller lookahead_beam or lookahead_horizon)'))
             if plan.solution.fallback:
                 kind = str(plan.solution.fallback)
                 self.plan_fallbacks[kind] = self.plan_fallbacks.get(kind, 0) + 1
@@ -590,7 +601,7 @@ class EstimatorPlannerNode(Node):
             'final_weighted_trace': estimator.weighted_trace(),
             'mean_nees': self.session.mean_nees(),
             'counters': self.session.counters.as_dict(),
-            'plan_fallbacks': dict(self.plan_fallbacks),
+            'plan_fallbacks': dict(self.plan_fallbacks), 'slow_plans': self.slow_plans,
             'consistency': watch.summary(),
             'message_counts': {'received': dict(self.received),
                                'published': dict(self.published)},
