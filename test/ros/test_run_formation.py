@@ -411,7 +411,8 @@ def test_a_signal_ends_every_process_and_writes_the_summary(
 def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int) -> None:
     """run_formation killed by SIGKILL once its nodes are up (no handler of it runs): the kernel
     sends each node SIGTERM, each writes its summary saying so (not ok: stopped before the last
-    of its 1000 steps), and 5 s later no process of the run lives."""
+    of its 1000 steps), 5 s later no process of the run lives, and the run's own summary.json
+    is the placeholder it wrote at start (not ok)."""
     out = tmp_path / 'killed'
     process = subprocess.Popen([str(SCRIPT), '--measurement', 'range', '--mode', 'realtime',
                                 '--steps', '1000', '--out', str(out), '--domain-id',
@@ -434,6 +435,8 @@ def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int)
         assert summary['stopped_by'] == 'SIGTERM' and not summary['ok'], summary
     for name in names[:2]:
         assert json.loads((out / f'{name}.json').read_text())['complete'] is False
+    summary = json.loads((out / 'summary.json').read_text())      # what the run left before
+    assert not summary['ok'] and 'ended before it wrote its summary' in summary['failure']
 
 
 def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: int,

@@ -37,6 +37,18 @@ def test_use_sim_time_is_refused_while_running(formation) -> None:
     assert run.estimator.pending is None and run.estimator.params['strategy'] == 'ram'
 
 
+def test_a_plan_longer_than_a_step_is_warned_and_counted(formation) -> None:
+    """LOOKAHEAD at its largest documented beam and horizon plans for seconds: a realtime node
+    falls behind, which it counts (slow_plans) instead of stalling silently."""
+    run = formation({'measurement': 'range', 'steps': 400, 'mode': 'realtime'})
+    assert run.spin_until(lambda: run.estimator.session.step >= 3, DEADLINE)
+    changed = set_parameters(run, run.estimator, {'strategy': 'lookahead', 'lookahead_beam': 512,
+                                                  'lookahead_horizon': 50}, atomically=True)
+    assert changed[0].successful, changed[0].reason
+    assert run.spin_until(lambda: run.estimator.slow_plans >= 1, DEADLINE)
+    assert run.estimator.summary()['slow_plans'] >= 1
+
+
 @pytest.fixture(scope='module')
 def changed_run(tmp_path_factory) -> dict[str, Any]:
     """A recorded lockstep run (range, MTF, seed 5, 300 steps) switched to PERIODIC (period 3)
