@@ -8,6 +8,7 @@ live beside it."""
 from __future__ import annotations
 
 import math
+import json
 import os
 import signal
 import sys
@@ -110,7 +111,7 @@ def run(args: Any) -> int:
                                  run_id)
         except (OSError, KeyboardInterrupt) as error:
             failure = f'{interrupted()} before the run was summarised' \
-                if isinstance(error, KeyboardInterrupt) else f'cannot run the nodes: {error}'
+                if isinstance(error, KeyboardInterrupt) else os_failure(error, out)
             launcher.stop(launcher.processes)
             try:
                 write_json(out / 'summary.json', {
@@ -120,6 +121,17 @@ def run(args: Any) -> int:
                 failure += f'; cannot write {out / "summary.json"}: {again.strerror or again}'
             print(f'{PROG}: error: {failure}', file=sys.stderr)
             return 1
+
+
+def os_failure(error: OSError, out: Path) -> str:
+    """What an OSError of the run means: the recorder's own write error first (a full disk:
+    it names the bag), else the error with its file."""
+    try:
+        recorded = json.loads((out / 'recorder_counts.json').read_text()).get('error')
+    except (OSError, ValueError):
+        recorded = None
+    where = f': {error.filename}' if error.filename else ''
+    return recorded or f'the run failed: {error.strerror or error}{where}'
 
 
 def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
