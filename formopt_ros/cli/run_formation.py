@@ -7,8 +7,8 @@ OUT/summary.json. scripts/run_formation.sh is its shell front end; the checks be
 live beside it."""
 from __future__ import annotations
 
-import math
 import json
+import math
 import os
 import signal
 import sys
