@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import difflib
+import functools
 import math
 import os
 import signal
@@ -17,6 +18,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from formopt_ros.core.solver import OutsideTheDisc
 from formopt_ros.ros.params import ROS_PARAMETERS, Param, ParameterError
 from formopt_ros.wire.jsonfile import write_json
 from formopt_ros.wire.outputs import broken_link_on
@@ -87,6 +89,19 @@ def stop_run(node: Node, code: int, message: str) -> None:
     node.exit_code = code                   # type: ignore[attr-defined]
     node.error = message                    # type: ignore[attr-defined]
     node.finished = True                    # type: ignore[attr-defined]
+
+
+def stops_on_a_plan_outside_the_disc(method: Callable[..., None]) -> Callable[..., None]:
+    """Decorate a node method that plans: a strategy (a plugin) that plans outside its disc
+    stops the run in one line (:func:`stop_run`, exit code 1) instead of a callback
+    traceback."""
+    @functools.wraps(method)
+    def run(node: Node, *args: Any, **kwargs: Any) -> None:
+        try:
+            method(node, *args, **kwargs)
+        except OutsideTheDisc as error:
+            stop_run(node, 1, f'{error}; the waypoint is not sent')
+    return run
 
 
 def steady_timer(node: Node, period: float, callback: Callable[[], None]) -> Any:

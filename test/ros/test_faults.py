@@ -337,3 +337,23 @@ def test_restart_refuses_a_checkpoint_of_another_run(formation, tmp_path: Path) 
             EstimatorPlannerNode(node_args('estimator_planner', 'follower', {
                 'measurement': 'range', 'steps': 5, 'checkpoint_path': str(checkpoint),
                 **params}))
+
+
+def test_a_plan_outside_the_disc_stops_the_node_in_one_line() -> None:
+    """A node method that plans, when a strategy (a plugin) plans outside its disc: the node
+    stops with exit code 1 and the reason (no callback traceback), as run_formation reports."""
+    from types import SimpleNamespace
+
+    from formopt_ros.core.solver import outside_the_disc
+    from formopt_ros.ros.runtime import stops_on_a_plan_outside_the_disc
+    logged: list[str] = []
+    node = SimpleNamespace(get_logger=lambda: SimpleNamespace(error=logged.append))
+
+    @stops_on_a_plan_outside_the_disc
+    def plan(node: SimpleNamespace) -> None:
+        raise outside_the_disc('cheater', (3.0, 0.0), (0.0, 0.0), 1.0)
+
+    plan(node)
+    assert node.exit_code == 1 and node.finished and logged == [node.error]
+    assert node.error == ("strategy 'cheater' planned a point 3 m from the slot, outside its "
+                          'disc (r = 1 m); the waypoint is not sent')

@@ -36,7 +36,8 @@ from formopt_ros.ros.run_config import (
     SCENARIO_PARAMS, SEED, SUMMARY_PATH, TRIAL, WAIT_FOR_PEERS, follower_run, formation_defaults,
     strategy_options, strategy_params)
 from formopt_ros.ros.runtime import (
-    Throttle, node_main, steady_timer, stop_run, write_summary)
+    Throttle, node_main, steady_timer, stop_run, stops_on_a_plan_outside_the_disc,
+    write_summary)
 from formopt_ros.wire import inputs
 from formopt_ros.wire.description import RunDescription as Description
 from formopt_ros.wire.description import StrategyChange
@@ -357,6 +358,7 @@ class EstimatorPlannerNode(Node):
             'odometry poses')
         self._settle_rejoin()
 
+    @stops_on_a_plan_outside_the_disc
     def _settle_rejoin(self, force: bool = False) -> None:
         """Once both robots' odometry poses at the rejoin stamp T are known (or with ``force``,
         from the nearest the follower sent): the estimate at T from them, covariance times
@@ -391,6 +393,7 @@ class EstimatorPlannerNode(Node):
         self.last_progress = time.monotonic()
 
     # --- processing ------------------------------------------------------------------------
+    @stops_on_a_plan_outside_the_disc
     def _advance(self) -> None:
         if self.finished:
             return
@@ -491,6 +494,7 @@ class EstimatorPlannerNode(Node):
         self.waypoint_pub.publish(self.last_waypoint)
         self.published['waypoint'] += 1
 
+    @stops_on_a_plan_outside_the_disc
     def on_timer(self) -> None:
         """Start the run once the publishers are matched and the peers agree; resend a waypoint
         that got no answer; watch for intruders; publish the status while no step completes

@@ -30,7 +30,8 @@ from formopt_ros.ros.run_config import (
     BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SAFETY_DISTANCE,
     SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
     strategy_options, strategy_params)
-from formopt_ros.ros.runtime import Throttle, check_output_path, node_main, write_summary
+from formopt_ros.ros.runtime import (
+    Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import header_ns, pose_values, twist_noise
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
@@ -379,6 +380,7 @@ class FollowerEstimatorNode(Node):
         self.handling['input'].append(time.perf_counter() - started)
 
     # --- planning and control ------------------------------------------------------------------
+    @stops_on_a_plan_outside_the_disc
     def plan(self) -> None:
         """Re-plan the target from the current estimate (timer, every 2 dt)."""
         self._check_duration()
