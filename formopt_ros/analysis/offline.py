@@ -144,12 +144,9 @@ def offline(recording: Recording, follower_id: str | None = None, **overrides: A
             outcomes.append(outcome)
             if outcome.plan is not None:
                 plans[outcome.plan.step] = outcome.plan.solution.p
-    # each recorded estimate's step from the status of its stamp (as formopt-report), so that
-    # a bag with a damaged stretch is compared step by step, not by position
-    step_of = {header_ns(m): int(m.step) for m in recording.follower_messages(follower, 'status')}
-    recorded = {}
-    for index, msg in enumerate(recording.follower_messages(follower, 'estimate')):
-        recorded[step_of.get(header_ns(msg), index + 1)] = (header_ns(msg), *estimate_values(msg))
+    # compared step by step, not by position: a bag with a damaged stretch lacks some steps
+    recorded = {step: (header_ns(msg), *estimate_values(msg))
+                for step, msg, _ in recording.follower_estimates(follower)}
     pairs = [(o, recorded[o.step]) for o in outcomes if o.step in recorded]
     state = max((float(np.max(np.abs(state_difference(o.x, r[1])))) for o, r in pairs),
                 default=0.0)

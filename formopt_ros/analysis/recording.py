@@ -64,6 +64,17 @@ class Recording:
         """The decoded messages of one of a follower's topics ([] when not recorded)."""
         return [m for _, m in self.messages(follower.topics.get(key))]
 
+    def follower_estimates(self, follower: FollowerRecording) -> list[tuple[int, Any, Any]]:
+        """(step, estimate message, its status message or None) of each recorded estimate, in
+        recorded order: the step is the status's of the same stamp, else the estimate's
+        position (1-based)."""
+        status_of = {header_ns(m): m for m in self.follower_messages(follower, 'status')}
+        out = []
+        for index, msg in enumerate(self.follower_messages(follower, 'estimate')):
+            status = status_of.get(header_ns(msg))
+            out.append((int(status.step) if status else index + 1, msg, status))
+        return out
+
     def follower(self, follower_id: str | None = None) -> FollowerRecording:
         """The follower ``follower_id``, or the only one; BagError naming the choices."""
         if follower_id is None:

@@ -49,7 +49,7 @@ def _latest_before(stamps: np.ndarray, values: np.ndarray, stamp: int) -> np.nda
 
 def load_run(recording: Recording, follower: FollowerRecording) -> Run:
     """Decode and align a follower's estimates, statuses, truth, waypoints and leader odometry."""
-    estimates = recording.follower_messages(follower, 'estimate')
+    estimates = recording.follower_estimates(follower)
     statuses = recording.follower_messages(follower, 'status')
     if not estimates or not statuses:
         raise BagError(f'{recording.bag.path}: no estimate or status messages of '
@@ -57,13 +57,8 @@ def load_run(recording: Recording, follower: FollowerRecording) -> Run:
     description = follower.description
     scenario = description.scenario
     timebase = Timebase.from_dt(scenario.dt)
-    step_of = {header_ns(s): s for s in statuses}
-    rows = []
-    for index, msg in enumerate(estimates):
-        status = step_of.get(header_ns(msg))
-        x, P = estimate_values(msg)
-        rows.append((int(status.step) if status else index + 1, x, P,
-                     status.weighted_trace if status else math.nan))
+    rows = [(step, *estimate_values(msg), status.weighted_trace if status else math.nan)
+            for step, msg, status in estimates]
     n = len(rows)
     steps = np.array([row[0] for row in rows])
     stamp_of_step = {int(m.step): header_ns(m)

@@ -131,10 +131,8 @@ def run_real(formation: Formation, launcher: Any, out: Path, prefix: str, steps:
         while time.time() < start_time + duration:
             dead = [p for p in everything if not p.alive()]
             if dead:
-                signal_name = dead[0].stopped_by()
-                how = f'was stopped by {signal_name}' if signal_name else \
-                    f'exited with code {dead[0].process.poll()}'
-                failure = f'{dead[0].name} {how} before the run finished:\n{dead[0].tail()}'
+                failure = f'{dead[0].name} {dead[0].exit_text()} before the run finished:\n' \
+                          f'{dead[0].tail()}'
                 break
             time.sleep(0.05)
     except KeyboardInterrupt:

@@ -68,6 +68,12 @@ class Process:
             return ''
         return str(summary['stopped_by'])
 
+    def exit_text(self) -> str:
+        """'was stopped by SIGTERM' (:meth:`stopped_by`) or 'exited with code N'."""
+        code = self.process.poll()
+        signal_name = self.stopped_by() if code == 0 else ''
+        return f'was stopped by {signal_name}' if signal_name else f'exited with code {code}'
+
     def restart(self) -> None:
         """Start the process again (same arguments; the log continues)."""
         self.restarts.append(self.process.wait())
@@ -173,11 +179,10 @@ def supervise(estimators: list[Process], others: list[Process], recorder: Proces
         code = item.process.poll()
         if code is None or item.ended:
             continue
-        signal_name = item.stopped_by() if code == 0 and item is not recorder else ''
-        if code == 0 and item is not recorder and not signal_name:
+        if code == 0 and item is not recorder and not item.stopped_by():
             item.ended = True
             continue
-        how = f'was stopped by {signal_name}' if signal_name else f'exited with code {code}'
+        how = item.exit_text()
         if item is not recorder and code != CONFIGURATION_EXIT and \
                 len(item.restarts) < respawn:
             print(f'{PROG}: {item.name} {how}; restarting it '

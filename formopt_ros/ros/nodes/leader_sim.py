@@ -95,7 +95,7 @@ class LeaderSim(Node):
             self.guard.expect(peer_topic(self, follower, 'description'), self._compare)
             self.guard.watch(peer_topic(self, follower, 'waypoint'))
         self.guard.end_when([peer_topic(self, f, 'waypoint') for f in self.run.followers],
-                            self._served_all)
+                            lambda: self._complete() is True)
         steady_timer(self, 0.05, self.on_check)
         if not self.lockstep:
             self.create_timer(self.run.dt, self.on_tick)
@@ -107,11 +107,6 @@ class LeaderSim(Node):
         """How a follower's description disagrees with this leader (this node's value first)."""
         return [(name, mine, theirs) for name, theirs, mine in
                 leader_differences(Description.from_json(text), self.description)]
-
-    def _served_all(self) -> bool:
-        """Every follower's run has a known number of steps and the leader drove them all
-        (realtime: as many sub-steps)."""
-        return self._complete() is True
 
     def _complete(self) -> bool | None:
         """Whether the leader drove every step of its followers' runs (None: a run until
