@@ -23,7 +23,7 @@ from formopt_ros.cli.preflight import (
     check_id_ok, formation_of, leader_extra, node_specs, prepare_out, real_names)
 from formopt_ros.cli.real_run import run_real
 from formopt_ros.cli.supervisor import (
-    PROG, RECEIVED_SIGNALS, Launcher, Process, global_remaps, interrupted, supervise)
+    PROG, RECEIVED_SIGNALS, Launcher, Process, global_remaps, interrupted, orphaned, supervise)
 from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
@@ -180,7 +180,8 @@ def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
     failure = ''
     try:
         while not failure and not all(e.ended for e in estimators):
-            failure = supervise(estimators, others, recorder, args.respawn)
+            failure = supervise(estimators, others, recorder, args.respawn) or \
+                orphaned([(e, [leader, s]) for s, e in nodes.values()])
             if not failure and time.monotonic() - started > args.timeout:
                 failure = f'timeout after {args.timeout:g} s'
             time.sleep(0.05)

@@ -18,6 +18,8 @@ from formopt_ros.wire.topics import GLOBAL_TOPICS
 
 PROG = 'run_formation.sh'
 SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
+#: How long (s) an estimator may outlive a peer it needs before the run fails.
+ORPHAN_GRACE = 5.0
 #: Exit code of a node refusing its configuration (not respawned: it would refuse again).
 CONFIGURATION_EXIT = 2
 #: prctl option that asks the kernel to signal a process when its parent dies (Linux).
@@ -58,7 +60,12 @@ class Process:
     summary_path: Path | None = None
     code: int | None = None
     restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
-    ended: bool = False                  # exited 0 having done its part (checked once)
+    ended_at: float | None = None        # time.monotonic() when seen exited 0, its part done
+
+    @property
+    def ended(self) -> bool:
+        """Exited 0 having done its part (seen by :func:`supervise`)."""
+        return self.ended_at is not None
 
     def stopped_by(self) -> str:
         """The signal that stopped the node before it had done its part (its summary says
@@ -180,7 +187,7 @@ def supervise(estimators: list[Process], others: list[Process], recorder: Proces
         if code is None or item.ended:
             continue
         if code == 0 and item is not recorder and not item.stopped_by():
-            item.ended = True
+            item.ended_at = time.monotonic()
             continue
         how = item.exit_text()
         if item is not recorder and code != CONFIGURATION_EXIT and \
@@ -193,6 +200,20 @@ def supervise(estimators: list[Process], others: list[Process], recorder: Proces
     return ''
 
 
+def orphaned(chains: list[tuple[Process, list[Process]]], grace: float = ORPHAN_GRACE) -> str:
+    """The failure of an estimator still running ``grace`` s after a peer it needs ended
+    (``chains``: each estimator with its leader_sim and follower_sim), else ''. A simulator
+    ends only once its estimators have left (ros/guard.py), so this is an estimator restarted
+    after its run was over: no peer will ever send it a step."""
+    now = time.monotonic()
+    for estimator, peers in chains:
+        for peer in peers:
+            if estimator.alive() and peer.ended_at is not None and now - peer.ended_at > grace:
+                return (f'{estimator.name} still ran {grace:g} s after {peer.name} ended: its '
+                        'peers are gone, nothing is left to estimate')
+    return ''
+
+
 def global_remaps(prefix: str) -> list[str]:
     """-r rules that move the global topics (/tf, /tf_static, /clock, /diagnostics) under
     ``prefix``, so that two runs in one domain do not mix their transforms and clocks."""
@@ -200,4 +221,4 @@ def global_remaps(prefix: str) -> list[str]:
 
 
 __all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'format_value',
-           'global_remaps', 'interrupted', 'supervise']
+           'global_remaps', 'interrupted', 'orphaned', 'supervise']

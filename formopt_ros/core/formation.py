@@ -165,7 +165,8 @@ class Formation:
         for index, item in enumerate(followers):
             check_keys(f'formation follower {index + 1}', item, _FOLLOWER_KEYS)
             specs.append(_follower_from_dict(item, path, dt, kinematics, seed + index))
-        return cls(leader.get('id', 'leader'), tuple(specs), data.get('trial', 0))
+        return cls(leader.get('id', 'leader'), tuple(specs),
+                   ranged_integer('formation trial', data.get('trial', 0), 'trial'))
 
     def to_dict(self) -> dict[str, Any]:
         """The file layout (inverse of :meth:`from_dict`, every value explicit)."""
@@ -198,6 +199,8 @@ _FOLLOWER_KEYS = {'id', 'sensor', 'slot', 'deviation', 'noise', 'bearing_every',
 #: The formation file's key of each Scenario field whose name differs.
 _FILE_KEYS = {'measurement': 'sensor', 'p_o': 'slot', 'r': 'deviation', 'sigma': 'noise',
               'sigma_bearing': 'noise'}
+#: Formation-level keys that every follower's Scenario carries (an error names the formation).
+_SHARED_KEYS = {'dt', 'kinematics', 'leader'}
 #: How a follower's nodes talk (FollowerSpec.interfaces).
 INTERFACES = ('simulated', 'real')
 
@@ -242,7 +245,8 @@ def _follower_from_dict(item: dict[str, Any], path: LeaderPath, dt: float, kinem
                             str(item.get('interfaces', 'simulated')), dict(real))
     except InvalidInput as error:                   # the file's key, not the Scenario field
         key = _FILE_KEYS.get(error.name, error.name)
-        raise InvalidInput(f'formation follower {name}: {key}', error.reason) from None
+        where = 'formation' if key in _SHARED_KEYS else f'formation follower {name}:'
+        raise InvalidInput(f'{where} {key}', error.reason) from None
     except ValueError as error:
         raise ValueError(f'formation follower {name}: {error}') from None
 

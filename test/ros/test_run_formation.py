@@ -547,3 +547,32 @@ def test_overlapping_discs_are_a_warning() -> None:
     with contextlib.redirect_stderr(stream):
         check_discs(Formation('leader', tuple(near)), Path('f.yaml'))
     assert "warning: --formation f.yaml: the discs of 'a' and 'b' overlap" in stream.getvalue()
+
+
+def test_an_estimator_that_outlives_its_peers_fails_the_run(tmp_path: Path) -> None:
+    """An estimator still running ORPHAN_GRACE s after its follower_sim ended (a restart after
+    its peers had left, which waits for them forever) is a failure naming both; within the
+    grace, or with its peers alive, it is not."""
+    from formopt_ros.cli.supervisor import ORPHAN_GRACE, Process, orphaned
+
+    def process(name: str, command: list[str]) -> Process:
+        return Process(name, subprocess.Popen(command), tmp_path / f'{name}.log', command)
+
+    estimator = process('f.estimator_planner', ['sleep', '60'])
+    leader, sim = process('leader_sim', ['sleep', '60']), process('f.follower_sim', ['true'])
+    try:
+        sim.process.wait(timeout=10)
+        assert orphaned([(estimator, [leader, sim])]) == ''          # sim not seen ended
+        sim.ended_at = time.monotonic() - ORPHAN_GRACE / 2
+        assert orphaned([(estimator, [leader, sim])]) == ''          # within the grace
+        sim.ended_at = time.monotonic() - ORPHAN_GRACE - 0.1
+        assert orphaned([(estimator, [leader, sim])]) == (
+            f'f.estimator_planner still ran {ORPHAN_GRACE:g} s after f.follower_sim ended: '
+            'its peers are gone, nothing is left to estimate')
+        estimator.process.kill()
+        estimator.process.wait(timeout=10)
+        assert orphaned([(estimator, [leader, sim])]) == ''          # it ended too
+    finally:
+        for item in (estimator, leader):
+            item.process.kill()
+            item.process.wait(timeout=10)
