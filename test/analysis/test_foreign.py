@@ -71,6 +71,7 @@ def decimated(data: ForeignData, k: int) -> ForeignData:
     return ForeignData({r: slow(s) for r, s in data.odometry.items()}, data.ranges, data.truth)
 
 
+@pytest.mark.slow
 def test_real_uwb_data_is_consistent_with_the_bias_state(data: ForeignData) -> None:
     """With the bias state (the topic map's settings) the mean NEES is in [1, 5] and the RMS
     position error no worse than the independent plain EKF's; without the bias state the
@@ -94,6 +95,7 @@ def test_ten_hertz_odometry_does_not_diverge(data: ForeignData) -> None:
     assert result['rmse_m'] <= reference_rmse(slow)
 
 
+@pytest.mark.slow
 def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
     """The command prints the evaluation and writes it as JSON; a map naming a topic the bag
     lacks, or with an unknown key, is refused in one line with exit code 2."""

@@ -61,6 +61,7 @@ def run(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=120)
 
 
+@pytest.mark.slow
 def test_commands_on_the_legacy_bag(tmp_path: Path) -> None:
     """replay --offline and formopt-report run without ROS; outputs are never overwritten."""
     out = tmp_path / 'offline.json'

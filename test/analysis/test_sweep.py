@@ -58,6 +58,7 @@ def test_a_cell_is_the_study_of_its_scenario() -> None:
         assert (row['nees_band_low'], row['nees_band_high']) == tuple(together['nees_band'])
 
 
+@pytest.mark.slow
 def test_the_study_on_dask_equals_the_study_in_one_process() -> None:
     """formopt-montecarlo's engine: both kinds' tasks on a two-worker local Dask cluster give
     the numbers of one process, bit for bit, and each kind's result is handed to ``finish`` in
@@ -94,6 +95,7 @@ def test_gains_and_winners_follow_the_rows() -> None:
     assert {r['best_at_point'] for r in out} == {'crm'}      # MTF is flagged
 
 
+@pytest.mark.slow
 def test_one_and_two_workers_give_the_same_table(tmp_path: Path) -> None:
     cells = tiny_cells()
     one = run_cells(cells, CellCache(tmp_path / 'one'), workers=1)

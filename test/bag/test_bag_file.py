@@ -446,6 +446,7 @@ def assert_clean_error(result: subprocess.CompletedProcess, text: str) -> None:
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
+@pytest.mark.slow
 def test_cli_info_repair_and_bad_files(tmp_path: Path) -> None:
     path = tmp_path / 'run.mcap'
     write_bag(path, 30, flush_every=10)

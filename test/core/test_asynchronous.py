@@ -256,6 +256,7 @@ def test_after_a_link_outage_the_odometry_poses_bridge_it() -> None:
     assert min(blind) > 10.0, blind
 
 
+@pytest.mark.slow
 def test_a_mounted_camera_needs_its_lever_arm() -> None:
     """Bearings from a camera 0.25 m ahead and 0.1 m left of the base, turned 0.4 rad: with
     the mount in the model the trial-mean NEES of 6 seeded 30 s runs (after 5 s) lies in the

@@ -56,6 +56,7 @@ def paper_values(rng: np.random.Generator) -> dict[str, Any]:
     return overrides
 
 
+@pytest.mark.slow
 def test_scenarios_are_refused_at_the_boundary_or_run() -> None:
     """Scenario.paper with wild overrides: InvalidInput, or 5 finite steps of a strategy."""
     rng = np.random.default_rng(20240)

@@ -150,6 +150,7 @@ def test_the_session_watches_a_diverging_bearing_follower() -> None:
     assert paper.watch.worst.level in (OK, WARN) and not paper.watch.failed
 
 
+@pytest.mark.slow
 def test_study_flags_an_inconsistent_strategy_and_the_report_withholds_it() -> None:
     """Bearing with a disc of 0.9 |p_o| (4 trials x 150 steps): RAM's NEES leaves the band, the
     summary flags it (ok false) and the report withholds every "vs RAM"; with

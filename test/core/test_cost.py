@@ -436,6 +436,7 @@ def test_q_disc_maps_boundary_circle_and_inverts() -> None:
         np.testing.assert_allclose(point_from_q(q[0]), boundary[0], rtol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_every_method_solves_the_whole_admissible_scale(kind: str) -> None:
     """Across VARIANCE_RANGE (variances log-uniform over 125 decades, correlations up to 0.9),

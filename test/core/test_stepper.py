@@ -264,6 +264,7 @@ def _drive(scenario: Scenario, seed: int, substeps: int, noisy: bool) -> tuple:
     return x, start, leader, odometry
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('path', [LeaderPath(), LeaderPath('arc', 1.0, 0.3)])
 def test_the_dead_reckoned_estimate_of_a_rejoin_is_exact_and_covers_its_error(
         path: LeaderPath) -> None:

@@ -91,9 +91,12 @@ class Lookahead(Strategy):
         return make_solution(problem, targets[int(np.argmin(costs))], self.name)
 
 
-@pytest.mark.parametrize('kind', ['range', 'bearing'])
-@pytest.mark.parametrize('leader', ['straight', 's-curve', 's-curve exact'])
-def test_batched_engine_equals_per_trial_engine(kind: str, leader: str,
+@pytest.mark.parametrize('leader, kind', [
+    ('straight', 'range'),
+    *(pytest.param(leader, kind, marks=pytest.mark.slow)
+      for leader, kind in (('straight', 'bearing'), ('s-curve', 'range'), ('s-curve', 'bearing'),
+                           ('s-curve exact', 'range'), ('s-curve exact', 'bearing')))])
+def test_batched_engine_equals_per_trial_engine(leader: str, kind: str,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """Every strategy (and a stateful one without plan_batch) advanced together in one stack
     gives each trial what run_trial gives it: all records within 1e-9 relative (identical in
@@ -149,6 +152,7 @@ def test_ekf_consistent_for_observable_strategies(short_study: dict) -> None:
         assert 2.0 < row['nees_mean'] < 4.5, (name, row)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_exact_kinematics_stay_consistent_with_a_turning_leader(kind: str) -> None:
     """Exact kinematics, a leader on an arc of 1 rad/s at dt 0.1 s (where Euler's relative
@@ -220,6 +224,7 @@ def test_command_scenario_options(tmp_path, capsys: pytest.CaptureFixture) -> No
     assert 'periodic: cycle of 4 boundary points' in out and 'designed offline in' in out
 
 
+@pytest.mark.slow
 def test_command_per_trial_engine(tmp_path, capsys: pytest.CaptureFixture) -> None:
     """--engine per-trial runs the reference engine and writes the same summary numbers."""
     from formopt_ros.cli.montecarlo import main

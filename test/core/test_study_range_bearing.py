@@ -3,11 +3,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from formopt_ros.cli import montecarlo
 from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.scenario import Scenario
 
 
+@pytest.mark.slow
 def test_montecarlo_range_bearing_writes_study_and_sensor_comparison(tmp_path) -> None:
     """A small range-bearing study (2 trials x 6 steps, bearing every 2nd step): its summary
     has every built-in strategy but RAM; OUT/sensors holds RQ and PERIODIC for the three
@@ -30,6 +33,7 @@ def test_montecarlo_range_bearing_writes_study_and_sensor_comparison(tmp_path) -
     assert not (out / 'range-bearing' / 'range_bearing_weighted_trace.png').exists()
 
 
+@pytest.mark.slow
 def test_montecarlo_range_bearing_under_limits(tmp_path) -> None:
     """The study of a range-bearing follower under a speed limit and a safety distance (2
     trials x 20 steps): every strategy runs, RQ over the reachable set included, and the true
