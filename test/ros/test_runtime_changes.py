@@ -37,6 +37,19 @@ def test_use_sim_time_is_refused_while_running(formation) -> None:
     assert run.estimator.pending is None and run.estimator.params['strategy'] == 'ram'
 
 
+def test_a_change_the_start_would_refuse_is_refused_at_run_time(formation) -> None:
+    """RAM on a range-bearing follower is refused at start (formation file, -p); set at run
+    time it is refused in the callback by the same rule, and the node keeps running."""
+    run = formation({'measurement': 'range-bearing', 'strategy': 'rq', 'steps': 200,
+                     'resend_timeout': 60.0})
+    assert run.spin_until(lambda: run.estimator.session.step >= 3, DEADLINE)
+    refused = set_parameters(run, run.estimator, {'strategy': 'ram'})
+    assert not refused[0].successful and 'range-bearing' in refused[0].reason, refused
+    assert run.estimator.pending is None and run.estimator.params['strategy'] == 'rq'
+    step = run.estimator.session.step
+    assert run.spin_until(lambda: run.estimator.session.step >= step + 3, DEADLINE)
+
+
 def test_a_plan_longer_than_a_step_is_warned_and_counted(formation) -> None:
     """LOOKAHEAD at its largest documented beam and horizon plans for seconds: a realtime node
     falls behind, which it counts (slow_plans) instead of stalling silently."""

@@ -179,9 +179,10 @@ class EstimatorPlannerNode(Node):
         values = {**self.params, **change}
         if any(name == 'strategy' or name.startswith(f"{values['strategy']}_")
                for name in change):
-            try:
-                strategy = make_strategy(values['strategy'],
-                                         **strategy_options(values['strategy'], values))
+            options = strategy_options(values['strategy'], values)
+            try:           # the rules of the door (a range-bearing follower refuses RAM)
+                replace(self.run.spec, strategy=values['strategy'], options=options)
+                strategy = make_strategy(values['strategy'], **options)
             except ValueError as error:
                 return str(error)
             self._design(strategy)
