@@ -11,6 +11,10 @@ once ``min_samples`` are in:
   filter; the filter is overconfident (its errors are larger than it believes);
 * **sustained gating** (ERROR): more than ``max_gated_share`` of the measurements in the
   window were refused by the innovation gate;
+* **a run steadily overconfident** (ERROR): the mean NEES of the whole run (from
+  ``run_min_samples`` on) lies above the band of the mean of (samples / ``nees_correlation``)
+  independent chi-square(3) values; the window's NEES band is that of one value (the samples
+  of one run are correlated), which lets a filter a few times overconfident through;
 * WARN: the window mean lies below the band (a conservative filter), or some measurements of
   the window were gated (fewer than the share above);
 * OK otherwise (also while the window fills).
@@ -96,6 +100,9 @@ class WatchSettings:
             sustained (an ERROR), in [0, 1].
         cap_probability: each sample counts at most its chi-square quantile of this
             probability (1.0: no cap).
+        nees_correlation: steps over which one run's NEES stays correlated; the run's mean
+            NEES counts as the mean of (samples / nees_correlation) independent values.
+        run_min_samples: NEES samples needed before the run's mean is judged.
     """
 
     window: int = 50
@@ -104,6 +111,8 @@ class WatchSettings:
     patience: int = 25
     max_gated_share: float = 0.1
     cap_probability: float = 0.999
+    nees_correlation: int = 50
+    run_min_samples: int = 200
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_samples <= self.window:
@@ -115,6 +124,9 @@ class WatchSettings:
             raise ValueError(f'confidence must be in (0, 1), got {self.confidence}')
         if not 0.0 <= self.max_gated_share <= 1.0:
             raise ValueError(f'max_gated_share must be in [0, 1], got {self.max_gated_share}')
+        if self.nees_correlation < 1 or self.run_min_samples < self.nees_correlation:
+            raise ValueError('nees_correlation must be >= 1 and run_min_samples >= it, got '
+                             f'{self.nees_correlation}, {self.run_min_samples}')
         if not 0.0 < self.cap_probability <= 1.0:
             raise ValueError(f'cap_probability must be in (0, 1], got {self.cap_probability}')
 
@@ -181,6 +193,8 @@ class ConsistencyWatch:
         self.counters = {'nis_samples': 0, 'nees_samples': 0, 'gated': 0,
                          'inconsistent_steps': 0, 'gating_steps': 0, 'warn_steps': 0}
         self.gating_status: tuple[str, str] = (OK, '')
+        self.run_nees: list[float] = []         # the run's NEES samples (finite ones)
+        self.run_status: tuple[str, str] = (OK, '')
         self.current = Verdict()
         self.worst = Verdict()
         self._bands: dict[tuple[int, int], tuple[float, float]] = {}
@@ -209,7 +223,34 @@ class ConsistencyWatch:
         self.nees.add(float(nees))
         self.counters['nees_samples'] += 1
         self._judge_window('NEES', self.nees)
+        if math.isfinite(nees):
+            self.run_nees.append(float(nees))
+        self._judge_run()
         return self._combine(step)
+
+    def _judge_run(self) -> None:
+        """The run's mean NEES against the band of the mean of samples / nees_correlation
+        independent chi-square(3) values: a filter steadily a few times overconfident (e.g.
+        unobservable, as MTF with range) stays under the single-value band of the window."""
+        count = len(self.run_nees)
+        if count < self.settings.run_min_samples:
+            return
+        independent = count // self.settings.nees_correlation
+        key = (-NEES_DOF, independent)
+        if key not in self._bands:
+            self._bands[key] = window_band(independent, NEES_DOF, self.settings.confidence)
+        low, high = self._bands[key]
+        mean = math.fsum(self.run_nees) / count
+        self.run_status = (OK, '')
+        if mean > high:
+            self.run_status = (ERROR, f'sustained inconsistency: mean NEES {mean:.3g} over the '
+                                      f'run ({count} steps) above the '
+                                      f'{100 * self.settings.confidence:g} % band '
+                                      f'[{low:.3g}, {high:.3g}] of a consistent filter '
+                                      f'(NEES is correlated over about '
+                                      f'{self.settings.nees_correlation} steps: {independent} '
+                                      'independent values)')
+            self.counters['inconsistent_steps'] += 1
 
     def _judge_window(self, name: str, window: _Window) -> None:
         n = len(window.values)
@@ -245,7 +286,7 @@ class ConsistencyWatch:
             self.gating_status = (WARN, f'{gated} of the last {n} measurements gated')
 
     def _combine(self, step: int | None) -> Verdict:
-        statuses = [self.nis.status, self.nees.status, self.gating_status]
+        statuses = [self.nis.status, self.nees.status, self.gating_status, self.run_status]
         level = max((level for level, _ in statuses), key=LEVELS.index)
         reason = '; '.join(text for lvl, text in statuses if lvl == level and text)
         self.current = Verdict(level, reason, step)
@@ -265,8 +306,9 @@ class ConsistencyWatch:
         return self.worst.level == ERROR
 
     def summary(self) -> dict[str, Any]:
-        """JSON-friendly state: current and worst verdicts, window means, counters."""
-        return {'verdict': self.current.as_dict(), 'worst': self.worst.as_dict(),
+        """JSON-friendly state: the worst verdict (latched: it decides the run), the last one
+        (after the last sample), window means, counters."""
+        return {'worst': self.worst.as_dict(), 'last': self.current.as_dict(),
                 'window_mean_nis': _finite_or_none(self.nis.mean),
                 'window_mean_nees': _finite_or_none(self.nees.mean),
                 'counters': dict(self.counters),
@@ -275,7 +317,9 @@ class ConsistencyWatch:
                              'confidence': self.settings.confidence,
                              'patience': self.settings.patience,
                              'max_gated_share': self.settings.max_gated_share,
-                             'cap_probability': self.settings.cap_probability}}
+                             'cap_probability': self.settings.cap_probability,
+                             'nees_correlation': self.settings.nees_correlation,
+                             'run_min_samples': self.settings.run_min_samples}}
 
 
 def _finite_or_none(value: float) -> float | None:
