@@ -357,3 +357,20 @@ def test_a_plan_outside_the_disc_stops_the_node_in_one_line() -> None:
     assert node.exit_code == 1 and node.finished and logged == [node.error]
     assert node.error == ("strategy 'cheater' planned a point 3 m from the slot, outside its "
                           'disc (r = 1 m); the waypoint is not sent')
+
+
+def test_a_frozen_peer_ends_the_run_after_the_stall_timeout(formation) -> None:
+    """leader_sim stops answering mid-run (a frozen process: taken off the executor): the
+    estimator ends the run with exit code 1 after stall_timeout, naming the input it no longer
+    hears, instead of resending its waypoint until the run's --timeout."""
+    run = formation({'measurement': 'range', 'steps': 400, 'stall_timeout': 1.5,
+                     'resend_timeout': 0.2})
+    assert run.spin_until(lambda: run.estimator.session.step >= 5, 30.0)
+    run.executor.remove_node(run.leader)
+    try:
+        assert run.spin_until(lambda: run.estimator.finished, 30.0)
+    finally:
+        run.executor.add_node(run.leader)
+    assert run.estimator.exit_code == 1 and run.estimator.session.step < 400
+    assert '(stall_timeout)' in run.estimator.error, run.estimator.error
+    assert 'leader odometry (leader_sim)' in run.estimator.error, run.estimator.error

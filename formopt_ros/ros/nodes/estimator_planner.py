@@ -52,10 +52,17 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
               '(a peer restarted, a message was lost), s', 0.01, 3600.0, read_only=False),
         Param('status_period', 1.0, 'publish /diagnostics this often and the status at least '
               'this often (also while no step completes), s', 0.05, 60.0, read_only=False),
+        Param('stall_timeout', 20.0, 'end the run (exit 1, naming the inputs not heard) when '
+              'no step completes for this long once it started (a peer frozen or gone), s; 0: '
+              'wait for good', 0.0, 86400.0, read_only=False),
         RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in; estimate, "
            'waypoint, status, markers, leader -> <follower>/estimate on /tf, /diagnostics and '
            'the run description out.')
+#: The inputs a stalled run names when nothing came on them since the last step.
+STALL_INPUTS = {'leader_odom': 'leader odometry (leader_sim)',
+                'follower_odom': 'follower odometry (follower_sim)',
+                'measurement': 'measurements (follower_sim)'}
 #: Publish the markers at most this often (wall time, s): a lockstep run makes hundreds of
 #: steps a second, a 3D view needs a few frames.
 MARKER_PERIOD = 0.1
@@ -117,7 +124,8 @@ class EstimatorPlannerNode(Node):
             robot: deque(maxlen=REJOIN_POSES) for robot in ('follower', 'leader')}
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
-        self.last_progress = time.monotonic()
+        self.last_progress = self.last_step_at = time.monotonic()
+        self.heard_at_step: dict[str, int] = {}     # self.received at the last completed step
         self.last_status = 0.0
         self.last_diagnostics = 0.0
         self.last_markers = -math.inf
@@ -391,7 +399,7 @@ class EstimatorPlannerNode(Node):
             f'{np.round(np.diag(estimator.covariance), 6).tolist()}')
         self.last_plan = self.session.plan_next()
         self._send(self.last_plan)
-        self.last_progress = time.monotonic()
+        self.last_progress = self.last_step_at = time.monotonic()
 
     # --- processing ------------------------------------------------------------------------
     @stops_on_a_plan_outside_the_disc
@@ -455,7 +463,8 @@ class EstimatorPlannerNode(Node):
             stamp, self.leader_id, self.frames['estimate'], outcome.x)]))
         self.published['estimate'] += 1
         self.published['tf'] += 1
-        self.last_progress = time.monotonic()
+        self.last_progress = self.last_step_at = time.monotonic()
+        self.heard_at_step = dict(self.received)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
         if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
             self.last_markers = time.monotonic()
@@ -509,10 +518,18 @@ class EstimatorPlannerNode(Node):
                 if self.last_plan is None:               # a new run (else: resumed)
                     self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
-                self.last_progress = now
+                self.last_progress = self.last_step_at = now
         elif self.rejoined is not None and self._rejoining() and \
                 now - self.rejoined['since'] > self.params['resend_timeout']:
             self._settle_rejoin(force=True)     # the odometry of the rejoin step was lost
+        elif self.started and not self.finished and self.params['stall_timeout'] > 0 and \
+                now - self.last_step_at > self.params['stall_timeout']:
+            silent = [name for key, name in STALL_INPUTS.items()
+                      if self.received[key] == self.heard_at_step.get(key, 0)]
+            stop_run(self, 1, f'no step completed for {now - self.last_step_at:.0f} s '
+                              f'(stall_timeout) after step {self.session.step}: '
+                              + (f"nothing heard since on {', '.join(silent)}" if silent else
+                                 'inputs arrive but do not complete the step'))
         elif not self.finished and self.last_waypoint is not None and \
                 now - self.last_progress > self.params['resend_timeout']:
             self.throttle.warn('resend', f'no progress on step {self.session.step + 1}: '
