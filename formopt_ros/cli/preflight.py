@@ -194,6 +194,23 @@ def prepare_out(out: Path) -> Path:
     return out.resolve()
 
 
+#: The longest name ROS 2 accepts for a topic or service (rmw: 255 - 8 characters), and the
+#: longest a node makes: its parameter service, under the longest node name of a run.
+ROS_NAME_MAX = 247
+LONGEST_NODE_SERVICE = 'follower_estimator/set_parameters_atomically'
+
+
+def check_name_lengths(prefix: str, formation: Formation) -> None:
+    """Refuse a --prefix and ids that each pass their rules but together make names longer
+    than ROS 2 accepts (every node would fail at start)."""
+    for robot in [formation.leader_id] + [f.id for f in formation.followers]:
+        name = f'{prefix}/{robot}/{LONGEST_NODE_SERVICE}'
+        if len(name) > ROS_NAME_MAX:
+            fail(PROG, f'--prefix and the id {robot!r} make ROS names of {len(name)} '
+                       f'characters, more than ROS 2 accepts ({ROS_NAME_MAX}), e.g. {name}: '
+                       'shorten the prefix or the id')
+
+
 def check_id_ok(part: str) -> bool:
     """True for a namespace part that is a valid id."""
     try:

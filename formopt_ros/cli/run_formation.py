@@ -20,7 +20,8 @@ from typing import Any
 from formopt_ros.cli.audit import audit_recording
 from formopt_ros.cli.common import ArgumentParser, command, fail, integer, number
 from formopt_ros.cli.preflight import (
-    check_id_ok, formation_of, leader_extra, node_specs, prepare_out, real_names)
+    check_id_ok, check_name_lengths, formation_of, leader_extra, node_specs, prepare_out,
+    real_names)
 from formopt_ros.cli.real_run import run_real
 from formopt_ros.cli.supervisor import (
     PROG, RECEIVED_SIGNALS, Launcher, Process, global_remaps, interrupted, orphaned, supervise)
@@ -92,6 +93,7 @@ def run(args: Any) -> int:
     if prefix and not (prefix.startswith('/') and
                        all(part and check_id_ok(part) for part in prefix[1:].split('/'))):
         fail(PROG, f'--prefix must look like /name or /name/name, got {args.prefix!r}')
+    check_name_lengths(prefix, formation)
     out = prepare_out(args.out)
     # until the run writes its own: what a run that ends without one (a full disk, SIGKILL)
     # leaves behind

@@ -156,6 +156,8 @@ def test_range_bearing_formation_equals_the_simulation(tmp_path: Path, ros_domai
     (['-p', 'dt:=0.02', '-p', 'dt:=0.03'], "-p dt is given twice ('0.02' and '0.03')"),
     (['--prefix', 'a'], "--prefix must look like /name or /name/name, got 'a'"),
     (['--prefix', '//a'], "--prefix must look like /name or /name/name, got '//a'"),
+    (['--prefix', ('/' + 'p' * 64) * 3], "--prefix and the id 'follower' make ROS names of 249 "
+                                         'characters, more than ROS 2 accepts (247)'),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_loud_noise.yaml')],
      'formation follower range: noise must be a number in [0.001, 1000] m'),
     (['--formation', str(REPO / 'test' / 'data' / 'formation_broken.yaml')],
