@@ -159,17 +159,19 @@ def offline_main(args: Any) -> int:
         'ok' if worst['level'] == 'ok' else
         f"{worst['level'].upper()} at step {worst['step']}: {worst['reason']}"))
     planned = follower.description.steps
-    cut = planned > result.last_step
+    absent, first = list(result.absent), result.last_step + 1
+    while absent and absent[-1] == first - 1:       # missing up to the cut: part of the cut
+        first = absent.pop()
+    cut = planned >= first
     inconsistent = not result.consistent
     if cut:
-        first = result.last_step + 1
         gone = f'step {planned} is' if first == planned else f'steps {first}-{planned} are'
         print(f'the run had {planned} steps; {gone} missing from the recording (a cut or '
               'repaired bag?)')
-    if result.not_recorded or result.not_reestimated or result.absent:
+    if result.not_recorded or result.not_reestimated or absent:
         both = result.steps - len(result.not_recorded)
         parts = [f'{what} {step_ranges(steps)}' for what, steps in (
-            ('missing from the recording:', result.absent),
+            ('missing from the recording:', absent),
             ('recorded but not re-estimated (their inputs are missing):',
              result.not_reestimated),
             ('re-estimated but missing from the recording:', result.not_recorded)) if steps]
