@@ -19,6 +19,8 @@ from formopt_ros.core.reach import Region, reach_centre, reach_region
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.strategies.certificate import CRITICAL_POINTS, PROVED
+from formopt_ros.core.strategies.periodic_design import (
+    SteadyConditions, cached_design, fits_reach, greedy_loop)
 from formopt_ros.core.strategies.region import ENUMERATION, rq_in_region
 from formopt_ros.core.study import StudyConfig, follower_motion, run_study, summarize
 from harness.problems import families, stacked_problem
@@ -252,16 +254,30 @@ def test_every_strategy_plans_inside_the_region(kind: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('kind', [RANGE, BEARING])
-def test_periodic_plays_greedy_when_its_cycle_does_not_fit(kind: str) -> None:
-    """Under 1.5 m/s the four-point cycle is out of reach: PERIODIC's waypoints are RQ's over
-    the reachable set, step for step; under 20 m/s it fits, and PERIODIC joins it."""
+@pytest.mark.parametrize('kind, ratio, gain', [(RANGE, 0.95, 0.02), (BEARING, 0.40, 0.30)])
+def test_periodic_plays_a_cycle_within_reach(kind: str, ratio: float, gain: float) -> None:
+    """Under 1.5 m/s the four-point boundary cycle is out of reach: PERIODIC designs a cycle
+    within reach from greedy's own loop (measured noise-free: 0.934 and 0.346 of greedy's
+    steady tr(W P W)), every move of it in the reach disc; played (10 trials x 400 steps) its
+    steady tr(W P W) is below speed-limited greedy's (RQ over the reachable set; measured:
+    -4 % and -41 %) with the filter consistent. Under 20 m/s the boundary cycle fits and is
+    the design."""
     tight = Scenario.paper(kind, max_speed=1.5)
-    np.testing.assert_array_equal(run_trial(tight, 'periodic', 0, 0, 120).waypoints,
-                                  run_trial(tight, 'rq', 0, 0, 120).waypoints)
-    loose = Scenario.paper(kind, max_speed=20.0)
-    assert np.max(np.abs(run_trial(loose, 'periodic', 0, 0, 120).waypoints
-                         - run_trial(loose, 'rq', 0, 0, 120).waypoints)) > 0.1
+    conditions = SteadyConditions.from_scenario(tight)
+    assert conditions is not None and conditions.reach == pytest.approx(0.15)
+    design = cached_design(conditions, 4)[0]
+    assert design is not None and fits_reach(design.points, conditions)
+    assert design.steady_cost <= ratio * greedy_loop(conditions)[0]
+    config = StudyConfig(kind, 10, 400, 0, ('rq', 'periodic'), scenario={'max_speed': 1.5})
+    rows = summarize(run_study(config, jobs=1))['strategies']
+    assert rows['periodic']['steady_trace'] <= (1.0 - gain) * rows['rq']['steady_trace'], rows
+    assert 2.0 <= rows['periodic']['nees_mean'] <= 4.0
+    loose = SteadyConditions.from_scenario(Scenario.paper(kind, max_speed=20.0))
+    assert loose is not None
+    boundary = cached_design(loose, 4)[0]
+    assert boundary is not None and boundary.period == 4
+    np.testing.assert_allclose(np.hypot(*(boundary.points - loose.slot).T), loose.r,
+                               rtol=1e-12)
 
 
 def test_follower_motion_of_a_straight_run() -> None:

@@ -43,10 +43,10 @@ from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import BEARING, RANGE, measurement_jacobian, propagate_state
 from formopt_ros.core.protocol import predict_move
-from formopt_ros.core.reach import Region, reach_region
+from formopt_ros.core.reach import reach_region
 from formopt_ros.core.strategies.base import OptionSpec, PlanContext, Solution, Strategy, \
     make_solution
-from formopt_ros.core.strategies.region import rq_in_region
+from formopt_ros.core.strategies.region import rq_in_region, rq_target
 from formopt_ros.core.strategies.rq import rq_optimum
 
 #: Rings of the fixed polar grid of the slot's disc (besides its centre).
@@ -208,7 +208,7 @@ class RecedingHorizon(Strategy):
                 step_region = reach_region((float(slot[0]), float(slot[1])), r, x,
                                            context.leader_velocities, context.dt,
                                            context.kinematics, max_speed, safety)
-            target = _greedy_target(step_problem, step_region)
+            target = rq_target(step_problem, step_region)
             if first is None:
                 first = target
             moved, prior = predict_move(x[None], P[None], target[None],
@@ -221,13 +221,6 @@ class RecedingHorizon(Strategy):
             total += trace
         assert first is not None
         return first, total + terminal * trace
-
-
-def _greedy_target(problem: Problem, region: Region | None) -> np.ndarray:
-    """RQ's certified optimum over the disc, or over the region when it restricts, (2,)."""
-    if region is None or not region.restricts:
-        return rq_optimum(problem).p
-    return rq_in_region(problem, region).p
 
 
 __all__ = ['GRID_ANGLES', 'GRID_RINGS', 'REACH_ANGLES', 'RecedingHorizon', 'disc_grid',

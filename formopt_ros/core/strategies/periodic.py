@@ -16,17 +16,21 @@ transient, and it may take hundreds of steps to pay. So this strategy
 3. follows the cycle, watching the covariance: when it exceeds its forecast by more than
    ``tolerance`` (lost measurements, a disturbance) it returns to 2.
 
-When the leader turns (or the expected leader motion is not constant over the step), or the
-cycle does not fit the step's reachable set (a point out of reach of the one before it under
-the speed limit, or inside the safety distance), it plays greedy; when the slot or r change,
-or a noise level, the leader speed or dt by more than ``replan_tolerance``, it designs again
-(or takes the cached design) and starts over at 2.
-Every point is either RQ's (feasible) or on the boundary circle of the problem's own disc.
+Under a speed limit or a safety distance the design is a cycle within reach when the boundary
+cycle does not fit (:func:`.periodic_design.design_within_reach`: every move in the reach
+disc, every point outside the safety distance); a cycle point out of reach of the estimated
+pose is projected onto the step's reachable set (:func:`.region.plan_within`). When the leader
+turns (or the expected leader motion is not constant over the step), or the cycle does not fit
+the reachable set, it plays greedy; when the slot or r change, or a noise level, the leader
+speed, dt or the limits by more than ``replan_tolerance``, it designs again (or takes the
+cached design) and starts over at 2.
+Every point is either RQ's (feasible) or a point of the cycle, in the problem's own disc.
 ``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
 greedy, turning fallbacks and switch tests.
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -34,11 +38,10 @@ import numpy as np
 
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
-from formopt_ros.core.reach import Region, reach_centre
 from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
-    PatternDesign, SteadyConditions, cached_design, greedy_target, noise_free_step)
+    PatternDesign, SteadyConditions, cached_design, fits_reach, greedy_target, noise_free_step)
 from formopt_ros.core.strategies.rq import rq_optimum
 
 if TYPE_CHECKING:
@@ -56,10 +59,13 @@ def steady_conditions(problem: Problem, context: PlanContext) -> SteadyCondition
     speeds = {v for v, _ in context.leader_velocities}
     if not context.leader_straight or len(speeds) != 1:
         return None
+    region = context.region
     return SteadyConditions(problem.measurement, (float(problem.p_o[0]), float(problem.p_o[1])),
                             float(problem.r), float(problem.sigma), float(speeds.pop()), 0.0,
                             context.dt, context.sigma_v, context.sigma_omega, context.kinematics,
-                            float(getattr(problem, 'sigma_bearing', 0.0)))
+                            float(getattr(problem, 'sigma_bearing', 0.0)),
+                            region.radius if region is not None else math.inf,
+                            region.safety if region is not None else 0.0)
 
 
 class PeriodicPattern(Strategy):
@@ -116,7 +122,7 @@ class PeriodicPattern(Strategy):
         designed = self._adopt(conditions, context.step)
         if self.design is None:
             return self._greedy(problem, 'no periodic steady state', designed)
-        if context.region is not None and not self._fits(context.region, context):
+        if not fits_reach(self.design.points, conditions):
             self.mode = GREEDY
             return self._greedy(problem, 'the cycle does not fit the reachable set', designed)
         x, P = context.estimator.x, context.estimator.P
@@ -149,23 +155,6 @@ class PeriodicPattern(Strategy):
         if design_time_s is not None:
             details['design_time_s'] = design_time_s
         return details
-
-    def _fits(self, region: Region, context: PlanContext) -> bool:
-        """True when every point of the cycle is reachable from the one before it under the
-        region's speed limit and keeps the safety distance (a cycle that does not fit would be
-        projected point by point, and its forecasts would not hold)."""
-        assert self.design is not None
-        points = self.design.points
-        if np.any(np.hypot(points[:, 0], points[:, 1]) < region.safety):
-            return False
-        if region.centre is None or not np.isfinite(region.radius):
-            return True
-        for before, after in zip(points, np.roll(points, -1, axis=0)):
-            centre = reach_centre(np.array([before[0], before[1], 0.0]),
-                                  context.leader_velocities, context.dt, context.kinematics)
-            if np.hypot(after[0] - centre[0], after[1] - centre[1]) > region.radius:
-                return False
-        return True
 
     # --- conditions and design ---------------------------------------------------------------
     def _adopt(self, conditions: SteadyConditions, step: int) -> float | None:
@@ -259,6 +248,11 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     if design is None:
         return 'no cycle has a steady state (greedy throughout)'
     angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
+    radii = np.hypot(*(design.points - conditions.slot).T)
+    if not np.allclose(radii, conditions.r, rtol=1e-9):       # designed within reach
+        return (f'cycle of {design.period} points within reach (angles [{angles}] deg around '
+                f'p_o), steady tr(W P W) {design.steady_cost:.6g} m^2, designed offline in '
+                f'{design.design_time_s:.2f} s (once per scenario and worker process)')
     return (f'cycle of {period} boundary points at [{angles}] deg around p_o, steady '
             f'tr(W P W) {design.steady_cost:.6g} m^2, settles in {design.horizon} steps; '
             f'designed offline in {design.design_time_s:.2f} s ({design.evaluations} cycles '

@@ -22,12 +22,18 @@ group the points near the two of the best pair, the two best refined in full, ke
 than the pair repeated. A cycle that passes the leader closer than LINEARITY_MARGIN position
 standard deviations is rejected: there the EKF's linearisation, hence the forecast, fails.
 Designs are cached per :class:`SteadyConditions` and period (a study's trials share one).
+
+Under a speed limit (or a safety distance) a boundary cycle jumps further than the follower can
+go in a step; when it does not fit, :func:`design_within_reach` starts from greedy's own loop
+over the reachable set and refines it (and 12 points sampled along it) by SLSQP under the
+reach, disc and safety constraints, on the same exact periodic steady state.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -39,7 +45,8 @@ from formopt_ros.core.model import (
     predict_measurement, propagate_state, transition_matrices)
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move
-from formopt_ros.core.strategies.rq import rq_optimum
+from formopt_ros.core.reach import Region, reach_centre
+from formopt_ros.core.strategies.region import rq_target
 
 if TYPE_CHECKING:
     from formopt_ros.core.scenario import Scenario
@@ -60,6 +67,14 @@ SETTLE_FACTOR = 0.01
 LINEARITY_MARGIN = 6.0
 #: Designs kept in the cache.
 CACHE_SIZE = 16
+#: Within reach: greedy's run (steps) whose last GREEDY_STEADY steps give its steady cost and
+#: loop; the longest loop refined as it is; the points of the cycle sampled along it; SLSQP's
+#: iteration cap; the relative tolerance of a cycle's moves in the reach disc.
+GREEDY_STEPS, GREEDY_STEADY = 400, 133
+REACH_LONGEST_LOOP = 24
+REACH_SAMPLED = 12
+REACH_ITERATIONS = 300
+REACH_RTOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -76,6 +91,8 @@ class SteadyConditions:
         sigma_v, sigma_omega: odometry noise standard deviations, m/s and rad/s.
         kinematics: the motion model, 'exact' or 'euler' (core/model.py).
         sigma_bearing: 'range-bearing' only: the bearing noise, rad (sigma is the range's).
+        reach: the radius of the reach disc, max_speed * 2 dt, m (inf: no speed limit).
+        safety: the safety distance from the leader, m (0: none).
     """
 
     measurement: str
@@ -89,6 +106,8 @@ class SteadyConditions:
     sigma_omega: float
     kinematics: str = EXACT
     sigma_bearing: float = 0.0
+    reach: float = math.inf
+    safety: float = 0.0
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
@@ -96,9 +115,11 @@ class SteadyConditions:
         v_l, omega_l = scenario.leader.velocity(0, scenario.dt)
         if omega_l != 0.0:
             return None
+        reach = math.inf if scenario.max_speed is None else \
+            scenario.max_speed * SUBSTEPS * scenario.dt
         return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, 0.0,
                    scenario.dt, scenario.sigma_v, scenario.sigma_omega, scenario.kinematics,
-                   scenario.sigma_bearing)
+                   scenario.sigma_bearing, reach, scenario.safety_distance)
 
     @property
     def slot(self) -> np.ndarray:
@@ -116,11 +137,26 @@ class SteadyConditions:
         if (self.measurement, self.p_o, self.r, self.kinematics) != \
                 (other.measurement, other.p_o, other.r, other.kinematics):
             return False
+        if (math.isfinite(self.reach), self.safety) != (math.isfinite(other.reach), other.safety):
+            return False
         mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega,
-                self.sigma_bearing)
+                self.sigma_bearing, min(self.reach, 1.0))
         theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
-                  other.sigma_omega, other.sigma_bearing)
+                  other.sigma_omega, other.sigma_bearing, min(other.reach, 1.0))
         return all(abs(a - b) <= tolerance * max(abs(a), abs(b)) for a, b in zip(mine, theirs))
+
+    @property
+    def limited(self) -> bool:
+        """True under a speed limit (a finite reach)."""
+        return math.isfinite(self.reach)
+
+    def region(self, x: np.ndarray) -> Region | None:
+        """The reachable set of a step from pose x (3,) (None: the paper's protocol)."""
+        if not self.limited and not self.safety > 0.0:
+            return None
+        centre = reach_centre(x, self.leader, self.dt, self.kinematics) if self.limited \
+            else None
+        return Region(self.p_o, self.r, centre, self.reach, self.safety)
 
     def boundary_points(self, angles: np.ndarray) -> np.ndarray:
         """Points p_o + r [cos a, sin a] (n, 2), m, for angles a (n,), rad."""
@@ -164,11 +200,12 @@ def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
 
 
 def greedy_target(x: np.ndarray, P: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
-    """RQ's choice from posterior (x, P): the exact optimum with the paper's planning prior."""
+    """RQ's choice from posterior (x, P): the exact optimum with the paper's planning prior,
+    over the step's reachable set under a speed limit or a safety distance."""
     c = conditions
     prior = predict_move(x, P, c.slot, c.leader, c.dt, c.sigma_v, c.sigma_omega,
                          c.kinematics)[1]
-    return rq_optimum(c.problem(prior)).p
+    return rq_target(c.problem(prior), c.region(x))
 
 
 def lft(M: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -227,7 +264,8 @@ class PatternDesign:
 
     Attributes:
         conditions: what it was designed for.
-        angles: boundary angles a_k (m,), rad: p_k = p_o + r [cos a_k, sin a_k].
+        angles: angles a_k (m,) of the points around p_o, rad (a boundary cycle:
+            p_k = p_o + r [cos a_k, sin a_k]; a cycle within reach has inner points too).
         points: the pattern's points (m, 2), leader frame, m.
         posteriors: steady posterior covariance at each phase (m, 3, 3).
         costs: tr(W P W) of those posteriors (m,), m^2.
@@ -482,6 +520,127 @@ def design_pattern(conditions: SteadyConditions, period: int) -> PatternDesign |
                          time.perf_counter() - start_time, objective.evaluations)
 
 
+def fits_reach(points: np.ndarray, conditions: SteadyConditions,
+               rtol: float = REACH_RTOL) -> bool:
+    """True when each point of a cycle (m, 2) is reachable from the one before it and keeps
+    the safety distance (within ``rtol`` of the reach and of the distance)."""
+    c = conditions
+    if np.any(np.hypot(points[:, 0], points[:, 1]) < c.safety * (1.0 - rtol)):
+        return False
+    if not c.limited:
+        return True
+    return bool(np.all(_reach_margins(points.ravel(), c)[:len(points)]
+                       >= -rtol * c.reach * c.reach))
+
+
+def _reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+    """Margins (m^2) of a cycle's flattened points z (2m,) in the constraints of a design
+    within reach, >= 0 when met: each move inside the reach disc (reach^2 - |move off its
+    centre|^2), each point in the slot's disc (r^2 - |p - p_o|^2) and outside the safety
+    circle (|p|^2 - safety^2)."""
+    c = conditions
+    points = z.reshape(-1, 2)
+    origin = np.zeros(3)
+    shift = -np.array(reach_centre(origin, c.leader, c.dt, c.kinematics))  # straight leader
+    margins = [c.r * c.r - np.sum((points - c.slot) ** 2, axis=1)]
+    if c.limited:
+        moves = np.roll(points, -1, axis=0) - (points - shift)
+        margins.insert(0, c.reach * c.reach - np.sum(moves ** 2, axis=1))
+    if c.safety > 0.0:
+        margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
+    return np.concatenate(margins)
+
+
+def greedy_loop(conditions: SteadyConditions) -> tuple[float, np.ndarray]:
+    """Greedy (RQ over the reachable set) on the noise-free recursion from the slot with the
+    paper's initial covariance: the mean tr(W P W) of its last GREEDY_STEADY of GREEDY_STEPS
+    steps (m^2) and its last targets (GREEDY_STEADY, 2), m. Under a speed limit it settles
+    into a loop that crawls around the disc."""
+    c = conditions
+    x, P = np.array([*c.p_o, 0.0]), np.diag([0.1, 0.1, 4e-4])
+    costs, targets = [], []
+    for _ in range(GREEDY_STEPS):
+        target = greedy_target(x, P, c)
+        x, P = noise_free_step(x, P, target, c)
+        targets.append(target)
+        costs.append(weighted_trace(P, c.slot))
+    return float(np.mean(costs[-GREEDY_STEADY:])), np.array(targets[-GREEDY_STEADY:])
+
+
+def loop_length(targets: np.ndarray, longest: int, tolerance: float) -> int | None:
+    """The period of a loop of targets (n, 2): the least K <= ``longest`` with the last two
+    targets repeated K steps earlier within ``tolerance`` (m); None when there is none."""
+    for period in range(1, min(longest, len(targets) - 2) + 1):
+        if all(np.hypot(*(targets[-j] - targets[-j - period])) <= tolerance for j in (1, 2)):
+            return period
+    return None
+
+
+def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
+    """The best cycle within reach (every move inside the reach disc, every point in the
+    slot's disc and outside the safety circle) found from greedy's own loop, or None when none
+    beats greedy's steady state.
+
+    Greedy over the reachable set settles into a loop (its period K); that loop (when K <=
+    REACH_LONGEST_LOOP) and REACH_SAMPLED points sampled along it are refined by SLSQP on the
+    exact periodic steady state (:func:`evaluate_cycles`) under the margins of
+    :func:`_reach_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
+    "PERIODIC within reach"), it does not prove the best cycle.
+    """
+    from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
+    start_time = time.perf_counter()
+    c = conditions
+    greedy_cost, targets = greedy_loop(c)
+    period = loop_length(targets, REACH_LONGEST_LOOP, 1e-6 * (math.hypot(*c.p_o) + c.r))
+    starts = [] if period is None or period < 2 else [targets[-period:]]
+    if period is None or period != REACH_SAMPLED:
+        cycle = targets[-(period or len(targets)):]
+        starts.append(cycle[np.linspace(0, len(cycle), REACH_SAMPLED, endpoint=False)
+                            .astype(int)])
+    evaluations = 0
+
+    def cost(z: np.ndarray) -> float:
+        nonlocal evaluations
+        evaluations += 1
+        points = z.reshape(-1, 2)
+        return float(evaluate_cycles(cycle_maps(points, c)[None], points[None], c)[0][0])
+
+    best: tuple[float, np.ndarray] | None = None
+    for start in starts:
+        result = minimize(cost, start.ravel(), method='SLSQP',
+                          constraints=[{'type': 'ineq', 'fun': partial(_reach_margins,
+                                                                       conditions=c)}],
+                          options={'maxiter': REACH_ITERATIONS, 'ftol': 1e-12})
+        points = result.x.reshape(-1, 2)
+        value = cost(result.x)
+        if np.isfinite(value) and fits_reach(points, c) and (best is None or value < best[0]):
+            best = (value, points)
+    if best is None or not best[0] < greedy_cost:
+        return None
+    points = best[1]
+    maps = cycle_maps(points, c)
+    mean_cost, posteriors, decay = evaluate_cycles(maps[None], points[None], c)
+    m, factor = len(points), min(float(decay[0]), 1.0 - 1e-9)
+    angles = np.mod(np.arctan2(points[:, 1] - c.p_o[1], points[:, 0] - c.p_o[0]), 2 * math.pi)
+    horizon = m * math.ceil(math.log(SETTLE_FACTOR) / math.log(factor))
+    return PatternDesign(c, angles, points, posteriors[0],
+                         np.einsum('i,nii->n', weight_vector(c.slot) ** 2, posteriors[0]),
+                         float(mean_cost[0]), float(decay[0]), max(horizon, 4 * m), maps,
+                         time.perf_counter() - start_time, evaluations)
+
+
+def design_for(conditions: SteadyConditions, period: int) -> PatternDesign | None:
+    """The boundary cycle of :func:`design_pattern`; under a speed limit or a safety distance
+    it is kept when it fits the reachable set (and is no worse than the best cycle within
+    reach), else the cycle of :func:`design_within_reach`."""
+    design = design_pattern(conditions, period)
+    if not conditions.limited and not conditions.safety > 0.0:
+        return design
+    if design is not None and fits_reach(design.points, conditions):
+        return design
+    return design_within_reach(conditions)
+
+
 _CACHE: dict[tuple[SteadyConditions, int], PatternDesign | None] = {}
 
 
@@ -493,7 +652,7 @@ def cached_design(conditions: SteadyConditions, period: int) -> tuple[PatternDes
         return _CACHE[key], False
     if len(_CACHE) >= CACHE_SIZE:
         _CACHE.pop(next(iter(_CACHE)))
-    _CACHE[key] = design_pattern(conditions, period)
+    _CACHE[key] = design_for(conditions, period)
     return _CACHE[key], True
 
 

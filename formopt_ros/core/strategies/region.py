@@ -415,6 +415,13 @@ def _grid_in_region(strategy: Strategy, problem: Problem, region: Region) -> Sol
                          int(keep.sum()), details={'region': 'grid restricted'})
 
 
+def rq_target(problem: Problem, region: Region | None) -> np.ndarray:
+    """RQ's certified optimum over the disc, or over the region when it restricts, (2,) m."""
+    if region is None or not region.restricts:
+        return rq_optimum(problem).p
+    return rq_in_region(problem, region).p
+
+
 def plan_within(strategy: Strategy, problem: Problem, context: PlanContext) -> Solution:
     """``strategy``'s answer restricted to ``context.region``:
 
@@ -453,4 +460,5 @@ def plan_within(strategy: Strategy, problem: Problem, context: PlanContext) -> S
 
 
 __all__ = ['ENUMERATION', 'UNREACHABLE', 'certify_in_region', 'circle_form', 'plan_within',
-           'project_into', 'q_circle_of', 'rq_in_region', 's_lemma', 'stationary_angles']
+           'project_into', 'q_circle_of', 'rq_in_region', 'rq_target', 's_lemma',
+           'stationary_angles']
