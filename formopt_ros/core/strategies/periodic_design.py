@@ -132,17 +132,19 @@ class SteadyConditions:
         return ((self.v_l, self.omega_l),) * SUBSTEPS
 
     def close_to(self, other: SteadyConditions, tolerance: float) -> bool:
-        """True when ``other`` has the same sensor, slot and disc (exactly: a cycle must stay
-        in the disc) and noise levels, leader velocity and dt within ``tolerance`` (relative)."""
+        """True when ``other`` has the same sensor, slot, disc and safety distance (exactly: a
+        cycle must stay in the disc), a speed limit when this has one, and noise levels, leader
+        velocity, dt and reach within ``tolerance`` (relative)."""
         if (self.measurement, self.p_o, self.r, self.kinematics) != \
                 (other.measurement, other.p_o, other.r, other.kinematics):
             return False
         if (math.isfinite(self.reach), self.safety) != (math.isfinite(other.reach), other.safety):
             return False
         mine = (self.sigma, self.v_l, self.omega_l, self.dt, self.sigma_v, self.sigma_omega,
-                self.sigma_bearing, min(self.reach, 1.0))
+                self.sigma_bearing, self.reach if self.limited else 0.0)
         theirs = (other.sigma, other.v_l, other.omega_l, other.dt, other.sigma_v,
-                  other.sigma_omega, other.sigma_bearing, min(other.reach, 1.0))
+                  other.sigma_omega, other.sigma_bearing,
+                  other.reach if other.limited else 0.0)
         return all(abs(a - b) <= tolerance * max(abs(a), abs(b)) for a, b in zip(mine, theirs))
 
     @property
