@@ -75,6 +75,7 @@ REACH_LONGEST_LOOP = 24
 REACH_SAMPLED = 12
 REACH_ITERATIONS = 300
 REACH_RTOL = 1e-9
+REACH_FTOL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -612,7 +613,7 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
         result = minimize(cost, start.ravel(), method='SLSQP',
                           constraints=[{'type': 'ineq', 'fun': partial(_reach_margins,
                                                                        conditions=c)}],
-                          options={'maxiter': REACH_ITERATIONS, 'ftol': 1e-12})
+                          options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
         points = result.x.reshape(-1, 2)
         value = cost(result.x)
         if np.isfinite(value) and fits_reach(points, c) and (best is None or value < best[0]):
