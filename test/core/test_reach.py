@@ -258,13 +258,13 @@ def test_every_strategy_plans_inside_the_region(kind: str, names: tuple[str, ...
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('kind, ratio, gain', [(RANGE, 0.95, 0.02), (BEARING, 0.40, 0.30)])
+@pytest.mark.parametrize('kind, ratio, gain', [(RANGE, 0.95, 0.02), (BEARING, 0.40, 0.50)])
 def test_periodic_plays_a_cycle_within_reach(kind: str, ratio: float, gain: float) -> None:
     """Under 1.5 m/s the four-point boundary cycle is out of reach: PERIODIC designs a cycle
     within reach from greedy's own loop (measured noise-free: 0.934 and 0.346 of greedy's
     steady tr(W P W)), every move of it in the reach disc; played (10 trials x 400 steps) its
     steady tr(W P W) is below speed-limited greedy's (RQ over the reachable set; measured:
-    -4 % and -41 %) with the filter consistent. Under 20 m/s the boundary cycle fits and is
+    -4 % and -58 %) with the filter consistent. Under 20 m/s the boundary cycle fits and is
     the design."""
     tight = Scenario.paper(kind, max_speed=1.5)
     conditions = SteadyConditions.from_scenario(tight)

@@ -99,6 +99,7 @@ class PeriodicPattern(Strategy):
         self.backoff = 0                   # doublings of the interval between tests
         self.predicted: np.ndarray = np.empty(0)   # tr(W P W) predicted after each step
         self.joined_at = 0                 # step whose target was the first of the cycle
+        self.approaching = False           # within the first period after joining
         self.counts = {'replans': 0, 'returns_to_greedy': 0, 'turning_fallbacks': 0,
                        'switch_tests': 0, 'unpaid_tests': 0}
 
@@ -126,7 +127,14 @@ class PeriodicPattern(Strategy):
             self.mode = GREEDY
             return self._greedy(problem, 'the cycle does not fit the reachable set', designed)
         x, P = context.estimator.x, context.estimator.P
-        if self.mode == PATTERN and not self._on_track(P, context.step):
+        if self.mode == PATTERN and conditions.limited and self.approaching:
+            # under a speed limit the first points of the cycle may be out of reach (projected):
+            # the forecast holds from where the follower is one period after joining
+            if context.step - self.joined_at >= self.design.period:
+                self.approaching = False
+                self.joined_at = context.step
+                self.predicted = self.design.future_costs(self.phase, P, self._horizon())
+        elif self.mode == PATTERN and not self._on_track(P, context.step):
             self.mode = GREEDY
             self.counts['returns_to_greedy'] += 1
             self.backoff = min(self.backoff + 1, MAX_BACKOFF_DOUBLINGS)
@@ -217,6 +225,7 @@ class PeriodicPattern(Strategy):
             now, later, greedy_throughout = np.inf, 0.0, 0.0
         if np.isfinite(now) and now <= min(later, greedy_throughout):
             self.mode, self.joined_at, self.predicted = PATTERN, step, costs
+            self.approaching = True
             self.phase = (phase - 1) % self.design.period     # plan() advances to `phase`
             return
         if not now <= greedy_throughout:
