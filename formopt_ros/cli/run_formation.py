@@ -77,6 +77,11 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+#: An estimator whose run has not started this long after it did ends the run (a peer
+#: frozen or failing before the first step), s.
+START_TIMEOUT = 60.0
+
+
 def run(args: Any) -> int:
     """The whole run; returns the exit code."""
     formation, formation_file, extra = formation_of(args)
@@ -168,7 +173,7 @@ def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
         sim = launcher.start(f'{follower.id}.follower_sim', 'follower_sim', ns,
                              {k: v for k, v in params.items()
                               if k in sim_names or k in common or k in source})
-        estimator_params = dict(params, steps=args.steps)
+        estimator_params = dict(params, steps=args.steps, start_timeout=START_TIMEOUT)
         if not formation_file:
             estimator_params['strategy'] = follower.strategy
         estimator = launcher.start(f'{follower.id}.estimator_planner', 'estimator_planner',

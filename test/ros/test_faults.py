@@ -374,3 +374,15 @@ def test_a_frozen_peer_ends_the_run_after_the_stall_timeout(formation) -> None:
     assert run.estimator.exit_code == 1 and run.estimator.session.step < 400
     assert '(stall_timeout)' in run.estimator.error, run.estimator.error
     assert 'leader odometry (leader_sim)' in run.estimator.error, run.estimator.error
+
+
+def test_an_estimator_whose_peers_never_come_ends_after_the_start_timeout(node_process) -> None:
+    """An estimator alone (its simulators frozen or never started) with start_timeout 2 s
+    (run_formation.sh sets 60) exits 1 with one line naming what it waits for."""
+    estimator = node_process('estimator_planner', {'measurement': 'range', 'steps': 10,
+                                                   'recorders': 0, 'start_timeout': 2.0})
+    assert estimator.wait(timeout=60.0) == 1, estimator.stderr
+    errors = [line for line in estimator.stderr.splitlines()
+              if line.startswith('estimator_planner: error:')]
+    assert len(errors) == 1 and 'did not start within 2 s (start_timeout): waiting for ' \
+        'subscribers on' in errors[0], estimator.stderr

@@ -52,6 +52,9 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
               '(a peer restarted, a message was lost), s', 0.01, 3600.0, read_only=False),
         Param('status_period', 1.0, 'publish /diagnostics this often and the status at least '
               'this often (also while no step completes), s', 0.05, 60.0, read_only=False),
+        Param('start_timeout', 0.0, 'end the node (exit 1, naming what it waits for) when its '
+              'run has not started this long after the node did (a peer missing or frozen), '
+              's; 0: wait for good (run_formation.sh sets 60)', 0.0, 86400.0),
         Param('stall_timeout', 20.0, 'end the run (exit 1, naming the inputs not heard) when '
               'no step completes for this long once it started (a peer frozen or gone), s; 0: '
               'wait for good', 0.0, 86400.0, read_only=False),
@@ -124,7 +127,7 @@ class EstimatorPlannerNode(Node):
             robot: deque(maxlen=REJOIN_POSES) for robot in ('follower', 'leader')}
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
-        self.last_progress = self.last_step_at = time.monotonic()
+        self.last_progress = self.last_step_at = self.created_at = time.monotonic()
         self.heard_at_step: dict[str, int] = {}     # self.received at the last completed step
         self.last_status = 0.0
         self.last_diagnostics = 0.0
@@ -463,7 +466,7 @@ class EstimatorPlannerNode(Node):
             stamp, self.leader_id, self.frames['estimate'], outcome.x)]))
         self.published['estimate'] += 1
         self.published['tf'] += 1
-        self.last_progress = self.last_step_at = time.monotonic()
+        self.last_progress = self.last_step_at = self.created_at = time.monotonic()
         self.heard_at_step = dict(self.received)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
         if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
@@ -519,6 +522,13 @@ class EstimatorPlannerNode(Node):
                     self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
                 self.last_progress = self.last_step_at = now
+            elif 0 < self.params['start_timeout'] < now - self.created_at:
+                waiting = [f'subscribers on {m}' for m in self.gate.missing()] \
+                    if not self.gate.ready() else \
+                    [f'the description on {topic}' for topic in self.guard.missing()]
+                stop_run(self, 1, f"the run did not start within {self.params['start_timeout']:g}"
+                                  ' s (start_timeout): waiting for '
+                                  + (', '.join(waiting) or 'the peers'))
         elif self.rejoined is not None and self._rejoining() and \
                 now - self.rejoined['since'] > self.params['resend_timeout']:
             self._settle_rejoin(force=True)     # the odometry of the rejoin step was lost
