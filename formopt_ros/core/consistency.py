@@ -111,8 +111,8 @@ class WatchSettings:
     patience: int = 25
     max_gated_share: float = 0.1
     cap_probability: float = 0.999
-    nees_correlation: int = 50
-    run_min_samples: int = 200
+    nees_correlation: int = 150
+    run_min_samples: int = 300
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_samples <= self.window:
