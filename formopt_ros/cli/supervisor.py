@@ -145,7 +145,8 @@ class Launcher:
         self.stop([p for p in self.processes if p.alive()])
 
     def stop(self, processes: list[Process], grace: float = 10.0) -> None:
-        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later."""
+        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later (each with a
+        SIGCONT, so that a stopped process handles the signal at once)."""
         for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
             running = [p for p in processes if p.alive()]
             if not running:
@@ -153,6 +154,7 @@ class Launcher:
             for item in running:
                 try:
                     os.killpg(item.process.pid, sig)
+                    os.killpg(item.process.pid, signal.SIGCONT)   # a frozen (stopped) node too
                 except ProcessLookupError:
                     pass
             deadline = time.monotonic() + wait

@@ -359,12 +359,14 @@ def test_a_plan_outside_the_disc_stops_the_node_in_one_line() -> None:
                           'disc (r = 1 m); the waypoint is not sent')
 
 
-def test_a_frozen_peer_ends_the_run_after_the_stall_timeout(formation) -> None:
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_a_frozen_peer_ends_the_run_after_the_stall_timeout(formation, mode: str) -> None:
     """leader_sim stops answering mid-run (a frozen process: taken off the executor): the
     estimator ends the run with exit code 1 after stall_timeout, naming the input it no longer
-    hears, instead of resending its waypoint until the run's --timeout."""
+    hears, instead of resending its waypoint until the run's --timeout (lockstep) or going on
+    with the leader's last odometry (realtime)."""
     run = formation({'measurement': 'range', 'steps': 400, 'stall_timeout': 1.5,
-                     'resend_timeout': 0.2})
+                     'resend_timeout': 0.2, 'mode': mode})
     assert run.spin_until(lambda: run.estimator.session.step >= 5, 30.0)
     run.executor.remove_node(run.leader)
     try:

@@ -129,6 +129,8 @@ class EstimatorPlannerNode(Node):
         self.last_waypoint: Waypoint | None = None
         self.last_progress = self.last_step_at = self.created_at = time.monotonic()
         self.heard_at_step: dict[str, int] = {}     # self.received at the last completed step
+        #: per stall input: (messages received, when that count was first seen) on the timer
+        self.heard = {key: (0, time.monotonic()) for key in STALL_INPUTS}
         self.last_status = 0.0
         self.last_diagnostics = 0.0
         self.last_markers = -math.inf
@@ -166,7 +168,10 @@ class EstimatorPlannerNode(Node):
             DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS), 'diagnostics')
         self.create_subscription(Odometry, BY_KEY['follower_odom'].name, self.on_follower_odom,
                                  qos.SUBSCRIBED)
-        self.create_subscription(Odometry, peer_topic(self, self.leader_id, 'leader_odom'),
+        self.input_topics = {'follower_odom': BY_KEY['follower_odom'].name,
+                             'leader_odom': peer_topic(self, self.leader_id, 'leader_odom'),
+                             'measurement': BY_KEY['measurement'].name}
+        self.create_subscription(Odometry, self.input_topics['leader_odom'],
                                  self.on_leader_odom, qos.SUBSCRIBED)
         # truth before measurement: when both are ready, the executor serves the truth first
         self.create_subscription(PoseStamped, BY_KEY['truth'].name, self.on_truth,
@@ -522,6 +527,7 @@ class EstimatorPlannerNode(Node):
                     self.last_plan = self.session.plan_next()
                 self._send(self.last_plan)
                 self.last_progress = self.last_step_at = now
+                self.heard = {key: (self.received[key], now) for key in STALL_INPUTS}
             elif 0 < self.params['start_timeout'] < now - self.created_at:
                 waiting = [f'subscribers on {m}' for m in self.gate.missing()] \
                     if not self.gate.ready() else \
@@ -532,14 +538,8 @@ class EstimatorPlannerNode(Node):
         elif self.rejoined is not None and self._rejoining() and \
                 now - self.rejoined['since'] > self.params['resend_timeout']:
             self._settle_rejoin(force=True)     # the odometry of the rejoin step was lost
-        elif self.started and not self.finished and self.params['stall_timeout'] > 0 and \
-                now - self.last_step_at > self.params['stall_timeout']:
-            silent = [name for key, name in STALL_INPUTS.items()
-                      if self.received[key] == self.heard_at_step.get(key, 0)]
-            stop_run(self, 1, f'no step completed for {now - self.last_step_at:.0f} s '
-                              f'(stall_timeout) after step {self.session.step}: '
-                              + (f"nothing heard since on {', '.join(silent)}" if silent else
-                                 'inputs arrive but do not complete the step'))
+        elif self.started and not self.finished and self._stalled(now):
+            pass
         elif not self.finished and self.last_waypoint is not None and \
                 now - self.last_progress > self.params['resend_timeout']:
             self.throttle.warn('resend', f'no progress on step {self.session.step + 1}: '
@@ -556,6 +556,30 @@ class EstimatorPlannerNode(Node):
                 header=conversions.header(self.get_clock().now().to_msg(), ''),
                 status=[self.diagnostic()]))
             self.published['diagnostics'] += 1
+
+    def _stalled(self, now: float) -> bool:
+        """End the run (exit 1) when no step completed, or one input was not heard, for
+        stall_timeout s (a peer frozen or gone; in realtime the steps go on without the
+        leader's odometry); the message names the silent inputs, those whose publisher left
+        the ROS graph first. True when it ended the run."""
+        limit = self.params['stall_timeout']
+        for key in STALL_INPUTS:
+            if self.received[key] != self.heard[key][0]:
+                self.heard[key] = (self.received[key], now)
+        quiet = [key for key in STALL_INPUTS if now - self.heard[key][1] > limit]
+        if limit <= 0 or not quiet and now - self.last_step_at <= limit:
+            return False
+        silent = quiet or [key for key in STALL_INPUTS
+                           if self.received[key] == self.heard_at_step.get(key, 0)]
+        gone = [key for key in silent if self.count_publishers(self.input_topics[key]) == 0]
+        names = [f'{STALL_INPUTS[key]}, no publisher left on {self.input_topics[key]}'
+                 for key in gone] + [STALL_INPUTS[key] for key in silent if key not in gone]
+        what = f'nothing heard for {limit:g} s' if quiet else \
+            f'no step completed for {now - self.last_step_at:.0f} s'
+        stop_run(self, 1, f'{what} (stall_timeout) after step {self.session.step}: '
+                          + (f"silent: {'; '.join(names)}" if names else
+                             'inputs arrive but do not complete the step'))
+        return True
 
     def diagnostic(self) -> Any:
         """OK while steps complete; WARN when inputs were refused, the run stalls or waits for
