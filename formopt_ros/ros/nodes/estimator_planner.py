@@ -471,7 +471,7 @@ class EstimatorPlannerNode(Node):
             stamp, self.leader_id, self.frames['estimate'], outcome.x)]))
         self.published['estimate'] += 1
         self.published['tf'] += 1
-        self.last_progress = self.last_step_at = self.created_at = time.monotonic()
+        self.last_progress = self.last_step_at = time.monotonic()
         self.heard_at_step = dict(self.received)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
         if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
