@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from formopt_ros.core.stacked import StackedProblem
-from formopt_ros.core.strategies.stacked import posterior_terms
+from formopt_ros.core.strategies.stacked import L2_BEARING, L2_RANGE, posterior_terms
 
 SEED = 260
 
@@ -46,10 +46,28 @@ def test_symbolic_gain_rows_and_inversion_identity() -> None:
     assert sp.simplify(lhs - (p - c).dot(p - c) / (p.dot(p) * c.dot(c))) == 0
 
 
+def test_second_derivative_constants_by_sympy() -> None:
+    """sympy, at p = (d, 0) (the rows are rotation-equivariant) and v = (cos a, sin a):
+    |D^2 h_d [v, v]|^2 d^4 = sin^2 a (4 - 3 sin^2 a), whose largest value is 4/3 (L2_RANGE^2),
+    and |D^2 (p / |p|^2) [v, v]|^2 d^6 = 4 (L2_BEARING^2) in every direction."""
+    sp = pytest.importorskip('sympy')
+    t, a, d = sp.symbols('t a d', positive=True)
+    q = sp.Matrix([d + t * sp.cos(a), t * sp.sin(a)])
+    norm2 = q.dot(q)
+    for row, power, expected in ((q / sp.sqrt(norm2), 4, 4 * sp.sin(a) ** 2 - 3 * sp.sin(a) ** 4),
+                                 (q / norm2, 6, sp.Integer(4))):
+        second = sp.diff(row, t, 2).subs(t, 0)
+        assert sp.simplify(sp.expand_trig(second.dot(second) * d ** power - expected)) == 0
+    s2 = sp.symbols('s2')
+    assert sp.maximum(4 * s2 - 3 * s2 ** 2, s2, sp.Interval(0, 1)) == sp.Rational(4, 3)
+    assert math.isclose(L2_RANGE ** 2, 4 / 3) and L2_BEARING == 2.0
+
+
 def test_second_derivative_bounds_hold() -> None:
-    """|D^2 h_d [v, v]| <= 3 |v|^2 / d^2 and |D^2 h_beta [v, v]| <= 6 |v|^2 / d^3 (the solver's
-    constants) at 2000 random points and unit directions, by central second differences
-    (step 1e-4 d); the largest ratios found exceed 1, so the bounds are not vacuous."""
+    """|D^2 h_d [v, v]| <= (2/sqrt 3) |v|^2 / d^2 and |D^2 h_beta [v, v]| <= 2 |v|^2 / d^3 (the
+    solver's constants L2_RANGE, L2_BEARING) at 2000 random points and unit directions, by
+    central second differences (step 1e-4 d, agreement 1e-5 relative); the largest ratios found
+    come within 1 % of the constants, so the bounds are tight."""
     rng = np.random.default_rng(SEED)
     worst = [0.0, 0.0]
     for _ in range(2000):
@@ -62,8 +80,8 @@ def test_second_derivative_bounds_hold() -> None:
                                         (lambda q: np.array([-q[1], q[0]]) / (q @ q), 3))):
             second = (h(p + step * v) - 2 * h(p) + h(p - step * v)) / step ** 2
             worst[k] = max(worst[k], float(np.hypot(*second)) * d ** power)
-    assert worst[0] <= 3.0 and worst[1] <= 6.0
-    assert worst[0] > 1.0 and worst[1] > 1.0           # the bounds are not vacuous
+    assert worst[0] <= L2_RANGE * (1 + 1e-5) and worst[1] <= L2_BEARING * (1 + 1e-5)
+    assert worst[0] > 0.99 * L2_RANGE and worst[1] > 0.99 * L2_BEARING    # tight
 
 
 def test_gradient_and_convexity_of_the_cost() -> None:

@@ -9,8 +9,9 @@ I(p) = sum_i h_i h_i' / R_i:
     f(p) >= f(c) + <G, I(p) - I(c)>,   G = -P_c W^2 P_c   (P_c the posterior at c),
 
 and <G, I(p) - I(c)> = sum_i (2 h_i(c)' G D_i + D_i' G D_i) / R_i with D_i = h_i(p) - h_i(c).
-Taylor's theorem with |D h_d| <= 1/d, |D^2 h_d| <= 3/d^2, |D h_beta| <= 1/d^2,
-|D^2 h_beta| <= 6/d^3 (d the cell's least distance from the leader) gives
+Taylor's theorem with |D h_d| <= 1/d, |D^2 h_d| <= (2/sqrt 3)/d^2, |D h_beta| <= 1/d^2,
+|D^2 h_beta| <= 2/d^3 (d the cell's least distance from the leader; both second-derivative
+bounds are attained, docs/range_bearing.md) gives
 
     f(p) >= f(c) + grad f(c)'(p - c) - rho^2 sum_i (|(G h_i)_xy| L2_i + |G_xy| L1_i^2) / R_i,
 
@@ -67,6 +68,12 @@ POLISH_LEVELS = 5
 FIRST_GRID = 8
 #: Each cell kept is split into SPLIT x SPLIT cells.
 SPLIT = 8
+#: sup |D^2 h_d [v, v]| d^2 / |v|^2 over directions (sympy: s^2 (4 - 3 s^2) <= 4/3, s the sine
+#: of the angle between v and p).
+L2_RANGE = 2.0 / math.sqrt(3.0)
+#: |D^2 h_beta [v, v]| d^3 / |v|^2 for every direction (h_beta's xy part is a rotated inversion
+#: p / |p|^2, i.e. 1 / conj(z): second derivative 2 conj(v)^2 / conj(z)^3).
+L2_BEARING = 2.0
 #: Certificate name of a closed search.
 BRANCH_AND_BOUND = 'branch-and-bound'
 
@@ -122,7 +129,8 @@ def posterior_terms(problem: StackedProblem, x: np.ndarray, y: np.ndarray
                 / (d4 * r_b))
     gy = 2.0 * ((-gd0 * xy + gd1 * x * x) / (d3 * r_d) + (gb0 * yy_xx - gb1 * 2.0 * xy)
                 / (d4 * r_b))
-    g_xy = np.sqrt(g00 * g00 + 2.0 * g01 * g01 + g11 * g11)       # Frobenius >= spectral norm
+    # spectral norm of G_xy, a block of the negative semidefinite G: its largest eigenvalue of -G
+    g_xy = -0.5 * (g00 + g11) + np.hypot(0.5 * (g00 - g11), g01)
     return cost, np.stack([gx, gy]), np.stack([np.hypot(gd0, gd1), np.hypot(gb0, gb1), g_xy])
 
 
@@ -153,9 +161,9 @@ def lower_bounds(problem: StackedProblem, cx: np.ndarray, cy: np.ndarray, w: flo
     with np.errstate(divide='ignore', invalid='ignore'):
         step_d = np.minimum(2.0 * rho / (near + d_c), 2.0)
         step_b = rho / (near * d_c)
-        second = cost + linear - (gh_d * 3.0 * rho * rho / (near * near) + g_xy * step_d * step_d
-                                  ) / r_d \
-            - (gh_b * 6.0 * rho * rho / (near * near * near) + g_xy * step_b * step_b) / r_b
+        second = cost + linear - (gh_d * L2_RANGE * rho * rho / (near * near)
+                                  + g_xy * step_d * step_d) / r_d \
+            - (gh_b * L2_BEARING * rho * rho / (near * near * near) + g_xy * step_b * step_b) / r_b
         first = cost - (2.0 * gh_d * step_d + g_xy * step_d * step_d) / r_d \
             - (2.0 * gh_b * step_b + g_xy * step_b * step_b) / r_b
         lower = np.maximum(np.where(np.isnan(second), -np.inf, second),
