@@ -71,7 +71,8 @@ def test_two_rows_equal_the_stacked_update() -> None:
 
 
 @pytest.mark.parametrize('kind, leader', [
-    ('range', LeaderPath()), ('bearing', LeaderPath(kind='arc', yaw_rate=0.3)),
+    ('range', LeaderPath()),
+    pytest.param('bearing', LeaderPath(kind='arc', yaw_rate=0.3), marks=pytest.mark.slow),
     ('range-bearing', LeaderPath(kind='s-curve', amplitude=0.2))])
 def test_every_waypoint_is_reachable_and_clear_of_the_leader(
         kind: str, leader: LeaderPath) -> None:

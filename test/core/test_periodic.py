@@ -165,7 +165,7 @@ TURN = LeaderPath(kind='segments', segments=(Segment(20.0, 1.0), Segment(6.0, 1.
                                              Segment(1000.0, 1.0)))
 
 
-@pytest.mark.parametrize('kind', ['range', 'bearing'])
+@pytest.mark.parametrize('kind', ['range', pytest.param('bearing', marks=pytest.mark.slow)])
 @pytest.mark.parametrize('overrides', [
     {'r': 1e-3 * math.sqrt(5)}, {'r': 0.95 * math.sqrt(5)}, {'r': 0.3 * math.sqrt(5)},
     {'leader': TURN}, {'leader': LeaderPath('s-curve', 1.0, amplitude=0.5, period=8.0)},
@@ -304,6 +304,7 @@ def test_command_prints_cycle_and_timings(tmp_path, capsys: pytest.CaptureFixtur
     assert 'online decision over 1 x 30 steps' in out
 
 
+@pytest.mark.slow
 def test_docs_figure(tmp_path) -> None:
     """The docs figure (short runs, cycles of 2) is written and not empty."""
     pytest.importorskip('matplotlib')

@@ -158,8 +158,9 @@ def test_scenario_fields() -> None:
         Scenario.paper(RANGE_BEARING, sigma_bearing=0.0)
 
 
-@pytest.mark.parametrize('every', [1, 3])
-@pytest.mark.parametrize('strategy', ['rq', 'gbs', 'mtf', 'crm', 'mme', 'periodic'])
+@pytest.mark.parametrize('strategy, every', [
+    *((strategy, every) for strategy in ('rq', 'gbs', 'mtf', 'crm', 'mme') for every in (1, 3)),
+    pytest.param('periodic', 1, marks=pytest.mark.slow), ('periodic', 3)])
 def test_batched_engine_equals_run_trial(strategy: str, every: int) -> None:
     """run_trials equals run_trial for a range-bearing follower (bearing every step and every
     3rd), to 1e-9 (in practice bit for bit), with a turning leader segment."""

@@ -110,14 +110,18 @@ def check_problems(count: int, seed: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def test_cell_bounds_hold_on_samples() -> None:
+@pytest.mark.parametrize('first, last', [(0, 300),
+                                         pytest.param(300, 3000, marks=pytest.mark.slow)])
+def test_cell_bounds_hold_on_samples(first: int, last: int) -> None:
     """Every cell's lower bound is below the cost at 2000 random points of the cell within the
-    disc (600 cells of every family, half-widths 1e-4..0.3 r)."""
+    disc (3000 cells of every family, the fast tier the first 300; half-widths 1e-4..0.3 r)."""
     rng = np.random.default_rng(SEED)
-    for index in range(600):
+    for index in range(last):
         problem = generated_problem(rng, FAMILIES[index % len(FAMILIES)])
         centre = np.array(problem.slot) + rng.uniform(-problem.r, problem.r, 2)
         w = problem.r * 10.0 ** rng.uniform(-4.0, -0.5)
+        if index < first:
+            continue
         cost, lower = cell_bounds(problem, centre[:1], centre[1:], w)
         points = centre + rng.uniform(-w, w, (2000, 2))
         points = points[np.hypot(*(points - problem.slot).T) <= problem.r]
@@ -129,11 +133,11 @@ def test_cell_bounds_hold_on_samples() -> None:
 
 
 def test_solver_matches_dense_reference() -> None:
-    """18 generated problems (3 of each family; the slow tier runs more): see
+    """12 generated problems (2 of each family; the slow tier runs more): see
     :func:`check_problems`."""
-    out = check_problems(18, SEED)
+    out = check_problems(12, SEED)
     for family in CLOSING:
-        assert out[family]['certified'] == 3
+        assert out[family]['certified'] == 2
         assert out[family]['worst_gap'] <= CERTIFIED_GAP
 
 
