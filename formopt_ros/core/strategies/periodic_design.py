@@ -68,11 +68,13 @@ LINEARITY_MARGIN = 6.0
 #: Designs kept in the cache.
 CACHE_SIZE = 16
 #: Within reach: greedy's run (steps) whose last GREEDY_STEADY steps give its steady cost and
-#: loop; the longest loop refined as it is; the points of the cycle sampled along it; SLSQP's
-#: iteration cap; the relative tolerance of a cycle's moves in the reach disc.
+#: loop; the longest loop refined as it is; the points of the cycle sampled along it; the
+#: length, relative to the loop's, of a slower lap sampled along it; SLSQP's iteration cap; the
+#: relative tolerance of a cycle's moves in the reach disc.
 GREEDY_STEPS, GREEDY_STEADY = 400, 133
 REACH_LONGEST_LOOP = 24
 REACH_SAMPLED = 12
+REACH_STRETCH = 1.3
 REACH_ITERATIONS = 300
 REACH_RTOL = 1e-9
 REACH_FTOL = 1e-12
@@ -532,11 +534,11 @@ def fits_reach(points: np.ndarray, conditions: SteadyConditions,
         return False
     if not c.limited:
         return True
-    return bool(np.all(_reach_margins(points.ravel(), c)[:len(points)]
+    return bool(np.all(reach_margins(points.ravel(), c)[:len(points)]
                        >= -rtol * c.reach * c.reach))
 
 
-def _reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+def reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
     """Margins (m^2) of a cycle's flattened points z (2m,) in the constraints of a design
     within reach, >= 0 when met: each move inside the reach disc (reach^2 - |move off its
     centre|^2), each point in the slot's disc (r^2 - |p - p_o|^2) and outside the safety
@@ -634,9 +636,10 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     beats greedy's steady state.
 
     Greedy over the reachable set settles into a loop (its period K); that loop (when K <=
-    REACH_LONGEST_LOOP) and REACH_SAMPLED points sampled along it are refined by SLSQP on the
-    exact periodic steady state (:func:`evaluate_cycles`) under the margins of
-    :func:`_reach_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
+    REACH_LONGEST_LOOP), REACH_SAMPLED points sampled along it and a slower lap of
+    REACH_STRETCH K points sampled along it are refined by SLSQP on the exact periodic steady
+    state (:func:`evaluate_cycles`, its gradient by :class:`CycleObjective`) under the margins
+    of :func:`reach_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
     "PERIODIC within reach"), it does not prove the best cycle.
     """
     from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
@@ -645,15 +648,16 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     greedy_cost, targets = greedy_loop(c)
     period = loop_length(targets, REACH_LONGEST_LOOP, 1e-6 * (math.hypot(*c.p_o) + c.r))
     starts = [] if period is None or period < 2 else [targets[-period:]]
-    if period is None or period != REACH_SAMPLED:
-        cycle = targets[-(period or len(targets)):]
-        starts.append(cycle[np.linspace(0, len(cycle), REACH_SAMPLED, endpoint=False)
-                            .astype(int)])
+    cycle = targets[-(period or len(targets)):]
+    lengths = {REACH_SAMPLED} if period is None else \
+        {REACH_SAMPLED, round(REACH_STRETCH * period)} - {period}
+    starts += [cycle[np.linspace(0, len(cycle), length, endpoint=False).astype(int)]
+               for length in sorted(lengths)]
     cost = CycleObjective(c)
     best: tuple[float, np.ndarray] | None = None
     for start in starts:
         result = minimize(cost, start.ravel(), jac=cost.gradient, method='SLSQP',
-                          constraints=[{'type': 'ineq', 'fun': partial(_reach_margins,
+                          constraints=[{'type': 'ineq', 'fun': partial(reach_margins,
                                                                        conditions=c)}],
                           options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
         points = result.x.reshape(-1, 2)
