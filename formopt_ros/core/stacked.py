@@ -58,6 +58,7 @@ class StackedProblem:
         self.w = np.array([1.0, 1.0, self.d_o])
         self.M = self.P @ np.diag(self.w * self.w) @ self.P
         self.M = 0.5 * (self.M + self.M.T)
+        self._P, self._M = self.P.tolist(), self.M.tolist()
         P_ = self.P
         self.base_cost = float(trace_entries(float(P_[0, 0]), float(P_[1, 1]),
                                              float(P_[2, 2]), self.w22))
@@ -67,23 +68,22 @@ class StackedProblem:
                 f'sigma={self.sigma!r}, sigma_bearing={self.sigma_bearing!r})')
 
     # --- the cost -----------------------------------------------------------------------------
-    def rows(self, x: Any, y: Any) -> tuple[tuple[Any, Any, Any], tuple[Any, Any, Any]]:
-        """(h_d, h_beta) at points (x, y) (m), each three components (floats or arrays):
-        h_d = (x, y, 0) / d, h_beta = (-y, x, 0) / d^2 - e3."""
+    def innovation_terms(self, x: Any, y: Any) -> tuple[Any, ...]:
+        """(s00, s01, s11, t00, t01, t11) of S = H P H' + R and T = H M H' at points (x, y)
+        (m; floats or arrays of one shape), with the rows h_d = (u_x, u_y, 0) = (x, y, 0) / d
+        and h_beta = (b_x, b_y, -1) = (-y, x, 0) / d^2 - e3, their zeros and ones used."""
         d2 = x * x + y * y
         d = d2 ** 0.5
-        return (x / d, y / d, 0.0 * d), (-y / d2, x / d2, -1.0 + 0.0 * d)
-
-    def innovation_terms(self, x: Any, y: Any) -> tuple[Any, ...]:
-        """(s00, s01, s11, t00, t01, t11) of S = H P H' + R and T = H M H' at (x, y)."""
-        a, b = self.rows(x, y)
-        P, M = self.P.tolist(), self.M.tolist()
-
-        def form(A: list[list[float]], u: tuple[Any, ...], v: tuple[Any, ...]) -> Any:
-            return sum(u[i] * sum(A[i][j] * v[j] for j in range(3)) for i in range(3))
-
-        return (form(P, a, a) + self.R[0], form(P, a, b), form(P, b, b) + self.R[1],
-                form(M, a, a), form(M, a, b), form(M, b, b))
+        ux, uy, bx, by = x / d, y / d, -y / d2, x / d2
+        terms = []
+        for A, noise in ((self._P, self.R), (self._M, (0.0, 0.0))):
+            (a00, a01, a02), (_, a11, a12), (_, _, a22) = A
+            ab0, ab1, ab2 = a00 * bx + a01 * by - a02, a01 * bx + a11 * by - a12, \
+                a02 * bx + a12 * by - a22                                       # A h_beta
+            terms.append((a00 * ux * ux + 2.0 * a01 * ux * uy + a11 * uy * uy + noise[0],
+                          ux * ab0 + uy * ab1, bx * ab0 + by * ab1 - ab2 + noise[1]))
+        (s00, s01, s11), (t00, t01, t11) = terms
+        return s00, s01, s11, t00, t01, t11
 
     def gain_at(self, x: Any, y: Any) -> Any:
         """Information gain tr(W P W) - tr(W P_post W) (m^2) at points (x, y) in {L} (m), floats

@@ -13,7 +13,7 @@ from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.base import PlanContext
 from formopt_ros.core.strategies.stacked import (
-    BRANCH_AND_BOUND, CERTIFIED_GAP, branch_and_bound, cell_bounds, stacked_plan)
+    BRANCH_AND_BOUND, CERTIFIED_GAP, boundary_ball, branch_and_bound, cell_bounds, stacked_plan)
 from harness.problems import STACKED_FAMILIES as FAMILIES
 from harness.problems import stacked_problem as generated_problem
 
@@ -130,6 +130,36 @@ def test_cell_bounds_hold_on_samples(first: int, last: int) -> None:
         values = problem.cost(points)
         assert lower[0] <= values.min() + 1e-12 * abs(values.min()), (index, problem)
         assert cost[0] == pytest.approx(problem.cost(centre), rel=1e-9)
+
+
+@pytest.mark.parametrize('first, last', [(0, 120),
+                                         pytest.param(120, 1200, marks=pytest.mark.slow)])
+def test_ball_bound_holds_on_samples(first: int, last: int) -> None:
+    """Where :func:`boundary_ball` proves a ball (measured: 471 of the 1200 problems, none of
+    the large-r and near-leader ones, 199 of 200 tiny-r ones), its bound is
+    below the cost at 2000 points of ball and disc, half of them within 1e-6..1e-1 of the
+    ball's radius from p* (the quadratic regime); 1200 problems of every family, the fast
+    tier the first 120."""
+    rng = np.random.default_rng(SEED + 2)
+    balls = 0
+    for index in range(last):
+        problem = generated_problem(rng, FAMILIES[index % len(FAMILIES)])
+        if index < first:
+            continue
+        p, radius, bound, cost = boundary_ball(problem)
+        assert cost == pytest.approx(problem.cost(np.array(p)), rel=1e-9)
+        if radius == 0.0:
+            continue
+        balls += 1
+        assert bound <= cost
+        scale = radius * np.concatenate([rng.uniform(0, 1, 1000),
+                                         10.0 ** rng.uniform(-6, -1, 1000)])
+        angle = rng.uniform(-math.pi, math.pi, 2000)
+        points = np.array(p) + scale[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+        points = points[np.hypot(*(points - problem.slot).T) <= problem.r]
+        values = problem.cost(points)
+        assert bound <= values.min() + 1e-12 * abs(values.min()), (index, problem)
+    assert balls >= 0.3 * (last - first), balls        # measured: 51 of 120, 420 of 1080
 
 
 def test_solver_matches_dense_reference() -> None:

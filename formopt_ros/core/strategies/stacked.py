@@ -25,6 +25,13 @@ tolerance plus a rounding margin (``ROUNDING`` times the cost, for the Joseph-fo
 an estimate, not a proof). The search is capped at ``MAX_CELLS`` cells; a search that hits
 the cap is not certified and says so (``Solution.fallback = 'grid'``).
 
+Over the disc the search first takes the best point p* of its circle: the bound above holds
+pointwise, f(p) >= f(p*) + g'v - K |v|^2 (v = p - p*, K the curvature weight over a ball of
+radius delta around p*), and every p of the disc has n'v <= -|v|^2 / (2r) (n the outward
+normal), so with g = -mu n + tau t and a = mu / (2r) - K > 0 the cost over the ball and the
+disc is at least f(p*) - tau^2 / (4a) (:func:`boundary_ball`). Cells inside the ball take that
+bound; a ball of radius 2r holds the disc and certifies p* at once.
+
 Over a reachable set (a :class:`~formopt_ros.core.reach.Region`: the slot's disc, the reach
 disc, outside the safety circle) the same search prunes the cells that lie wholly outside one
 of the region's circles and takes its incumbents only from feasible cell centres (and the
@@ -225,8 +232,16 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
     offsets = (np.arange(n) - (n - 1) / 2.0) * 2.0 * w
     cx, cy = (a.ravel() for a in np.meshgrid(x_o + offsets, y_o + offsets))
     circles: list[Circle] = region.circles() if region is not None else []
+    ball_x, ball_y, ball_radius, ball_bound = x_o, y_o, 0.0, -math.inf
     if region is None:
-        best_p, best = (x_o, y_o), problem.cost_at(x_o, y_o)
+        (ball_x, ball_y), ball_radius, ball_bound, best = boundary_ball(problem)
+        best_p = (ball_x, ball_y)
+        if ball_radius >= 2.0 * r:          # the ball holds the disc: p* is the optimum
+            return best_p, best, min(ball_bound, best) - ROUNDING * abs(best), {
+                'cells': 0, 'levels': 0}
+        at_slot = problem.cost_at(x_o, y_o)
+        if at_slot < best:
+            best_p, best = (x_o, y_o), at_slot
     else:
         starts = [q for q in (region.nearest(problem.slot), *region.corners(), *seeds)
                   if q is not None]
@@ -271,6 +286,9 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
                 best, best_p = value, point
         lower = lower_bounds(problem, cx, cy, w, cost[:count], grad[0, :count], grad[1, :count],
                              k[:, :count])
+        if ball_radius > 0.0:
+            lower = np.where(np.hypot(cx - ball_x, cy - ball_y) + rho <= ball_radius,
+                             np.maximum(lower, ball_bound), lower)
         margin = ROUNDING * abs(best)
         keep = lower < best - rtol * abs(best) - margin
         if cells + SPLIT * SPLIT * int(keep.sum()) > max_cells:    # budget tight: close to
@@ -286,6 +304,50 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
         cy = (cy[:, None, None] + 0.0 * offsets[None, :, None] + offsets[None, None, :]).ravel()
     return best_p, best, min(floor, best) - ROUNDING * abs(best), {'cells': cells,
                                                                    'levels': levels}
+
+
+#: Radii of the KKT ball tried, as fractions of r (largest first).
+BALL_FRACTIONS = (2.0, 1.0, 0.5, 0.25, 0.125, 0.0625)
+
+
+def boundary_ball(problem: StackedProblem, samples: int = 64, rounds: int = 6
+                  ) -> tuple[tuple[float, float], float, float, float]:
+    """The best point p* on the disc's circle (samples, then windows 16 times narrower) and a
+    ball around it over which the cost is proved >= a bound (module docstring: a boundary
+    KKT point whose multiplier outweighs the curvature bound).
+
+    Returns (p* (m), ball radius (m; 0 when none), lower bound over ball and disc (m^2), cost
+    at p* (m^2))."""
+    x_o, y_o = problem.slot
+    r = problem.r
+    angles = np.linspace(-math.pi, math.pi, samples, endpoint=False)
+    width = 2.0 * math.pi / samples
+    best = 0.0
+    for _ in range(rounds):
+        gains = problem.gain_at(x_o + r * np.cos(angles), y_o + r * np.sin(angles))
+        best = float(angles[int(np.argmax(gains))])
+        angles = best + np.linspace(-width, width, 33)
+        width /= 16.0
+    p = (x_o + r * math.cos(best), y_o + r * math.sin(best))
+    cost_c, grad, norms = posterior_terms(problem, np.array([p[0]]), np.array([p[1]]))
+    cost = float(cost_c[0])
+    gx, gy = float(grad[0, 0]), float(grad[1, 0])
+    gh_d, gh_b, g_xy = (float(v) for v in norms[:, 0])
+    nx, ny = math.cos(best), math.sin(best)
+    mu, tau = -(gx * nx + gy * ny), gy * nx - gx * ny
+    d_c = math.hypot(*p)
+    r_d, r_b = problem.R
+    for fraction in BALL_FRACTIONS:
+        radius = fraction * r
+        near = d_c - radius
+        if mu <= 0.0 or near <= 0.0:
+            continue
+        curvature = (gh_d * L2_RANGE / near ** 2 + g_xy * 4.0 / (near + d_c) ** 2) / r_d \
+            + (gh_b * L2_BEARING / near ** 3 + g_xy / (near * d_c) ** 2) / r_b
+        a = mu / (2.0 * r) - curvature
+        if a > 0.0 and tau * tau / (4.0 * a) <= 1e-12 * abs(cost):
+            return p, radius, cost - tau * tau / (4.0 * a) - 1e-12 * r * math.hypot(gx, gy), cost
+    return p, 0.0, -math.inf, cost
 
 
 def polish_on_circles(problem: StackedProblem, region: Region, p: tuple[float, float],
