@@ -317,7 +317,7 @@ def boundary_ball(problem: StackedProblem, samples: int = 64, rounds: int = 6
     KKT point whose multiplier outweighs the curvature bound).
 
     Returns (p* (m), ball radius (m; 0 when none), lower bound over ball and disc (m^2), cost
-    at p* (m^2))."""
+    at p* (m^2; inf where it is not a number))."""
     x_o, y_o = problem.slot
     r = problem.r
     angles = np.linspace(-math.pi, math.pi, samples, endpoint=False)
@@ -331,6 +331,8 @@ def boundary_ball(problem: StackedProblem, samples: int = 64, rounds: int = 6
     p = (x_o + r * math.cos(best), y_o + r * math.sin(best))
     cost_c, grad, norms = posterior_terms(problem, np.array([p[0]]), np.array([p[1]]))
     cost = float(cost_c[0])
+    if not math.isfinite(cost):
+        return p, 0.0, -math.inf, math.inf
     gx, gy = float(grad[0, 0]), float(grad[1, 0])
     gh_d, gh_b, g_xy = (float(v) for v in norms[:, 0])
     nx, ny = math.cos(best), math.sin(best)
