@@ -17,26 +17,12 @@ from __future__ import annotations
 import math
 import sys
 import time
-from functools import partial
 
 import numpy as np
-from scipy.optimize import minimize
 
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies.periodic_design import (
-    REACH_FTOL, REACH_ITERATIONS, CycleObjective, SteadyConditions, fits_reach, greedy_loop,
-    loop_length, reach_margins)
-
-
-def refine(start: np.ndarray, conditions: SteadyConditions) -> float:
-    """SLSQP on a cycle's points (K, 2) under the reach, disc and safety constraints: its mean
-    steady cost (m^2), inf when SLSQP ends outside the constraints."""
-    objective = CycleObjective(conditions)
-    result = minimize(objective, start.ravel(), jac=objective.gradient, method='SLSQP',
-                      constraints=[{'type': 'ineq',
-                                    'fun': partial(reach_margins, conditions=conditions)}],
-                      options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
-    return objective(result.x) if fits_reach(result.x.reshape(-1, 2), conditions) else math.inf
+    CycleObjective, SteadyConditions, greedy_loop, loop_length, refine_cycle)
 
 
 def main(argv: list[str]) -> int:
@@ -58,7 +44,7 @@ def main(argv: list[str]) -> int:
         start = loop if length == period else \
             loop[np.linspace(0, period, length, endpoint=False).astype(int)]
         begin = time.perf_counter()
-        refined = refine(start, conditions)
+        refined = refine_cycle(start, CycleObjective(conditions))[0]
         seconds = time.perf_counter() - begin
         first = CycleObjective(conditions)(start.ravel())
         name = "greedy's loop" if length == period else 'sampled from it'

@@ -630,6 +630,20 @@ class CycleObjective:
         return np.where(np.isfinite(gradient), gradient, 0.0)
 
 
+def refine_cycle(start: np.ndarray, objective: CycleObjective) -> tuple[float, np.ndarray]:
+    """SLSQP from a cycle's points (m, 2) on ``objective`` under :func:`reach_margins`: (its
+    mean steady tr(W P W) m^2, inf when it has none or ends outside the reachable set; the
+    refined points (m, 2), m)."""
+    from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
+    c = objective.conditions
+    result = minimize(objective, start.ravel(), jac=objective.gradient, method='SLSQP',
+                      constraints=[{'type': 'ineq', 'fun': partial(reach_margins, conditions=c)}],
+                      options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
+    points = result.x.reshape(-1, 2)
+    value = objective(result.x)
+    return (value if np.isfinite(value) and fits_reach(points, c) else math.inf), points
+
+
 def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     """The best cycle within reach (every move inside the reach disc, every point in the
     slot's disc and outside the safety circle) found from greedy's own loop, or None when none
@@ -642,7 +656,6 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     of :func:`reach_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
     "PERIODIC within reach"), it does not prove the best cycle.
     """
-    from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
     start_time = time.perf_counter()
     c = conditions
     greedy_cost, targets = greedy_loop(c)
@@ -654,17 +667,9 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     starts += [cycle[np.linspace(0, len(cycle), length, endpoint=False).astype(int)]
                for length in sorted(lengths)]
     cost = CycleObjective(c)
-    best: tuple[float, np.ndarray] | None = None
-    for start in starts:
-        result = minimize(cost, start.ravel(), jac=cost.gradient, method='SLSQP',
-                          constraints=[{'type': 'ineq', 'fun': partial(reach_margins,
-                                                                       conditions=c)}],
-                          options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
-        points = result.x.reshape(-1, 2)
-        value = cost(result.x)
-        if np.isfinite(value) and fits_reach(points, c) and (best is None or value < best[0]):
-            best = (value, points)
-    if best is None or not best[0] < greedy_cost:
+    best = min((refine_cycle(start, cost) for start in starts), key=lambda found: found[0],
+               default=(math.inf, np.empty((0, 2))))
+    if not best[0] < greedy_cost:
         return None
     points = best[1]
     maps = cycle_maps(points, c)
