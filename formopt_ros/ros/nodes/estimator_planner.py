@@ -166,18 +166,18 @@ class EstimatorPlannerNode(Node):
         self.tf_pub = self.gate.add(self.create_publisher(TFMessage, '/tf', qos.TF), 'tf')
         self.diagnostics_pub = self.gate.add(self.create_publisher(
             DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS), 'diagnostics')
-        self.create_subscription(Odometry, BY_KEY['follower_odom'].name, self.on_follower_odom,
-                                 qos.SUBSCRIBED)
         self.input_topics = {'follower_odom': BY_KEY['follower_odom'].name,
                              'leader_odom': peer_topic(self, self.leader_id, 'leader_odom'),
                              'measurement': BY_KEY['measurement'].name}
+        self.create_subscription(Odometry, self.input_topics['follower_odom'],
+                                 self.on_follower_odom, qos.SUBSCRIBED)
         self.create_subscription(Odometry, self.input_topics['leader_odom'],
                                  self.on_leader_odom, qos.SUBSCRIBED)
         # truth before measurement: when both are ready, the executor serves the truth first
         self.create_subscription(PoseStamped, BY_KEY['truth'].name, self.on_truth,
                                  qos.SUBSCRIBED)
-        self.create_subscription(Measurement, BY_KEY['measurement'].name, self.on_measurement,
-                                 qos.SUBSCRIBED)
+        self.create_subscription(Measurement, self.input_topics['measurement'],
+                                 self.on_measurement, qos.SUBSCRIBED)
         self.guard = follower_guard(self, self.description, self.leader_id, 'description',
                                     'sim_description', ('follower_odom', 'measurement', 'truth'))
         self.published['description'] = 1                # announced by the guard
