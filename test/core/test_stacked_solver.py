@@ -14,6 +14,7 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.base import PlanContext
 from formopt_ros.core.strategies.stacked import (
     BRANCH_AND_BOUND, CERTIFIED_GAP, boundary_ball, branch_and_bound, cell_bounds, stacked_plan)
+from harness import split_by_tier
 from harness.problems import STACKED_FAMILIES as FAMILIES
 from harness.problems import stacked_problem as generated_problem
 
@@ -110,8 +111,7 @@ def check_problems(count: int, seed: int) -> dict[str, dict[str, float]]:
     return out
 
 
-@pytest.mark.parametrize('first, last', [(0, 300),
-                                         pytest.param(300, 3000, marks=pytest.mark.slow)])
+@split_by_tier(300, 3000)
 def test_cell_bounds_hold_on_samples(first: int, last: int) -> None:
     """Every cell's lower bound is below the cost at 2000 random points of the cell within the
     disc (3000 cells of every family, the fast tier the first 300; half-widths 1e-4..0.3 r)."""
@@ -132,8 +132,7 @@ def test_cell_bounds_hold_on_samples(first: int, last: int) -> None:
         assert cost[0] == pytest.approx(problem.cost(centre), rel=1e-9)
 
 
-@pytest.mark.parametrize('first, last', [(0, 120),
-                                         pytest.param(120, 1200, marks=pytest.mark.slow)])
+@split_by_tier(120, 1200)
 def test_ball_bound_holds_on_samples(first: int, last: int) -> None:
     """Where :func:`boundary_ball` proves a ball (measured: 471 of the 1200 problems, none of
     the large-r and near-leader ones, 199 of 200 tiny-r ones), its bound is

@@ -10,6 +10,7 @@ from formopt_ros.core import PlanContext, Problem, solve
 from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.strategies import baselines, common, make_strategy, ram
 from formopt_ros.core.strategies.ram import ram_optimum
+from harness import split_by_tier
 from harness.problems import (
     dense_reference, flat_range_problem, hard_covariance, hard_problem, interior_bearing_problem,
     nearly_flat_range_problem, random_geometry, random_rotation, random_sigma)
@@ -39,8 +40,7 @@ def solve_problem(problem: Problem, method: str, **options: object):
 
 
 # --- the central property tests ------------------------------------------------------------------
-@pytest.mark.parametrize('first, last', [(0, 250),
-                                         pytest.param(250, 1000, marks=pytest.mark.slow)])
+@split_by_tier(250, 1000)
 @pytest.mark.parametrize('kind', KINDS)
 def test_ram_and_rq_agree_and_beat_gbs(kind: str, first: int, last: int) -> None:
     """1000 hard problems per kind (the fast tier the first 250): RAM and RQ agree to 1e-9,
