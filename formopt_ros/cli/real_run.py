@@ -11,7 +11,7 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
-from formopt_ros.cli.supervisor import CONFIGURATION_EXIT, interrupted
+from formopt_ros.cli.supervisor import CONFIGURATION_EXIT, exit_failure, interrupted
 from formopt_ros.core.formation import Formation, FollowerSpec
 from formopt_ros.wire.topics import real_frames
 
@@ -197,14 +197,14 @@ def summarise(formation: Formation, pairs: dict[str, tuple[Any, Any]], recording
             if missing:
                 failure = failure or f'{follower_id}: the recording misses messages: {missing}'
         followers[follower_id] = result
-    codes = {p.name: p.code for pair in pairs.values() for p in pair}
-    bad = {name: code for name, code in codes.items() if code not in (0, None)}
-    if bad and not failure:
-        failure = f'{next(iter(bad))} exited with code {next(iter(bad.values()))}'
+    processes = [p for pair in pairs.values() for p in pair]
+    codes = {p.name: p.code for p in processes}
+    exited, late = exit_failure(processes)
+    failure = failure or exited
     if failure:
         print(f'run_formation.sh: error: {failure}', file=sys.stderr)
     return {'ok': not failure, 'failure': failure or None, 'interfaces': 'real',
-            'followers': followers, 'exit_codes': codes,
+            'followers': followers, 'exit_codes': codes, 'killed_after_its_part': late,
             'recording': str(recording / 'run.mcap') if recording is not None else None}
 
 

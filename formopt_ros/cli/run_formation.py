@@ -24,7 +24,8 @@ from formopt_ros.cli.preflight import (
     real_names)
 from formopt_ros.cli.real_run import run_real
 from formopt_ros.cli.supervisor import (
-    PROG, RECEIVED_SIGNALS, Launcher, Process, global_remaps, interrupted, orphaned, supervise)
+    PROG, RECEIVED_SIGNALS, Launcher, Process, exit_failure, global_remaps, interrupted, orphaned,
+    supervise)
 from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
@@ -243,10 +244,8 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
             failure = failure or (f'{follower_id}: '
                                   f"{result.get('error') or 'the estimator did not end ok'}")
         followers[follower_id] = result
-    bad = {name: code for name, code in codes.items() if code not in (0, None)}
-    if bad and not failure:
-        name = next(iter(bad))
-        failure = f'{name} exited with code {bad[name]}'
+    exited, late = exit_failure(launcher.processes)
+    failure = failure or exited
     recording = None
     if recorder is not None:
         recording, problem = audit_recording(out, prefix, leader.summary(), {
@@ -262,7 +261,7 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
         'steps_per_s': steps / wall if wall > 0 else None,
         'formation': formation.to_dict(), 'followers': followers, 'exit_codes': codes,
         'restarts': {p.name: p.restarts for p in launcher.processes if p.restarts},
-        'recording': recording}
+        'killed_after_its_part': late, 'recording': recording}
     if len(followers) == 1:                   # the single follower's results at the top too
         summary.update({k: v for k, v in next(iter(followers.values())).items()
                         if k not in summary})

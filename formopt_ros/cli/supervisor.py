@@ -61,6 +61,7 @@ class Process:
     code: int | None = None
     restarts: list[int] = field(default_factory=list)    # exit codes of the restarted runs
     ended_at: float | None = None        # time.monotonic() when seen exited 0, its part done
+    killed: bool = False                 # the stop had to SIGKILL it (Launcher.stop)
 
     @property
     def ended(self) -> bool:
@@ -152,6 +153,7 @@ class Launcher:
             if not running:
                 break
             for item in running:
+                item.killed = sig == signal.SIGKILL
                 try:
                     os.killpg(item.process.pid, sig)
                     os.killpg(item.process.pid, signal.SIGCONT)   # a frozen (stopped) node too
@@ -162,6 +164,20 @@ class Launcher:
                 time.sleep(0.05)
         for item in processes:
             item.code = item.process.wait()
+
+
+def exit_failure(processes: list[Process]) -> tuple[str, list[str]]:
+    """The failure of the first process that exited with a code other than 0 ('' if none), and
+    the names of those the stop killed after their part was done (their summary is ok: nothing
+    was lost; the run does not fail for them, it names them and warns on stderr)."""
+    late = [p for p in processes if p.killed and (p.summary() or {}).get('ok')]
+    for item in late:
+        print(f"{PROG}: warning: {item.name} did its part but outlived the stop's SIGINT and "
+              f'SIGTERM and was killed (its log shows where it hung: {item.log})',
+              file=sys.stderr)
+    bad = [p for p in processes if p.code not in (0, None) and p not in late]
+    return (f'{bad[0].name} exited with code {bad[0].code}' if bad else ''), \
+        [p.name for p in late]
 
 
 def format_value(value: Any) -> str:
@@ -222,5 +238,6 @@ def global_remaps(prefix: str) -> list[str]:
     return [f'{t.name}:={prefix}{t.name}' for t in GLOBAL_TOPICS] if prefix else []
 
 
-__all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'format_value',
+__all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'exit_failure',
+           'format_value',
            'global_remaps', 'interrupted', 'orphaned', 'supervise']

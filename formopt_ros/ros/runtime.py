@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import difflib
+import faulthandler
 import functools
 import math
 import os
@@ -41,6 +42,9 @@ class Throttle:
 
 #: How long a node that ends waits for its subscribers to acknowledge its last messages, s.
 DELIVERY_TIMEOUT = 5.0
+#: After this long (s) in its shutdown, a node prints every thread's stack to its log (a node
+#: that hangs while it ends shows where; run_formation kills it 15 s after its stop).
+SHUTDOWN_REPORT_AFTER = 12.0
 
 
 def fast_announcements() -> None:
@@ -236,6 +240,7 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
         executor.add_node(node)
         while rclpy.ok() and not stop and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
+        faulthandler.dump_traceback_later(SHUTDOWN_REPORT_AFTER)
         code = int(getattr(node, 'exit_code', 0))
         if getattr(node, 'error', ''):
             print(f'{program}: error: {node.error}', file=sys.stderr)  # type: ignore[attr-defined]

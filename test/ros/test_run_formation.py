@@ -470,6 +470,33 @@ def test_a_start_failure_leaves_no_process_behind(tmp_path: Path, ros_domain: in
     assert not _alive_with(str(out))
 
 
+def test_a_node_hanging_after_its_part_is_named_not_failed(
+        tmp_path: Path, ros_domain: int, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """leader_sim's process outlives its node, deaf to SIGINT and SIGTERM (a hang on exit after
+    its summary was written): the stop kills it, the run stays ok (exit 0), names it in
+    killed_after_its_part and warns on stderr."""
+    from formopt_ros.cli import run_formation as command
+    from formopt_ros.cli import supervisor
+    wrappers = tmp_path / 'scripts'
+    wrappers.mkdir()
+    for node in ('leader_sim', 'follower_sim', 'estimator_planner', 'recorder'):
+        real = supervisor.SCRIPTS / f'{node}.sh'
+        body = (f"trap '' INT TERM\n\"{real}\" \"$@\"\nsleep 60\n" if node == 'leader_sim'
+                else f'exec "{real}" "$@"\n')
+        (wrappers / f'{node}.sh').write_text('#!/usr/bin/env bash\n' + body)
+        (wrappers / f'{node}.sh').chmod(0o755)
+    monkeypatch.setattr(supervisor, 'SCRIPTS', wrappers)
+    out = tmp_path / 'run'
+    code = command.main(['--measurement', 'range', '--steps', '5', '--out', str(out),
+                         '--domain-id', str(ros_domain)])
+    summary = json.loads((out / 'summary.json').read_text())
+    assert code == 0 and summary['ok'], summary['failure']
+    assert summary['killed_after_its_part'] == ['leader_sim']
+    assert summary['exit_codes']['leader_sim'] == -signal.SIGKILL
+    assert 'leader_sim did its part but outlived' in capsys.readouterr().err
+
+
 def test_paths_with_yaml_characters_stay_inside_the_output_folder(
         tmp_path: Path, ros_domain: int) -> None:
     """--out "hash #1: it's" (a comment sign, a mapping sign and a quote, which rcl would read
