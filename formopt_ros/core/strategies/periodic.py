@@ -6,7 +6,7 @@ four points has a steady tr(W P W) 18 % (range) and 23 % (bearing) below the gre
 regime, but a cycle started from a large covariance can be much worse than greedy during the
 transient, and it may take hundreds of steps to pay. So this strategy
 
-1. designs, once per set of conditions (sensor, slot, r, noise levels, leader speed, dt), the
+1. designs, once per set of conditions (sensor, slot, r, noise levels, leader velocity, dt), the
    cycle of ``period`` boundary points with the lowest exact periodic steady state
    (:mod:`.periodic_design`, cached per process);
 2. plays the exact greedy optimum (RQ) and, every ``check_every`` steps, forecasts with the
@@ -20,13 +20,18 @@ Under a speed limit or a safety distance the design is a cycle within reach when
 cycle does not fit (:func:`.periodic_design.design_within_reach`: every move in the reach
 disc, every point outside the safety distance); a cycle point out of reach of the estimated
 pose is projected onto the step's reachable set (:func:`.region.plan_within`). When the leader
-turns (or the expected leader motion is not constant over the step), or the cycle does not fit
-the reachable set, it plays greedy; when the slot or r change, or a noise level, the leader
-speed, dt or the limits by more than ``replan_tolerance``, it designs again (or takes the
-cached design) and starts over at 2.
+keeps one velocity (v, omega), straight or on an arc, the conditions are stationary in its
+frame and the cycle is designed for them (it rotates with the leader); on an arc under a speed
+limit the forecast of the cycle within reach misses the range follower's cost by about 20 %
+(docs/lookahead.md), so there it plays greedy. When the expected leader velocity is not
+constant over the step, or changes from one step to the next (an S-curve, the first step of a
+new segment), or the cycle does not fit the reachable set, it plays greedy;
+when the slot or r change, or a noise level, the leader velocity, dt or the limits by more than
+``replan_tolerance`` and stay so for two decisions, it designs again (or takes the cached
+design) and starts over at 2.
 Every point is either RQ's (feasible) or a point of the cycle, in the problem's own disc.
 ``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
-greedy, turning fallbacks and switch tests.
+greedy, decisions made greedy while the leader's velocity changed, and switch tests.
 """
 from __future__ import annotations
 
@@ -48,6 +53,10 @@ if TYPE_CHECKING:
     from formopt_ros.core.scenario import Scenario
 
 GREEDY = 'greedy'
+#: The reason of a greedy decision while the leader's expected velocity changes.
+CHANGING = "the leader's velocity changes"
+#: The reason of a greedy decision while the leader turns under a speed limit.
+LIMITED_TURN = 'the leader turns under a speed limit'
 PATTERN = 'pattern'
 #: The interval between switch tests grows at most 2**6 = 64-fold.
 MAX_BACKOFF_DOUBLINGS = 6
@@ -55,13 +64,14 @@ MAX_BACKOFF_DOUBLINGS = 6
 
 def steady_conditions(problem: Problem, context: PlanContext) -> SteadyConditions | None:
     """The stationary conditions of this step, or None when the leader is not expected to
-    drive straight at one speed over the step."""
-    speeds = {v for v, _ in context.leader_velocities}
-    if not context.leader_straight or len(speeds) != 1:
+    keep one velocity (v, omega) over the step."""
+    velocities = set(context.leader_velocities)
+    if len(velocities) != 1:
         return None
+    (v_l, omega_l), = velocities
     region = context.region
     return SteadyConditions(problem.measurement, (float(problem.p_o[0]), float(problem.p_o[1])),
-                            float(problem.r), float(problem.sigma), float(speeds.pop()), 0.0,
+                            float(problem.r), float(problem.sigma), float(v_l), float(omega_l),
                             context.dt, context.sigma_v, context.sigma_omega, context.kinematics,
                             float(getattr(problem, 'sigma_bearing', 0.0)),
                             region.radius if region is not None else math.inf,
@@ -91,7 +101,8 @@ class PeriodicPattern(Strategy):
 
     def __init__(self, **options: object) -> None:
         super().__init__(**options)
-        self.conditions: SteadyConditions | None = None
+        self.conditions: SteadyConditions | None = None     # those of the design adopted
+        self.last_seen: SteadyConditions | None = None      # those of the previous decision
         self.design: PatternDesign | None = None
         self.mode = GREEDY
         self.phase = 0                     # phase of the cycle reached by the last target
@@ -100,7 +111,7 @@ class PeriodicPattern(Strategy):
         self.predicted: np.ndarray = np.empty(0)   # tr(W P W) predicted after each step
         self.joined_at = 0                 # step whose target was the first of the cycle
         self.approaching = False           # within the first period after joining
-        self.counts = {'replans': 0, 'returns_to_greedy': 0, 'turning_fallbacks': 0,
+        self.counts = {'replans': 0, 'returns_to_greedy': 0, 'changing_fallbacks': 0,
                        'switch_tests': 0, 'unpaid_tests': 0}
 
     # --- the decision ------------------------------------------------------------------------
@@ -116,10 +127,14 @@ class PeriodicPattern(Strategy):
         if context.estimator is None:
             return self._greedy(problem, 'no estimator: one-off problem')
         conditions = steady_conditions(problem, context)
-        if conditions is None:
+        seen, self.last_seen = self.last_seen, conditions
+        if conditions is None or not self._settled(conditions, seen):
             self.mode = GREEDY
-            self.counts['turning_fallbacks'] += 1
-            return self._greedy(problem, 'leader turning')
+            self.counts['changing_fallbacks'] += 1
+            return self._greedy(problem, CHANGING)
+        if conditions.omega_l != 0.0 and conditions.limited:
+            self.mode = GREEDY
+            return self._greedy(problem, LIMITED_TURN)
         designed = self._adopt(conditions, context.step)
         if self.design is None:
             return self._greedy(problem, 'no periodic steady state', designed)
@@ -165,6 +180,14 @@ class PeriodicPattern(Strategy):
         return details
 
     # --- conditions and design ---------------------------------------------------------------
+    def _settled(self, conditions: SteadyConditions, seen: SteadyConditions | None) -> bool:
+        """True when ``conditions`` may be designed for: they are those of the design adopted,
+        or the first ones, or the same as the previous decision's (``seen``): a leader whose
+        velocity changes at every step (an S-curve) gets no new design at every step."""
+        tolerance = float(self.settings['replan_tolerance'])
+        return self.conditions is None or self.conditions.close_to(conditions, tolerance) or \
+            seen is not None and seen.close_to(conditions, tolerance)
+
     def _adopt(self, conditions: SteadyConditions, step: int) -> float | None:
         """Design (or fetch) the cycle when the conditions changed; its design time when it was
         computed now, else None."""
@@ -251,7 +274,8 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     this process's cache: free after a run, designed now otherwise)."""
     conditions = SteadyConditions.from_scenario(scenario)
     if conditions is None:
-        return 'the leader turns; no cycle (greedy throughout)'
+        return ("no cycle at the start (the leader's velocity changes, or it turns under a "
+                'speed limit): greedy while so')
     period = int(PeriodicPattern(**options).settings['period'])
     design = cached_design(conditions, period)[0]
     if design is None:

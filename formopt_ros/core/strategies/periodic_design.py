@@ -5,7 +5,9 @@ visited in turn. Under the noise-free recursion (the estimate lands on each targ
 innovations) every move of the cycle has fixed Jacobians, so the covariance obeys a periodic
 Riccati recursion. Each move (two propagation sub-steps, then one update) is a linear
 fractional map P -> (A P + B)(C P + D)^-1 given by a 6 x 6 matrix (the symplectic form of the
-Riccati map):
+Riccati map). The leader keeps one velocity (v, omega): straight, or on an arc, where the
+follower's pose relative to the leader, hence every map, is as stationary as on a straight line
+(the cycle lives in the leader's frame and turns with it):
 
     propagation  P -> Phi P Phi' + Q :  [[Phi, Q Phi^-T], [0, Phi^-T]]
     update       P -> (P^-1 + h h'/R)^-1:  [[I, 0], [h h'/R, I]]
@@ -114,13 +116,16 @@ class SteadyConditions:
 
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
-        """The conditions at the start of ``scenario``; None when its leader turns then."""
+        """The conditions at the start of ``scenario``; None when its leader's velocity
+        changes from the first step to the next (an S-curve) or it turns under a speed limit
+        (PERIODIC plays greedy there: strategies/periodic.py)."""
         v_l, omega_l = scenario.leader.velocity(0, scenario.dt)
-        if omega_l != 0.0:
+        if scenario.leader.velocity(SUBSTEPS, scenario.dt) != (v_l, omega_l) or \
+                omega_l != 0.0 and scenario.max_speed is not None:
             return None
         reach = math.inf if scenario.max_speed is None else \
             scenario.max_speed * SUBSTEPS * scenario.dt
-        return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, 0.0,
+        return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, omega_l,
                    scenario.dt, scenario.sigma_v, scenario.sigma_omega, scenario.kinematics,
                    scenario.sigma_bearing, reach, scenario.safety_distance)
 
