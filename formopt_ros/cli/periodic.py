@@ -52,8 +52,7 @@ def report(scenario: Scenario, period: int, repeats: int, trials: int, steps: in
     print(f'{scenario.measurement}: p_o {list(scenario.p_o)} m, r {scenario.r:.4g} m, sigma '
           f'{scenario.sigma:.4g}, leader {scenario.leader.speed:g} m/s, period {period}')
     if conditions is None:
-        print("  no cycle at the start (the leader's velocity changes, or it turns under a "
-              'speed limit)')
+        print("  the leader's velocity changes from the start: no cycle")
         return
     times = []
     for _ in range(repeats):

@@ -21,11 +21,10 @@ cycle does not fit (:func:`.periodic_design.design_within_reach`: every move in 
 disc, every point outside the safety distance); a cycle point out of reach of the estimated
 pose is projected onto the step's reachable set (:func:`.region.plan_within`). When the leader
 keeps one velocity (v, omega), straight or on an arc, the conditions are stationary in its
-frame and the cycle is designed for them (it rotates with the leader); on an arc under a speed
-limit the forecast of the cycle within reach misses the range follower's cost by about 20 %
-(docs/lookahead.md), so there it plays greedy. When the expected leader velocity is not
-constant over the step, or changes from one step to the next (an S-curve, the first step of a
-new segment), or the cycle does not fit the reachable set, it plays greedy;
+frame and the cycle is designed for them (it rotates with the leader). When the expected
+leader velocity is not constant over the step, or changes from one step to the next (an
+S-curve, the first step of a new segment), or the cycle does not fit the reachable set, it
+plays greedy;
 when the slot or r change, or a noise level, the leader velocity, dt or the limits by more than
 ``replan_tolerance`` and stay so for two decisions, it designs again (or takes the cached
 design) and starts over at 2.
@@ -55,8 +54,6 @@ if TYPE_CHECKING:
 GREEDY = 'greedy'
 #: The reason of a greedy decision while the leader's expected velocity changes.
 CHANGING = "the leader's velocity changes"
-#: The reason of a greedy decision while the leader turns under a speed limit.
-LIMITED_TURN = 'the leader turns under a speed limit'
 PATTERN = 'pattern'
 #: The interval between switch tests grows at most 2**6 = 64-fold.
 MAX_BACKOFF_DOUBLINGS = 6
@@ -132,12 +129,10 @@ class PeriodicPattern(Strategy):
             self.mode = GREEDY
             self.counts['changing_fallbacks'] += 1
             return self._greedy(problem, CHANGING)
-        if conditions.omega_l != 0.0 and conditions.limited:
-            self.mode = GREEDY
-            return self._greedy(problem, LIMITED_TURN)
         designed = self._adopt(conditions, context.step)
         if self.design is None:
-            return self._greedy(problem, 'no periodic steady state', designed)
+            return self._greedy(problem, 'no cycle within reach beats greedy'
+                                if conditions.limited else 'no periodic steady state', designed)
         if not fits_reach(self.design.points, conditions):
             self.mode = GREEDY
             return self._greedy(problem, 'the cycle does not fit the reachable set', designed)
@@ -274,12 +269,12 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     this process's cache: free after a run, designed now otherwise)."""
     conditions = SteadyConditions.from_scenario(scenario)
     if conditions is None:
-        return ("no cycle at the start (the leader's velocity changes, or it turns under a "
-                'speed limit): greedy while so')
+        return "the leader's velocity changes from the start: no cycle (greedy while it does)"
     period = int(PeriodicPattern(**options).settings['period'])
     design = cached_design(conditions, period)[0]
     if design is None:
-        return 'no cycle has a steady state (greedy throughout)'
+        return ('no cycle within reach beats greedy (greedy throughout)' if conditions.limited
+                else 'no cycle has a steady state (greedy throughout)')
     angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
     radii = np.hypot(*(design.points - conditions.slot).T)
     if not np.allclose(radii, conditions.r, rtol=1e-9):       # designed within reach

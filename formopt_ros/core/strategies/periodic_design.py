@@ -117,11 +117,9 @@ class SteadyConditions:
     @classmethod
     def from_scenario(cls, scenario: Scenario) -> SteadyConditions | None:
         """The conditions at the start of ``scenario``; None when its leader's velocity
-        changes from the first step to the next (an S-curve) or it turns under a speed limit
-        (PERIODIC plays greedy there: strategies/periodic.py)."""
+        changes from the first step to the next (an S-curve)."""
         v_l, omega_l = scenario.leader.velocity(0, scenario.dt)
-        if scenario.leader.velocity(SUBSTEPS, scenario.dt) != (v_l, omega_l) or \
-                omega_l != 0.0 and scenario.max_speed is not None:
+        if scenario.leader.velocity(SUBSTEPS, scenario.dt) != (v_l, omega_l):
             return None
         reach = math.inf if scenario.max_speed is None else \
             scenario.max_speed * SUBSTEPS * scenario.dt
@@ -543,6 +541,19 @@ def fits_reach(points: np.ndarray, conditions: SteadyConditions,
                        >= -rtol * c.reach * c.reach))
 
 
+def reach_map(conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
+    """The reach centre of a step as an affine map of the position p (2,) it starts from,
+    centre = offset + linear @ p (offset (2,) m, linear (2, 2)): a follower standing still
+    is carried by the leader's motion, a translation behind a straight leader, a rotation
+    about the leader and a translation on an arc (for the exact and the Euler kinematics,
+    which are both affine in p; its heading does not enter)."""
+    c = conditions
+    offset = np.array(reach_centre(np.zeros(3), c.leader, c.dt, c.kinematics))
+    columns = [np.array(reach_centre(np.array([*unit, 0.0]), c.leader, c.dt, c.kinematics))
+               - offset for unit in ((1.0, 0.0), (0.0, 1.0))]
+    return offset, np.stack(columns, axis=1)
+
+
 def reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
     """Margins (m^2) of a cycle's flattened points z (2m,) in the constraints of a design
     within reach, >= 0 when met: each move inside the reach disc (reach^2 - |move off its
@@ -550,11 +561,10 @@ def reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
     circle (|p|^2 - safety^2)."""
     c = conditions
     points = z.reshape(-1, 2)
-    origin = np.zeros(3)
-    shift = -np.array(reach_centre(origin, c.leader, c.dt, c.kinematics))  # straight leader
     margins = [c.r * c.r - np.sum((points - c.slot) ** 2, axis=1)]
     if c.limited:
-        moves = np.roll(points, -1, axis=0) - (points - shift)
+        offset, linear = reach_map(c)
+        moves = np.roll(points, -1, axis=0) - (points @ linear.T + offset)
         margins.insert(0, c.reach * c.reach - np.sum(moves ** 2, axis=1))
     if c.safety > 0.0:
         margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
