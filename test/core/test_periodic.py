@@ -20,7 +20,7 @@ from formopt_ros.core.strategies.periodic_design import (
     SteadyConditions, cached_design, clear_cache, greedy_target, lft, move_map, noise_free_step,
     pair_grid, reach_map)
 from formopt_ros.core.strategies.rq import rq_optimum
-from formopt_ros.core.strategies.periodic import CHANGING
+from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS
 from formopt_ros.core.study import StudyConfig, run_study, summarize
 
 SEED = 20251201
@@ -187,8 +187,8 @@ def test_never_leaves_the_disc(kind: str, overrides: dict[str, object]) -> None:
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_noise_change_mid_run_replans_and_stays_feasible(kind: str) -> None:
     """The sensor noise triples at step 250: greedy at once (the conditions changed), one
-    re-plan at the next step (they stayed), another cycle joined later, and every point inside
-    the disc. (Scaling every noise by the same
+    re-plan once they held SETTLE_DECISIONS decisions, another cycle joined later, and every
+    point inside the disc. (Scaling every noise by the same
     factor would scale the whole Riccati recursion and keep the same cycle.)"""
     base = Scenario.paper(kind)
     noisy = replace(base, sigma=3 * base.sigma)
@@ -196,8 +196,10 @@ def test_noise_change_mid_run_replans_and_stays_feasible(kind: str) -> None:
     assert_feasible(records)
     modes = [solution.details['mode'] for solution, _, _ in records]
     assert 'pattern' in modes[:249]
-    assert records[249][0].details['reason'] == CHANGING and modes[249] == 'greedy'
-    assert records[250][0].details['replans'] == 1 and modes[250] == 'greedy'
+    held = 249 + SETTLE_DECISIONS - 1
+    assert {s.details['reason'] for s, _, _ in records[249:held]} == {CHANGING}
+    assert records[held - 1][0].details['replans'] == 0
+    assert records[held][0].details['replans'] == 1 and modes[held] == 'greedy'
     assert 'pattern' in modes[250:]
     before = {tuple(np.round(s.p, 9)) for s, _, _ in records[200:249] if s.details['mode']
               == 'pattern'}
@@ -209,42 +211,46 @@ def test_noise_change_mid_run_replans_and_stays_feasible(kind: str) -> None:
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_leader_speed_change_replans(kind: str) -> None:
     """The leader slows from 1 to 0.6 m/s at 20 s: the first decision that expects the new
-    speed plays greedy (the velocity changed), the next re-plans (it stayed), and every point
-    stays inside the disc."""
+    speed plays greedy (the velocity changed), the SETTLE_DECISIONS-th re-plans (it held), and
+    every point stays inside the disc."""
     scenario = Scenario.paper(kind, leader=LeaderPath(
         kind='segments', segments=(Segment(20.0, 1.0), Segment(1000.0, 0.6))))
     records = drive(lambda k: scenario, 300, {'period': 2})
     assert_feasible(records)
     replans = [s.details['replans'] for s, _, _ in records]
     first = replans.index(1) + 1
-    assert velocity(scenario, first - 1)[0] == 0.6 and velocity(scenario, first - 2)[0] == 1.0
-    assert records[first - 2][0].details['reason'] == CHANGING
-    assert records[first - 1][0].details['mode'] == 'greedy' and replans[-1] == 1
+    change = first - SETTLE_DECISIONS + 1               # the first step expecting 0.6 m/s
+    assert velocity(scenario, change)[0] == 0.6 and velocity(scenario, change - 1)[0] == 1.0
+    assert {s.details['reason'] for s, _, _ in records[change - 1:first - 1]} == {CHANGING}
+    assert records[first - 1][0].details['reason'] != CHANGING and replans[-1] == 1
 
 
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
 def test_greedy_while_the_leader_velocity_changes_then_a_cycle_for_the_turn(kind: str) -> None:
-    """The leader turns from 20 s to 26 s (steps 201-260): the decisions that first expect the
-    turn and its end are RQ's exact optimum (same point to 1e-12 m), flagged as changing; the
-    next one designs for the new velocity (a cycle in the leader's frame for the arc, the
-    straight cycle again after it), and a cycle is played before, during and after the turn."""
+    """The leader turns from 20 s to 26 s (steps 201-260): the decisions that expect a new
+    velocity (the turn, its end) are RQ's exact optimum (same point to 1e-12 m), flagged as
+    changing, until it held SETTLE_DECISIONS decisions; then a design for it (a cycle in the
+    leader's frame for the arc, the straight cycle again after it), and a cycle is played
+    before, during and after the turn."""
     scenario = Scenario.paper(kind, leader=TURN)
     records = drive(lambda k: scenario, 450, {'period': 2})
     assert_feasible(records)
     changing = [k for k, (s, _, _) in enumerate(records, 1) if s.details['reason'] == CHANGING]
     # the planner holds the leader velocity of the last sub-step of the previous step
     expected = [velocity(scenario, k) for k in range(1, 451)]
-    assert changing == [k for k in range(2, 451) if expected[k - 1] != expected[k - 2]]
-    assert len(changing) == 2
+    starts = [k for k in range(2, 451) if expected[k - 1] != expected[k - 2]]
+    assert len(starts) == 2
+    assert changing == [k for start in starts for k in range(start, start + SETTLE_DECISIONS - 1)]
     for k in changing:
         solution, _, prior = records[k - 1]
         assert solution.details['mode'] == 'greedy'
         np.testing.assert_allclose(solution.p, rq_optimum(replace_problem(scenario, prior)).p,
                                    rtol=0, atol=1e-12)
     last = records[-1][0].details
-    assert last['changing_fallbacks'] == 2 and last['replans'] == 2
+    assert last['changing_fallbacks'] == len(changing) and last['replans'] == 2
     modes = [s.details['mode'] for s, _, _ in records]
-    assert 'pattern' in modes[:200] and 'pattern' in modes[203:260] and 'pattern' in modes[263:]
+    assert 'pattern' in modes[:200] and 'pattern' in modes[starts[0] + SETTLE_DECISIONS:260]
+    assert 'pattern' in modes[starts[1] + SETTLE_DECISIONS:]
 
 
 @pytest.mark.parametrize('kind', ['range', 'bearing'])
@@ -374,15 +380,15 @@ def test_docs_figure(tmp_path) -> None:
 
 def test_any_change_of_the_disc_replans() -> None:
     """r grows by one part in 10^5 (far below replan_tolerance) while on the cycle: the
-    strategy plays greedy at once and re-plans at the next step rather than keep points of the
-    old disc, and stays feasible."""
+    strategy plays greedy at once and re-plans once the new disc held SETTLE_DECISIONS decisions
+    rather than keep points of the old disc, and stays feasible."""
     base = Scenario.paper('bearing')
     wider = replace(base, r=base.r * (1 + 1e-5))
     records = drive(lambda k: base if k < 150 else wider, 200, {'period': 2})
     assert_feasible(records)
     assert records[148][0].details['mode'] == 'pattern'
     assert records[149][0].details['reason'] == CHANGING
-    assert records[150][0].details['replans'] == 1
+    assert records[149 + SETTLE_DECISIONS - 1][0].details['replans'] == 1
 
 
 def test_prepare_designs_before_the_first_plan() -> None:

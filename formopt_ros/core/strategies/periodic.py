@@ -22,12 +22,11 @@ disc, every point outside the safety distance); a cycle point out of reach of th
 pose is projected onto the step's reachable set (:func:`.region.plan_within`). When the leader
 keeps one velocity (v, omega), straight or on an arc, the conditions are stationary in its
 frame and the cycle is designed for them (it rotates with the leader). When the expected
-leader velocity is not constant over the step, or changes from one step to the next (an
-S-curve, the first step of a new segment), or the cycle does not fit the reachable set, it
-plays greedy;
-when the slot or r change, or a noise level, the leader velocity, dt or the limits by more than
-``replan_tolerance`` and stay so for two decisions, it designs again (or takes the cached
-design) and starts over at 2.
+leader velocity is not constant over the step, or the conditions changed (the slot or r, or a
+noise level, the leader velocity, dt or the limits by more than ``replan_tolerance``) and have
+not yet held for SETTLE_DECISIONS decisions (an S-curve never holds them), or the cycle does
+not fit the reachable set, it plays greedy; once new conditions held, it designs again (or
+takes the cached design) and starts over at 2.
 Every point is either RQ's (feasible) or a point of the cycle, in the problem's own disc.
 ``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
 greedy, decisions made greedy while the leader's velocity changed, and switch tests.
@@ -54,6 +53,9 @@ if TYPE_CHECKING:
 GREEDY = 'greedy'
 #: The reason of a greedy decision while the leader's expected velocity changes.
 CHANGING = "the leader's velocity changes"
+#: Decisions new conditions must hold (within replan_tolerance) before a cycle is designed for
+#: them (1 s at the paper's 0.1 s step).
+SETTLE_DECISIONS = 10
 PATTERN = 'pattern'
 #: The interval between switch tests grows at most 2**6 = 64-fold.
 MAX_BACKOFF_DOUBLINGS = 6
@@ -99,7 +101,8 @@ class PeriodicPattern(Strategy):
     def __init__(self, **options: object) -> None:
         super().__init__(**options)
         self.conditions: SteadyConditions | None = None     # those of the design adopted
-        self.last_seen: SteadyConditions | None = None      # those of the previous decision
+        #: the conditions that held over the last decisions without a change, and how many
+        self.streak: tuple[SteadyConditions | None, int] = (None, 0)
         self.design: PatternDesign | None = None
         self.mode = GREEDY
         self.phase = 0                     # phase of the cycle reached by the last target
@@ -124,8 +127,7 @@ class PeriodicPattern(Strategy):
         if context.estimator is None:
             return self._greedy(problem, 'no estimator: one-off problem')
         conditions = steady_conditions(problem, context)
-        seen, self.last_seen = self.last_seen, conditions
-        if conditions is None or not self._settled(conditions, seen):
+        if conditions is None or not self._settled(conditions):
             self.mode = GREEDY
             self.counts['changing_fallbacks'] += 1
             return self._greedy(problem, CHANGING)
@@ -175,13 +177,17 @@ class PeriodicPattern(Strategy):
         return details
 
     # --- conditions and design ---------------------------------------------------------------
-    def _settled(self, conditions: SteadyConditions, seen: SteadyConditions | None) -> bool:
-        """True when ``conditions`` may be designed for: they are those of the design adopted,
-        or the first ones, or the same as the previous decision's (``seen``): a leader whose
-        velocity changes at every step (an S-curve) gets no new design at every step."""
+    def _settled(self, conditions: SteadyConditions) -> bool:
+        """True when ``conditions`` may be designed for: they are the first ones, or those of
+        the design adopted, or they held (within ``replan_tolerance``) for SETTLE_DECISIONS
+        decisions. A leader whose velocity keeps changing (an S-curve, even near its peaks)
+        gets no design that holds for only a few steps."""
         tolerance = float(self.settings['replan_tolerance'])
+        first, count = self.streak
+        same = first is not None and first.close_to(conditions, tolerance)
+        self.streak = (first, count + 1) if same else (conditions, 1)
         return self.conditions is None or self.conditions.close_to(conditions, tolerance) or \
-            seen is not None and seen.close_to(conditions, tolerance)
+            self.streak[1] >= SETTLE_DECISIONS
 
     def _adopt(self, conditions: SteadyConditions, step: int) -> float | None:
         """Design (or fetch) the cycle when the conditions changed; its design time when it was
