@@ -239,5 +239,4 @@ def global_remaps(prefix: str) -> list[str]:
 
 
 __all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'exit_failure',
-           'format_value',
-           'global_remaps', 'interrupted', 'orphaned', 'supervise']
+           'format_value', 'global_remaps', 'interrupted', 'orphaned', 'supervise']

@@ -127,7 +127,8 @@ class PeriodicPattern(Strategy):
         if context.estimator is None:
             return self._greedy(problem, 'no estimator: one-off problem')
         conditions = steady_conditions(problem, context)
-        if conditions is None or not self._settled(conditions):
+        settled = self._settled(conditions)
+        if conditions is None or not settled:
             self.mode = GREEDY
             self.counts['changing_fallbacks'] += 1
             return self._greedy(problem, CHANGING)
@@ -177,11 +178,15 @@ class PeriodicPattern(Strategy):
         return details
 
     # --- conditions and design ---------------------------------------------------------------
-    def _settled(self, conditions: SteadyConditions) -> bool:
+    def _settled(self, conditions: SteadyConditions | None) -> bool:
         """True when ``conditions`` may be designed for: they are the first ones, or those of
         the design adopted, or they held (within ``replan_tolerance``) for SETTLE_DECISIONS
-        decisions. A leader whose velocity keeps changing (an S-curve, even near its peaks)
-        gets no design that holds for only a few steps."""
+        decisions (None, a velocity not constant over the step, never). A leader whose
+        velocity keeps changing (an S-curve, even near its peaks) gets no design that holds for
+        only a few steps."""
+        if conditions is None:
+            self.streak = (None, 0)
+            return False
         tolerance = float(self.settings['replan_tolerance'])
         first, count = self.streak
         same = first is not None and first.close_to(conditions, tolerance)
