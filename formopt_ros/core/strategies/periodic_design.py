@@ -74,7 +74,7 @@ CACHE_SIZE = 16
 #: length, relative to the loop's, of a slower lap sampled along it; SLSQP's iteration cap; the
 #: relative tolerance of a cycle's moves in the reach disc.
 GREEDY_STEPS, GREEDY_STEADY = 400, 133
-REACH_LONGEST_LOOP = 24
+REACH_LONGEST_LOOP = 40
 REACH_SAMPLED = 12
 REACH_STRETCH = 1.3
 REACH_ITERATIONS = 300
