@@ -212,7 +212,7 @@ def test_a_full_disk_names_the_file_and_the_run_still_summarises(
 
     def process(name: str, summary: dict | None, code: int) -> SimpleNamespace:
         return SimpleNamespace(name=name, code=code, restarts=[], summary=lambda: summary,
-                               tail=lambda: '')
+                               tail=lambda: '', killed=False)
     estimator = process('follower.estimator_planner', formation.estimator.summary(), 0)
     sim = process('follower.follower_sim', formation.follower.summary(), 0)
     leader = process('leader_sim', formation.leader.summary(), 0)
