@@ -17,8 +17,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, cached_design, clear_cache, greedy_target, lft, move_map, noise_free_step,
-    pair_grid, reach_map)
+    SteadyConditions, cached_design, clear_cache, design_within_reach, greedy_loop, greedy_target,
+    lft, move_map, noise_free_step, pair_grid, reach_map, solve_rows)
 from formopt_ros.core.strategies.rq import rq_optimum
 from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS
 from formopt_ros.core.study import StudyConfig, run_study, summarize
@@ -297,6 +297,27 @@ def test_reach_map_is_the_reach_centre(kinematics: str) -> None:
     for pose in poses:
         expected = reach_centre(pose, conditions.leader, conditions.dt, kinematics)
         np.testing.assert_allclose(offset + linear @ pose[:2], expected, rtol=0, atol=1e-12)
+
+
+def test_a_singular_subspace_is_no_steady_state() -> None:
+    """solve_rows gives NaN for a singular row and the solution of the others (the range
+    design with exact kinematics at 1.75 m/s met one and raised LinAlgError)."""
+    A = np.stack([2.0 * np.eye(3), np.zeros((3, 3))])
+    B = np.ones((2, 3, 3))
+    out = solve_rows(A, B)
+    np.testing.assert_allclose(out[0], 0.5 * np.ones((3, 3)), rtol=0, atol=1e-15)
+    assert np.all(np.isnan(out[1]))
+
+
+@pytest.mark.slow
+def test_design_within_reach_with_exact_kinematics_at_1_75() -> None:
+    """The configuration that raised: a range follower, exact kinematics, 1.75 m/s, behind a
+    straight leader; the design is made and beats greedy's loop."""
+    scenario = replace(Scenario.paper('range', max_speed=1.75), kinematics='exact')
+    conditions = SteadyConditions.from_scenario(scenario)
+    assert conditions is not None
+    design = design_within_reach(conditions)
+    assert design is not None and design.steady_cost < greedy_loop(conditions)[0]
 
 
 def velocity(scenario: Scenario, step: int) -> tuple[float, float]:

@@ -244,6 +244,21 @@ def move_map(x: np.ndarray, target: np.ndarray,
     return M, x
 
 
+def solve_rows(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A^-1 B for stacks A (n, k, k) and B (n, k, m); NaN rows where A is singular (an
+    invariant subspace whose lower block is singular has no P = X Y^-1)."""
+    try:
+        return np.linalg.solve(A, B)
+    except np.linalg.LinAlgError:
+        out = np.full(B.shape, np.nan, dtype=np.result_type(A, B))
+        for i in range(len(A)):
+            try:
+                out[i] = np.linalg.solve(A[i], B[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def periodic_solutions(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Steady states of period maps M (n, 6, 6): P (n, 3, 3), the convergence factor per
     period (n,) and which rows have a unique positive definite steady state (n,) bool (the
@@ -255,7 +270,7 @@ def periodic_solutions(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     valid = np.all(np.isfinite(moduli), axis=-1) & (moduli[:, 2] > (1.0 + 1e-9) * moduli[:, 3])
     X, Y = dominant[:, :3], dominant[:, 3:]
     Y = np.where(valid[:, None, None], Y, np.eye(3))                # keep singular rows solvable
-    P = np.real(np.swapaxes(np.linalg.solve(np.swapaxes(Y, 1, 2), np.swapaxes(X, 1, 2)), 1, 2))
+    P = np.real(np.swapaxes(solve_rows(np.swapaxes(Y, 1, 2), np.swapaxes(X, 1, 2)), 1, 2))
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     valid &= np.all(np.isfinite(P), axis=(1, 2))
     P = np.where(valid[:, None, None], P, np.eye(3))
