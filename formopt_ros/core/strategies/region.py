@@ -54,7 +54,8 @@ from formopt_ros.core.reach import Circle, Region
 from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, make_solution
 from formopt_ros.core.strategies.certificate import (
     BOUNDARY, CRITICAL_POINTS, GAP_RTOLS, INTERIOR, NONE, PROVED)
-from formopt_ros.core.strategies.stacked import BRANCH_AND_BOUND, stacked_plan
+from formopt_ros.core.strategies.stacked import CERTIFICATES as STACKED_CERTIFICATES
+from formopt_ros.core.strategies.stacked import stacked_plan
 from formopt_ros.core.strategies.verify import exact_forms
 from formopt_ros.core.strategies.rq import (
     _circle_series, range_stationary_directions, rq_optimum, top_generalized_eigenvector)
@@ -337,7 +338,7 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     disc = rq_optimum(problem, method)
     stacked = problem.measurement == RANGE_BEARING
     if not region.restricts or (region.contains(disc.p) and
-                                disc.certificate in (*PROVED, BRANCH_AND_BOUND)):
+                                disc.certificate in (*PROVED, *STACKED_CERTIFICATES)):
         return disc
     if region.empty():
         target = region.fallback_target()

@@ -1,8 +1,8 @@
-"""Certified optimum of the range-bearing problem: branch and bound over the disc.
+"""Certified range-bearing optimum over a reachable set: branch and bound (docs/range_bearing.md).
 
-See docs/range_bearing.md.
-
-Each square cell (centre c, half-width w, radius rho = w sqrt 2) gets a lower bound of the cost
+Over the whole disc the optimum comes from :mod:`formopt_ros.core.strategies.polar` (lines
+through the leader); this search covers a region that restricts the disc. Each square cell
+(centre c, half-width w, radius rho = w sqrt 2) gets a lower bound of the cost
 over the cell from the convexity of F(I) = tr(W (P^-1 + I)^-1 W) in the information
 I(p) = sum_i h_i h_i' / R_i:
 
@@ -19,21 +19,13 @@ and the linear term's minimum over cell and disc is at least the larger of its m
 square and over the disc. The bound is of second order in rho, so cells near a minimum are
 pruned once rho^2 is below the tolerance and the search ends after a few levels. Cells are
 split in SPLIT x SPLIT until every remaining lower bound is within ``RTOL`` of the best
-feasible cost found (the projections of the cell centres on the disc; ``LOOSE_RTOL`` where the
-cell budget would not allow RTOL); the certificate's gap is that
-tolerance plus a rounding margin (``ROUNDING`` times the cost, for the Joseph-form evaluation;
-an estimate, not a proof). The search is capped at ``MAX_CELLS`` cells; a search that hits
-the cap is not certified and says so (``Solution.fallback = 'grid'``).
-
-Over the disc the search first takes the best point p* of its circle: the bound above holds
-pointwise, f(p) >= f(p*) + g'v - K |v|^2 (v = p - p*, K the curvature weight over a ball of
-radius delta around p*), and every p of the disc has n'v <= -|v|^2 / (2r) (n the outward
-normal), so with g = -mu n + tau t and a = mu / (2r) - K > 0 the cost over the ball and the
-disc is at least f(p*) - tau^2 / (4a) (:func:`boundary_ball`). Cells inside the ball take that
-bound; a ball of radius 2r holds the disc and certifies p* at once.
+feasible cost found (``LOOSE_RTOL`` where the cell budget would not allow RTOL); the
+certificate's gap is that tolerance plus a rounding margin (``ROUNDING`` times the cost, for
+the Joseph-form evaluation; an estimate, not a proof). The search is capped; a search that
+hits the cap is not certified and says so (``Solution.fallback = 'grid'``).
 
 Over a reachable set (a :class:`~formopt_ros.core.reach.Region`: the slot's disc, the reach
-disc, outside the safety circle) the same search prunes the cells that lie wholly outside one
+disc, outside the safety circle) the search prunes the cells that lie wholly outside one
 of the region's circles and takes its incumbents only from feasible cell centres (and the
 region's point nearest the slot, its corners, and the caller's seeds); the bounds stay valid
 (each holds over the whole cell). Where a constraint is active at the optimum, the cells that
@@ -53,6 +45,7 @@ import numpy as np
 from formopt_ros.core.reach import Circle, Region
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies.base import Solution, make_solution
+from formopt_ros.core.strategies.polar import POLAR, polar_optimum
 
 #: Relative tolerance the search closes to (of the best cost).
 RTOL = 1e-10
@@ -63,9 +56,8 @@ ROUNDING = 1e-12
 CERTIFIED_GAP = 1e-9
 #: Tolerance the search falls back to when closing to RTOL would exceed its cell budget.
 LOOSE_RTOL = 5e-10
-#: Cells processed at most (a search beyond it falls back: uncertified, best point found).
-MAX_CELLS = 200_000
-#: Cells processed at most over a restricted region (module docstring).
+#: Cells processed at most over a restricted region (module docstring; a search beyond it
+#: falls back: uncertified, best point found).
 REGION_MAX_CELLS = 20_000
 #: Half-width of the angle window of the polish along a circle, in first-grid cells.
 POLISH_CELLS = 2.0
@@ -213,7 +205,8 @@ def linear_minimum(gx: np.ndarray, gy: np.ndarray, cx: np.ndarray, cy: np.ndarra
     return best - 1e-12 * r * norm
 
 
-def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int = MAX_CELLS,
+def branch_and_bound(problem: StackedProblem, rtol: float = RTOL,
+                     max_cells: int = REGION_MAX_CELLS,
                      region: Region | None = None,
                      seeds: tuple[tuple[float, float], ...] = ()
                      ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
@@ -232,16 +225,9 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
     offsets = (np.arange(n) - (n - 1) / 2.0) * 2.0 * w
     cx, cy = (a.ravel() for a in np.meshgrid(x_o + offsets, y_o + offsets))
     circles: list[Circle] = region.circles() if region is not None else []
-    ball_x, ball_y, ball_radius, ball_bound = x_o, y_o, 0.0, -math.inf
     if region is None:
-        (ball_x, ball_y), ball_radius, ball_bound, best = boundary_ball(problem)
-        best_p = (ball_x, ball_y)
-        if ball_radius >= 2.0 * r:          # the ball holds the disc: p* is the optimum
-            return best_p, best, min(ball_bound, best) - ROUNDING * abs(best), {
-                'cells': 0, 'levels': 0}
-        at_slot = problem.cost_at(x_o, y_o)
-        if at_slot < best:
-            best_p, best = (x_o, y_o), at_slot
+        best_p = problem.slot
+        best = problem.cost_at(x_o, y_o)
     else:
         starts = [q for q in (region.nearest(problem.slot), *region.corners(), *seeds)
                   if q is not None]
@@ -286,9 +272,6 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
                 best, best_p = value, point
         lower = lower_bounds(problem, cx, cy, w, cost[:count], grad[0, :count], grad[1, :count],
                              k[:, :count])
-        if ball_radius > 0.0:
-            lower = np.where(np.hypot(cx - ball_x, cy - ball_y) + rho <= ball_radius,
-                             np.maximum(lower, ball_bound), lower)
         margin = ROUNDING * abs(best)
         keep = lower < best - rtol * abs(best) - margin
         if cells + SPLIT * SPLIT * int(keep.sum()) > max_cells:    # budget tight: close to
@@ -304,52 +287,6 @@ def branch_and_bound(problem: StackedProblem, rtol: float = RTOL, max_cells: int
         cy = (cy[:, None, None] + 0.0 * offsets[None, :, None] + offsets[None, None, :]).ravel()
     return best_p, best, min(floor, best) - ROUNDING * abs(best), {'cells': cells,
                                                                    'levels': levels}
-
-
-#: Radii of the KKT ball tried, as fractions of r (largest first).
-BALL_FRACTIONS = (2.0, 1.0, 0.5, 0.25, 0.125, 0.0625)
-
-
-def boundary_ball(problem: StackedProblem, samples: int = 64, rounds: int = 6
-                  ) -> tuple[tuple[float, float], float, float, float]:
-    """The best point p* on the disc's circle (samples, then windows 16 times narrower) and a
-    ball around it over which the cost is proved >= a bound (module docstring: a boundary
-    KKT point whose multiplier outweighs the curvature bound).
-
-    Returns (p* (m), ball radius (m; 0 when none), lower bound over ball and disc (m^2), cost
-    at p* (m^2; inf where it is not a number))."""
-    x_o, y_o = problem.slot
-    r = problem.r
-    angles = np.linspace(-math.pi, math.pi, samples, endpoint=False)
-    width = 2.0 * math.pi / samples
-    best = 0.0
-    for _ in range(rounds):
-        gains = problem.gain_at(x_o + r * np.cos(angles), y_o + r * np.sin(angles))
-        best = float(angles[int(np.argmax(gains))])
-        angles = best + np.linspace(-width, width, 33)
-        width /= 16.0
-    p = (x_o + r * math.cos(best), y_o + r * math.sin(best))
-    cost_c, grad, norms = posterior_terms(problem, np.array([p[0]]), np.array([p[1]]))
-    cost = float(cost_c[0])
-    if not math.isfinite(cost):
-        return p, 0.0, -math.inf, math.inf
-    gx, gy = float(grad[0, 0]), float(grad[1, 0])
-    gh_d, gh_b, g_xy = (float(v) for v in norms[:, 0])
-    nx, ny = math.cos(best), math.sin(best)
-    mu, tau = -(gx * nx + gy * ny), gy * nx - gx * ny
-    d_c = math.hypot(*p)
-    r_d, r_b = problem.R
-    for fraction in BALL_FRACTIONS:
-        radius = fraction * r
-        near = d_c - radius
-        if mu <= 0.0 or near <= 0.0:
-            continue
-        curvature = (gh_d * L2_RANGE / near ** 2 + g_xy * 4.0 / (near + d_c) ** 2) / r_d \
-            + (gh_b * L2_BEARING / near ** 3 + g_xy / (near * d_c) ** 2) / r_b
-        a = mu / (2.0 * r) - curvature
-        if a > 0.0 and tau * tau / (4.0 * a) <= 1e-12 * abs(cost):
-            return p, radius, cost - tau * tau / (4.0 * a) - 1e-12 * r * math.hypot(gx, gy), cost
-    return p, 0.0, -math.inf, cost
 
 
 def polish_on_circles(problem: StackedProblem, region: Region, p: tuple[float, float],
@@ -392,37 +329,50 @@ def polish_on_circles(problem: StackedProblem, region: Region, p: tuple[float, f
     return p, cost
 
 
-def stacked_plan(problem: StackedProblem, method: str, max_cells: int = MAX_CELLS,
+def stacked_plan(problem: StackedProblem, method: str, max_cells: int = REGION_MAX_CELLS,
                  region: Region | None = None,
                  seeds: tuple[tuple[float, float], ...] = ()) -> Solution:
-    """The certified optimum of a range-bearing problem as a Solution (certificate
-    'branch-and-bound' with ``details['certificate_gap']``; an uncapped search always
-    certifies; a capped one returns its best point with ``fallback = 'grid'``). Over a
-    restricting, non-empty ``region`` (module docstring): at most REGION_MAX_CELLS cells,
-    the best point polished along the region's circles."""
+    """The certified optimum of a range-bearing problem as a Solution, with
+    ``details['certificate_gap']`` and ``details['lower_bound']``.
+
+    Over the disc (no ``region``, or one that does not restrict it) the lines through the
+    leader (:func:`~formopt_ros.core.strategies.polar.polar_optimum`, certificate
+    'polar-lines'); over a restricting, non-empty ``region`` the branch and bound (module
+    docstring; at most ``max_cells`` cells, certificate 'branch-and-bound'), its best point
+    polished along the region's circles. An answer whose gap exceeds CERTIFIED_GAP is the best
+    point found, with ``fallback = 'grid'``, certificate 'none' and the gap in the reason."""
     restricted = region is not None and region.restricts
-    p, cost, lower, info = branch_and_bound(
-        problem, max_cells=min(max_cells, REGION_MAX_CELLS) if restricted else max_cells,
-        region=region if restricted else None, seeds=seeds)
     if restricted:
         assert region is not None
+        p, cost, lower, info = branch_and_bound(problem, max_cells=max_cells, region=region,
+                                                seeds=seeds)
         p, cost = polish_on_circles(problem, region, p, cost)
         lower = min(lower, cost)
+        name, effort, searched = BRANCH_AND_BOUND, info['cells'], f'{info["cells"]} cells'
+        at_slot = problem.cost_at(*problem.slot)
+    else:
+        p, cost, lower, info = polar_optimum(problem)
+        at_slot = info.pop('cost_at_slot')
+        name, effort = POLAR, info['lines']
+        searched = f'{info["lines"]} lines, {info["rounds"]} witnesses'
     gap = (cost - lower) / abs(cost) if cost else math.inf
     on_boundary = math.hypot(p[0] - problem.slot[0], p[1] - problem.slot[1]) >= problem.r * (
         1.0 - 1e-12) or (restricted and not region.contains(p, -1e-12))  # type: ignore
     certified = gap <= CERTIFIED_GAP
     details = {'certificate_gap': gap, 'lower_bound': lower, **info}
     if not certified:
-        details['reason'] = (f'branch and bound closed to a gap of {gap:.3g} only '
-                             f'({info["cells"]} cells)')
+        details['reason'] = f'{name} closed to a gap of {gap:.3g} only ({searched})'
     solution = make_solution(problem, p, method, on_boundary=on_boundary,  # type: ignore
-                             candidates=info['cells'], details=details,
+                             candidates=effort, details=details,
                              fallback=None if certified else 'grid',
-                             certificate=BRANCH_AND_BOUND if certified else 'none')
+                             certificate=name if certified else 'none')
     # the Joseph-form costs (base_cost - gain_at carries rounding of eps tr(W P W))
-    return replace(solution, cost=cost, cost_at_slot=problem.cost_at(*problem.slot))
+    return replace(solution, cost=cost, cost_at_slot=at_slot)
 
 
-__all__ = ['BRANCH_AND_BOUND', 'CERTIFIED_GAP', 'branch_and_bound', 'cell_bounds',
+#: Certificates of the range-bearing optimum: over the disc, over a reachable set.
+CERTIFICATES = (POLAR, BRANCH_AND_BOUND)
+
+
+__all__ = ['BRANCH_AND_BOUND', 'CERTIFICATES', 'CERTIFIED_GAP', 'branch_and_bound', 'cell_bounds',
            'polish_on_circles', 'stacked_plan']

@@ -142,7 +142,8 @@ class EstimatorPlannerNode(Node):
         self.solve_times: list[float] = []
         self.slow_plans = 0                    # realtime plans that took longer than a step
         #: plans that fell back, by kind (e.g. 'unreachable': the reach disc missed the slot's
-        #: disc; 'rq': RAM could not prove its answer; 'grid': a capped branch and bound)
+        #: disc; 'rq': RAM could not prove its answer; 'grid': a range-bearing search that did
+        #: not close)
         self.plan_fallbacks: dict[str, int] = {}
         self.last_planned = 0                 # the step of the last plan counted
         self.received = {key: 0 for key in ('leader_odom', 'follower_odom', 'measurement',

@@ -1,0 +1,346 @@
+"""Certified range-bearing optimum over the disc, line by line through the leader.
+
+See docs/range_bearing.md ("Over the disc: lines through the leader"). On the line through
+the leader at angle theta (a = (c, s, 0), b = (-s, c, 0), points p = (c, s) / u, u = 1 / |p|)
+the rows are exactly h_d = a and h_beta = u b - e3, so S = H P H' + R has entries of degree at
+most two in u, and so has C = tr(W P_post W) det S = tr(W P W) det S - tr(adj(S) H M H'):
+
+    cost = C / D,   C and D = det S quadratics in u,
+
+with coefficients that are trigonometric polynomials of degree at most 4 in theta. The disc's
+u lie in [1 / (|p_o| + r), 1 / (|p_o| - r)]; the solver uses the projective coordinate w with
+u = (1 + kappa w) / ((1 - kappa w) sqrt k), k = |p_o|^2 - r^2, which maps w = -1, 0, 1 to the
+far end, the geometric middle and the near end; C and D times (1 - kappa w)^2 are quadratics
+in w with balanced values. They are taken from Joseph-form costs (as the EKF computes them) at
+w = -1, 0, 1 on 16 lines, so they carry the rounding of the cost, not of tr(W P W), and their
+Fourier series (harmonics 0..4) give them on any line. A line of the wedge
+|delta| <= asin(r / |p_o|) (delta = theta - theta_o) meets the disc in the chord
+g(w) = g2 w^2 + g0 <= 0 with g2 = kappa^2 (a + sqrt k), g0 = sqrt k - a, a = |p_o| cos delta.
+
+The solver maximises the gain -cost = N / D (N = -C). A level G is beaten somewhere in the disc
+iff some line's chord meets {w : L(w) = N - G D > 0}. As theta moves, that can change only
+where that super-level interval appears or vanishes (the discriminant l1^2 - 4 l2 l0 of L
+vanishes), where one of its ends crosses an end of the chord (the resultant
+(l2 g0 - l0 g2)^2 + l1^2 g2 g0 of L and g vanishes), or at the wedge's edges. Both are
+trigonometric polynomials in theta (degree 8 and 10): their real roots are among the complex
+roots of a polynomial in exp(i theta), or of a Chebyshev interpolant over a narrow wedge.
+Between consecutive roots one line decides. So the certificate for an incumbent of gain G* is:
+at G = G* + margin no tested line (every root's angle, the midpoints between them, a fixed
+grid of the wedge) holds a point of its chord with L > 0. A line that does is a witness: the
+search refines the best line around it (a line's best point is in closed form: a stationary
+point of N / D, a root of a quadratic, or an end of the chord) and tests again.
+
+The roots are floating-point eigenvalues; every root's angle is tested, spurious or not, so a
+real root could hide a piece of the super-level set only where L is at the level of its own
+rounding. The certificate's gap is RTOL plus ROUNDING, of the cost.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from formopt_ros.core.model import ekf_update_stacked
+from formopt_ros.core.stacked import StackedProblem
+
+#: Relative level above the incumbent at which the test closes (of the cost).
+RTOL = 1e-10
+#: Rounding margin of the quadratics and of each cost evaluation, relative to the cost.
+ROUNDING = 1e-12
+#: Lines the quadratics' Fourier series are taken from (more than twice their degree, 4).
+SERIES_SAMPLES = 16
+#: Half-width of the wedge (rad) above which the events come from Fourier series over the
+#: whole turn (EVENT_SAMPLES lines, more than twice their degree, 10), below which from
+#: Chebyshev interpolants over the wedge of degree EVENT_DEGREE plus EVENT_FREQUENCY per
+#: radian of half-width (a trigonometric polynomial of degree 10 over [-h, h] has Chebyshev
+#: coefficients below 1e-13 of the largest beyond about 10 + 20 h).
+FOURIER_WEDGE = 0.3
+EVENT_SAMPLES = 32
+EVENT_DEGREE = 10
+EVENT_FREQUENCY = 20.0
+#: Largest coefficient beyond an event polynomial's degree (Fourier) or in the last two
+#: Chebyshev coefficients, relative to the largest, for its roots to be trusted (measured:
+#: at most 5e-12 for Fourier series, 2.4e-8 for Chebyshev ones on a tiny disc, whose values
+#: carry rounding of that size relative to their nearly constant level).
+TAIL = 1e-6
+#: Roots within this distance of [-1, 1] on the imaginary axis count as real (a spurious one
+#: only adds a tested line).
+NEAR_REAL = 0.05
+#: Lines of the first grid over the wedge, and of the fixed grid each test adds.
+FIRST_GRID = 128
+WEDGE_GRID = 8
+#: Levels of the refinement at most, and the lines it tries a level (the bracket shrinks
+#: (ZOOM_LINES - 1) / 2 times a level).
+ZOOM_LEVELS = 20
+ZOOM_LINES = 17
+#: Witnesses refined at most (a search beyond it is not certified).
+MAX_ROUNDS = 12
+#: Certificate name.
+POLAR = 'polar-lines'
+
+_HARMONICS = np.arange(5)
+_STENCIL = np.array([-1.0, 0.0, 1.0])
+
+
+def chebyshev_nodes(degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Chebyshev-Lobatto points x_j = cos(pi j / degree) (degree + 1,) and the matrix
+    (degree + 1, degree + 1) taking values there to Chebyshev coefficients."""
+    j = np.arange(degree + 1)
+    weights = np.full(degree + 1, 2.0 / degree)
+    weights[[0, -1]] /= 2.0
+    transform = np.cos(np.pi * np.outer(j, j) / degree) * weights
+    transform[[0, -1]] /= 2.0
+    return np.cos(np.pi * j / degree), transform
+
+
+_CHEBYSHEV = {degree: chebyshev_nodes(degree) for degree in range(
+    EVENT_DEGREE, EVENT_DEGREE + int(math.ceil(EVENT_FREQUENCY * FOURIER_WEDGE)) + 1)}
+
+
+class Lines:
+    """The lines through the leader that meet the disc of a range-bearing problem.
+
+    Attributes:
+        problem: the :class:`StackedProblem`.
+        centre, half: the slot's direction and the wedge's half-angle asin(r / |p_o|) (rad).
+        root_k, kappa: sqrt(|p_o|^2 - r^2) (m) and kappa of the coordinate w (module
+            docstring).
+        series: Fourier coefficients (6, 5) (complex, harmonics 0..4) over theta of the
+            quadratics in w: n2, n1, n0 (N = -C, m^2 times the unit of D) and d2, d1, d0.
+        evaluated: lines whose best point was computed.
+        unresolved: an event polynomial's series did not end where its degree says (a
+            harmonic beyond it, or a Chebyshev tail, above TAIL of the largest coefficient):
+            its roots are not trusted and no certificate is given.
+    """
+
+    def __init__(self, problem: StackedProblem) -> None:
+        self.problem = problem
+        d_o, r = problem.d_o, problem.r
+        self.centre = math.atan2(problem.slot[1], problem.slot[0])
+        self.half = math.asin(r / d_o)
+        self.root_k = math.sqrt((d_o - r) * (d_o + r))
+        self.kappa = 2.0 * r / (math.sqrt(d_o + r) + math.sqrt(d_o - r)) ** 2
+        theta = np.arange(SERIES_SAMPLES) * (2.0 * math.pi / SERIES_SAMPLES)
+        u = self.u_of(_STENCIL)[:, None]                                     # (3, 1)
+        x, y = (np.cos(theta) / u).ravel(), (np.sin(theta) / u).ravel()
+        poses = np.stack([x, y, np.zeros_like(x)], -1)
+        _, posterior, _, S = ekf_update_stacked(
+            poses, np.broadcast_to(problem.P, (x.size, 3, 3)), np.zeros((x.size, 2)), problem.R)
+        cost = posterior[:, 0, 0] + posterior[:, 1, 1] + problem.w22 * posterior[:, 2, 2]
+        weight = np.repeat((1.0 - self.kappa * _STENCIL) ** 2, SERIES_SAMPLES)
+        det = (S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]) * weight
+        rows = []
+        for values in (-cost * det, det):
+            low, mid, high = values.reshape(3, SERIES_SAMPLES)
+            rows += [0.5 * (high + low) - mid, 0.5 * (high - low), mid]
+        series = np.fft.fft(np.stack(rows))[:, :5] * (2.0 / SERIES_SAMPLES)
+        series[:, 0] *= 0.5
+        self.series = series
+        self.evaluated = 0
+        self.unresolved = False
+
+    def coefficients(self, theta: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(n2, n1, n0, d2, d1, d0): the quadratics N and D in w on the lines at angles theta
+        (n,) (rad)."""
+        return tuple((self.series @ np.exp(1j * np.outer(_HARMONICS, theta))).real)
+
+    def chord(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(w_low, w_high, g2, g0) of the lines at angles theta (n,) (rad) of the wedge: the
+        chord's ends -+ R / (kappa (a + sqrt k)) and the coefficients of g(w) = g2 w^2 + g0
+        (module docstring), with R^2 = (r - |p_o| sin delta)(r + |p_o| sin delta) so that
+        neither lines near the tangents nor a disc close to the leader lose digits; a line
+        that rounding puts just outside the wedge gets the tangent point."""
+        delta = theta - self.centre
+        d_o, r = self.problem.d_o, self.problem.r
+        across = d_o * np.sin(delta)
+        squared = (r - across) * (r + across)
+        along = d_o * np.cos(delta) + self.root_k
+        end = np.sqrt(np.maximum(squared, 0.0)) / (self.kappa * along)
+        return -end, end, self.kappa * self.kappa * along, -squared / along
+
+    def best(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(best gain -cost (m^2), its w) over the chord of each line at angles theta (n,)
+        (rad): the larger of the chord's ends and the stationary points of N / D within it
+        (roots of a quadratic)."""
+        self.evaluated += theta.size
+        n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
+        low, high, _, _ = self.chord(theta)
+        qa, qb, qc = n2 * d1 - n1 * d2, 2.0 * (n2 * d0 - n0 * d2), n1 * d0 - n0 * d1
+        with np.errstate(invalid='ignore', divide='ignore'):
+            q = -0.5 * (qb + np.copysign(np.sqrt(qb * qb - 4.0 * qa * qc), qb))
+            w = np.stack([low, high, q / qa, qc / q])
+            gain = (n2 * w * w + n1 * w + n0) / (d2 * w * w + d1 * w + d0)
+        gain = np.where((w >= low) & (w <= high) & np.isfinite(gain), gain, -np.inf)
+        j = np.argmax(gain, axis=0)
+        pick = np.arange(theta.size)
+        return gain[j, pick], w[j, pick]
+
+    def u_of(self, w: Any) -> Any:
+        """u = 1 / |p| (1/m) at coordinates w (module docstring)."""
+        return (1.0 + self.kappa * w) / ((1.0 - self.kappa * w) * self.root_k)
+
+    def point(self, theta: float, w: float) -> tuple[float, float]:
+        """The point (m) at w on the line at angle theta (rad)."""
+        u = self.u_of(w)
+        return math.cos(theta) / u, math.sin(theta) / u
+
+    def angle(self, tau: np.ndarray) -> np.ndarray:
+        """Line angles theta = centre + half cos(tau) (rad) of wedge coordinates tau in
+        [0, pi]: a line's best gain is smooth in tau up to the wedge's edges (in theta the
+        chord's ends move like the square root of the distance to an edge)."""
+        return self.centre + self.half * np.cos(tau)
+
+    def beaten(self, theta: np.ndarray, level: float) -> np.ndarray:
+        """Whether the chord of each line at angles theta (n,) (rad) holds a point with
+        L = N - level D > 0, i.e. a gain above ``level`` (m^2)."""
+        n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
+        l2, l1, l0 = n2 - level * d2, n1 - level * d1, n0 - level * d0
+        low, high, _, _ = self.chord(theta)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            vertex = np.clip(-l1 / (2.0 * l2), low, high)
+            ends = np.maximum((l2 * low + l1) * low + l0, (l2 * high + l1) * high + l0)
+            inner = np.where(l2 < 0.0, (l2 * vertex + l1) * vertex + l0, -np.inf)
+            return np.maximum(ends, inner) > 0.0
+
+    def events(self, level: float) -> np.ndarray:
+        """Offsets from ``centre`` (rad) of the real roots in the wedge of the discriminant of
+        L and of its resultant with g (module docstring): on a wide wedge from their Fourier
+        series over the whole turn (the roots of polynomials in exp(i theta)), on a narrow
+        one from Chebyshev interpolants over the wedge, which resolve the wedge's own scale;
+        every root near the real line counts."""
+        wide = self.half > FOURIER_WEDGE
+        if wide:
+            theta = np.arange(EVENT_SAMPLES) * (2.0 * math.pi / EVENT_SAMPLES)
+        else:
+            x, transform = _CHEBYSHEV[EVENT_DEGREE + int(math.ceil(EVENT_FREQUENCY * self.half))]
+            theta = self.centre + self.half * x
+        n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
+        l2, l1, l0 = n2 - level * d2, n1 - level * d1, n0 - level * d0
+        _, _, g2, g0 = self.chord(theta)
+        if wide:        # g0 as the polynomial sqrt k - a over the whole turn (chord() keeps
+            g0 = self.root_k - self.problem.d_o * np.cos(theta - self.centre)   # the digits)
+        values = np.stack([l1 * l1 - 4.0 * l2 * l0,
+                           (l2 * g0 - l0 * g2) ** 2 + l1 * l1 * g2 * g0])
+        offsets = []
+        if wide:
+            fourier = np.fft.fft(values) / EVENT_SAMPLES
+            for row, degree in zip(fourier, (8, 10)):
+                tail = np.abs(row[degree + 1:EVENT_SAMPLES - degree]).max()
+                self.unresolved |= bool(tail > TAIL * np.abs(row).max())
+                coefficients = row[np.arange(degree, -degree - 1, -1) % EVENT_SAMPLES]
+                large = np.flatnonzero(np.abs(coefficients) > 1e-15 * np.abs(coefficients).max())
+                if large.size:
+                    roots = np.roots(coefficients[large[0]:])
+                    angle = np.angle(roots[np.abs(roots) > 0.0])
+                    offsets.append(np.mod(angle - self.centre + math.pi, 2.0 * math.pi) - math.pi)
+        else:
+            for coefficients in values @ transform.T:
+                self.unresolved |= bool(np.abs(coefficients[-2:]).max()
+                                        > TAIL * np.abs(coefficients).max())
+                large = np.flatnonzero(np.abs(coefficients) > 1e-15 * np.abs(coefficients).max())
+                if large.size and large[-1] > 0:
+                    roots = np.polynomial.chebyshev.chebroots(coefficients[:large[-1] + 1])
+                    near = roots[(np.abs(roots.real) <= 1.0) & (np.abs(roots.imag) <= NEAR_REAL)]
+                    offsets.append(self.half * near.real)
+        found = np.concatenate(offsets) if offsets else np.zeros(0)
+        return found[np.abs(found) < self.half]
+
+    def to_test(self, level: float) -> np.ndarray:
+        """Sorted angles (rad) to test at ``level``: the wedge's edges, the events, the
+        midpoints between consecutive ones and a fixed grid of the wedge."""
+        half = self.half
+        edges = np.concatenate([[-half], np.sort(self.events(level)), [half]])
+        grid = np.linspace(-half, half, WEDGE_GRID + 2)[1:-1]
+        return self.centre + np.sort(np.concatenate([edges, 0.5 * (edges[1:] + edges[:-1]),
+                                                     grid]))
+
+    def refine(self, tau: np.ndarray, gain: np.ndarray, resolution: float
+               ) -> tuple[float, float, float]:
+        """The best line near the best of wedge coordinates ``tau`` (sorted, rad; see
+        :meth:`angle`) with gains ``gain`` (m^2). Each level tries ZOOM_LINES lines spanning
+        the best's neighbours and the vertex of the parabola through the best and its
+        neighbours, so the bracket shrinks ZOOM_LINES / 2 times a level and faster where the
+        parabola is right; it stops when the parabola promises less than ``resolution`` (m^2)
+        over the best. Returns (tau rad, gain m^2, w of the line's best point)."""
+        tau, gain = np.asarray(tau, dtype=float), np.asarray(gain, dtype=float)
+        j = int(np.argmax(gain))
+        best_tau, best_gain = float(tau[j]), float(gain[j])
+        _, best_w = self.best(self.angle(tau[j:j + 1]))
+        w = np.full(tau.size, np.nan)
+        w[j] = best_w[0]
+        for level in range(ZOOM_LEVELS):
+            low = float(tau[j - 1]) if j > 0 else best_tau
+            high = float(tau[j + 1]) if j + 1 < tau.size else best_tau
+            vertex, promise = best_tau, math.inf
+            if 0 < j < tau.size - 1 and np.isfinite(gain[j - 1]) and np.isfinite(gain[j + 1]):
+                a, b = best_tau - low, high - best_tau
+                rise_low = best_gain - float(gain[j - 1])
+                rise_high = best_gain - float(gain[j + 1])
+                denominator = b * rise_low + a * rise_high
+                if denominator > 0.0:
+                    shift = 0.5 * (a * a * rise_high - b * b * rise_low) / denominator
+                    curvature = 2.0 * denominator / (a * b * (a + b))
+                    vertex, promise = best_tau + shift, 0.5 * curvature * shift * shift
+                elif max(rise_low, rise_high) < resolution:    # flat to the resolution
+                    promise = 0.0
+            if (promise < resolution and level > 0) or high - low <= 1e-15:
+                break
+            trial = np.append(np.linspace(low, high, ZOOM_LINES), vertex)
+            trial_gain, trial_w = self.best(self.angle(trial))
+            tau, first = np.unique(np.append(trial, best_tau), return_index=True)
+            gain = np.append(trial_gain, best_gain)[first]
+            w = np.append(trial_w, w[j])[first]
+            j = int(np.argmax(gain))
+            best_tau, best_gain = float(tau[j]), float(gain[j])
+        return best_tau, best_gain, float(w[j])
+
+
+def polar_optimum(problem: StackedProblem
+                  ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
+    """The global minimum of the cost over the disc (module docstring).
+
+    Returns:
+        (point (m), its cost (m^2, :meth:`StackedProblem.cost_at`), proved lower bound of the
+        cost over the disc (m^2; -inf when MAX_ROUNDS witnesses did not close it),
+        diagnostics: rounds (witnesses refined), lines (lines whose best was computed),
+        unresolved (:class:`Lines`), cost_at_slot (m^2).)
+    """
+    lines = Lines(problem)
+    tau = np.linspace(0.0, math.pi, FIRST_GRID)
+    gain, _ = lines.best(lines.angle(tau))
+
+    def margin(best_gain: float) -> float:
+        return (RTOL + ROUNDING) * abs(best_gain)
+
+    best_tau, best_gain, best_w = lines.refine(tau, gain, 0.01 * margin(float(gain.max())))
+    lower = -math.inf
+    rounds = 0
+    for rounds in range(MAX_ROUNDS + 1):
+        level = best_gain + margin(best_gain)
+        tested = lines.to_test(level)
+        witness = lines.beaten(tested, level)
+        if not witness.any():
+            lower = -math.inf if lines.unresolved else -level
+            break
+        if rounds == MAX_ROUNDS:
+            break
+        tested_tau = np.arccos(np.clip((tested - lines.centre) / lines.half, -1.0, 1.0))
+        order = np.argsort(tested_tau)
+        tested_tau, witness = tested_tau[order], witness[order]
+        tested_gain, _ = lines.best(lines.angle(tested_tau))
+        j = int(np.argmax(np.where(witness, tested_gain, -np.inf)))
+        around = slice(max(j - 1, 0), j + 2)
+        found = lines.refine(tested_tau[around], tested_gain[around], 0.01 * margin(best_gain))
+        if found[1] > best_gain:
+            best_tau, best_gain, best_w = found
+    best_theta = float(lines.angle(np.array([best_tau]))[0])
+    x, y = lines.point(best_theta, best_w)
+    x_o, y_o = problem.slot
+    outside = math.hypot(x - x_o, y - y_o) / problem.r
+    if outside > 1.0:           # a chord's end off the circle by rounding: back onto it
+        x, y = x_o + (x - x_o) / outside, y_o + (y - y_o) / outside
+    cost, at_slot = problem.cost_at(np.array([x, x_o]), np.array([y, y_o]))
+    return (x, y), float(cost), min(lower, float(cost)), {
+        'rounds': rounds, 'lines': lines.evaluated, 'unresolved': lines.unresolved,
+        'cost_at_slot': float(at_slot)}
