@@ -5,8 +5,8 @@ covariance with condition number up to 1e4 and overall scale 1e-4..1, slot dista
 0.5-10 m in a random direction, allowed deviation r = 5-30 % of the slot distance, noise
 0.01-0.5 m for range or 0.002-0.1 rad for bearing, both for range-bearing). Each problem's
 reference is the certified RQ optimum (every one must carry a proof; the table header says how
-many do); for range-bearing RQ is the branch and bound of
-:mod:`~formopt_ros.core.strategies.stacked` (RAM does not apply, rq-batch and the peers are
+many do); for range-bearing RQ is the level test on lines through the leader of
+:mod:`~formopt_ros.core.strategies.polar` (RAM does not apply, rq-batch and the peers are
 not offered for it: their rows are skipped).
 
 Methods:
@@ -156,7 +156,7 @@ def _stacked(method: str) -> Runner:
 
 
 def _reference(kind: str, data: ProblemData) -> Any:
-    """The certified optimum of a problem (RQ; for range-bearing its branch and bound)."""
+    """The certified optimum of a problem (RQ; for range-bearing its level test on lines)."""
     if kind == RANGE_BEARING:
         P, p_o, r, sigmas = data
         sigma_d, sigma_b = cast(tuple[float, float], sigmas)

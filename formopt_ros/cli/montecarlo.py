@@ -384,7 +384,7 @@ def kind_strategies(kind: str, strategies: tuple[str, ...]) -> tuple[str, ...]:
         return strategies
     rest = tuple(s for s in strategies if s != 'ram')
     print('formopt-montecarlo: note: range-bearing leaves RAM out (the paper\'s method for one '
-          'scalar measurement does not apply; RQ solves it by branch and bound)')
+          'scalar measurement does not apply; RQ solves it with a certificate)')
     return rest
 
 

@@ -86,7 +86,7 @@ class FollowerSpec:
             if self.strategy == 'ram':
                 raise InvalidInput('strategy', "ram is the paper's method for one scalar "
                                    'measurement; a range-bearing follower needs another (rq '
-                                   'solves it by branch and bound)')
+                                   'solves it with a certificate)')
             if self.interfaces == 'real':
                 raise InvalidInput('interfaces', "'real' takes range or bearing followers "
                                    '(follower_estimator has one sensor): a range-bearing '

@@ -14,8 +14,7 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.base import PlanContext
 from formopt_ros.core.reach import Region
 from formopt_ros.core.strategies import polar
-from formopt_ros.core.strategies.stacked import (
-    CERTIFICATES, CERTIFIED_GAP, branch_and_bound, cell_bounds, stacked_plan)
+from formopt_ros.core.strategies.stacked import CERTIFICATES, CERTIFIED_GAP, stacked_plan
 from harness import split_by_tier
 from harness.problems import STACKED_FAMILIES as FAMILIES
 from harness.problems import stacked_problem as generated_problem
@@ -106,27 +105,6 @@ def check_problems(count: int, seed: int) -> dict[str, dict[str, float]]:
     return out
 
 
-@split_by_tier(300, 3000)
-def test_cell_bounds_hold_on_samples(first: int, last: int) -> None:
-    """Every cell's lower bound is below the cost at 2000 random points of the cell within the
-    disc (3000 cells of every family, the fast tier the first 300; half-widths 1e-4..0.3 r)."""
-    rng = np.random.default_rng(SEED)
-    for index in range(last):
-        problem = generated_problem(rng, FAMILIES[index % len(FAMILIES)])
-        centre = np.array(problem.slot) + rng.uniform(-problem.r, problem.r, 2)
-        w = problem.r * 10.0 ** rng.uniform(-4.0, -0.5)
-        if index < first:
-            continue
-        cost, lower = cell_bounds(problem, centre[:1], centre[1:], w)
-        points = centre + rng.uniform(-w, w, (2000, 2))
-        points = points[np.hypot(*(points - problem.slot).T) <= problem.r]
-        if not points.size:
-            continue
-        values = problem.cost(points)
-        assert lower[0] <= values.min() + 1e-12 * abs(values.min()), (index, problem)
-        assert cost[0] == pytest.approx(problem.cost(centre), rel=1e-9)
-
-
 def test_solver_matches_dense_reference() -> None:
     """12 generated problems (2 of each family; the slow tier runs more): see
     :func:`check_problems`; all certified."""
@@ -210,23 +188,31 @@ def test_level_test_agrees_with_dense_lines(first: int, last: int) -> None:
 
 
 def test_unclosed_searches_fall_back_visibly(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A branch and bound stopped by its cell cap (over a region) and a polar search out of
-    witness rounds (its refinement made to miss) are not certified: certificate 'none',
-    fallback 'grid', a reason naming the gap; the point is still feasible."""
+    """A search out of witness rounds (its refinement made to miss, over the disc and over a
+    region) and one whose event polynomials are not resolved are not certified: certificate
+    'none', fallback 'grid', a reason naming the gap; the point is still feasible."""
     rng = np.random.default_rng(SEED)
     problem = generated_problem(rng, 'moderate')
     x_o, y_o = problem.slot
     region = Region(problem.slot, problem.r, centre=(x_o + problem.r, y_o), radius=problem.r)
-    p, cost, lower, info = branch_and_bound(problem, max_cells=10, region=region)
-    assert info['capped'] and lower < cost * (1 - CERTIFIED_GAP)
-    for kwargs in ({'max_cells': 10, 'region': region}, {}):
-        if not kwargs:
-            monkeypatch.setattr(polar, 'MAX_ROUNDS', 0)
-            monkeypatch.setattr(polar.Lines, 'refine', lambda self, tau, gain, resolution: (
-                float(tau[0]), float(gain[0]), float(self.best(self.angle(tau[:1]))[1][0])))
-        solution = stacked_plan(problem, 'rq', **kwargs)
+    unresolved = polar.Lines.events
+    monkeypatch.setattr(polar.Lines, 'events', lambda self, level: (
+        setattr(self, 'unresolved', True), unresolved(self, level))[1])
+    solution = stacked_plan(problem, 'rq')
+    assert solution.certificate == 'none' and 'unresolved' in solution.details['reason']
+    monkeypatch.setattr(polar.Lines, 'events', unresolved)
+    monkeypatch.setattr(polar, 'MAX_ROUNDS', 0)
+
+    def worst_line(self: polar.Lines, tau: np.ndarray, gain: np.ndarray,
+                   resolution: float) -> tuple[float, float, float]:
+        j = int(np.argmin(np.where(np.isfinite(gain), gain, np.inf)))     # a feasible line
+        return float(tau[j]), float(gain[j]), float(self.best(self.angle(tau[j:j + 1]))[1][0])
+    monkeypatch.setattr(polar.Lines, 'refine', worst_line)
+    for kwargs in ({}, {'region': region}):
+        solution = stacked_plan(problem, 'rq', **kwargs)    # type: ignore[arg-type]
         assert solution.certificate == 'none' and solution.fallback == 'grid'
         assert 'gap' in solution.details['reason'] and problem.feasible(solution.p)
+        assert region.contains(solution.p) or not kwargs
 
 
 @pytest.mark.parametrize('method', ['rq', 'gbs', 'mtf', 'crm', 'mme', 'periodic'])

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import ekf_update_stacked
+from formopt_ros.core.reach import Region
 from formopt_ros.core.stacked import StackedProblem
 
 #: Relative level above the incumbent at which the test closes (of the cost).
@@ -57,13 +57,16 @@ SERIES_SAMPLES = 16
 #: coefficients below 1e-13 of the largest beyond about 10 + 20 h).
 FOURIER_WEDGE = 0.3
 EVENT_SAMPLES = 32
+EVENT_HARMONICS = 10
 EVENT_DEGREE = 10
 EVENT_FREQUENCY = 20.0
-#: Largest coefficient beyond an event polynomial's degree (Fourier) or in the last two
-#: Chebyshev coefficients, relative to the largest, for its roots to be trusted (measured:
-#: at most 5e-12 for Fourier series, 2.4e-8 for Chebyshev ones on a tiny disc, whose values
-#: carry rounding of that size relative to their nearly constant level).
+#: Largest coefficient beyond an event polynomial's degree in its Fourier series (measured:
+#: at most 5e-12), and in the last two coefficients of a Chebyshev interpolant (measured: up to
+#: 3e-6 on a tiny disc, rounding of the nearly constant values of a reach disc's resultants;
+#: truncation would show orders of magnitude above it), relative to the largest, for its
+#: roots to be trusted.
 TAIL = 1e-6
+TAIL_CHEBYSHEV = 1e-3
 #: Roots within this distance of [-1, 1] on the imaginary axis count as real (a spurious one
 #: only adds a tested line).
 NEAR_REAL = 0.05
@@ -74,6 +77,8 @@ WEDGE_GRID = 8
 #: (ZOOM_LINES - 1) / 2 times a level).
 ZOOM_LEVELS = 20
 ZOOM_LINES = 17
+#: The refinement stops when the parabola promises less than this fraction of the margin.
+REFINED = 0.1
 #: Witnesses refined at most (a search beyond it is not certified).
 MAX_ROUNDS = 12
 #: Certificate name.
@@ -108,28 +113,25 @@ class Lines:
             docstring).
         series: Fourier coefficients (6, 5) (complex, harmonics 0..4) over theta of the
             quadratics in w: n2, n1, n0 (N = -C, m^2 times the unit of D) and d2, d1, d0.
+        region: the reachable region that restricts the disc (None: the disc).
         evaluated: lines whose best point was computed.
         unresolved: an event polynomial's series did not end where its degree says (a
             harmonic beyond it, or a Chebyshev tail, above TAIL of the largest coefficient):
             its roots are not trusted and no certificate is given.
     """
 
-    def __init__(self, problem: StackedProblem) -> None:
+    def __init__(self, problem: StackedProblem, region: Region | None = None) -> None:
         self.problem = problem
+        self.region = region if region is not None and region.restricts else None
         d_o, r = problem.d_o, problem.r
         self.centre = math.atan2(problem.slot[1], problem.slot[0])
         self.half = math.asin(r / d_o)
         self.root_k = math.sqrt((d_o - r) * (d_o + r))
         self.kappa = 2.0 * r / (math.sqrt(d_o + r) + math.sqrt(d_o - r)) ** 2
         theta = np.arange(SERIES_SAMPLES) * (2.0 * math.pi / SERIES_SAMPLES)
-        u = self.u_of(_STENCIL)[:, None]                                     # (3, 1)
-        x, y = (np.cos(theta) / u).ravel(), (np.sin(theta) / u).ravel()
-        poses = np.stack([x, y, np.zeros_like(x)], -1)
-        _, posterior, _, S = ekf_update_stacked(
-            poses, np.broadcast_to(problem.P, (x.size, 3, 3)), np.zeros((x.size, 2)), problem.R)
-        cost = posterior[:, 0, 0] + posterior[:, 1, 1] + problem.w22 * posterior[:, 2, 2]
-        weight = np.repeat((1.0 - self.kappa * _STENCIL) ** 2, SERIES_SAMPLES)
-        det = (S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]) * weight
+        u = np.repeat(self.u_of(_STENCIL), SERIES_SAMPLES)
+        cost, det = joseph_on_lines(problem, np.tile(theta, 3), u)
+        det = det * np.repeat((1.0 - self.kappa * _STENCIL) ** 2, SERIES_SAMPLES)
         rows = []
         for values in (-cost * det, det):
             low, mid, high = values.reshape(3, SERIES_SAMPLES)
@@ -159,13 +161,57 @@ class Lines:
         end = np.sqrt(np.maximum(squared, 0.0)) / (self.kappa * along)
         return -end, end, self.kappa * self.kappa * along, -squared / along
 
+    def interval(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(w_low, w_high) of the feasible points of each line at angles theta (n,) (rad): the
+        chord of the disc, cut by the region's reach disc and safety circle (each convex along
+        a ray from the leader, so one interval; low > high where a line misses the region)."""
+        low, high, _, _ = self.chord(theta)
+        if self.region is None:
+            return low, high
+        near, far = self.region.safety * np.ones_like(theta), np.full(theta.size, np.inf)
+        missed = np.zeros(theta.size, dtype=bool)
+        if self.region.reach_active:                   # distances t along the ray
+            assert self.region.centre is not None
+            cx, cy = self.region.centre
+            along = np.cos(theta) * cx + np.sin(theta) * cy
+            squared = along * along - (cx * cx + cy * cy - self.region.radius ** 2)
+            root = np.sqrt(np.maximum(squared, 0.0))
+            near, far = np.maximum(near, along - root), np.minimum(far, along + root)
+            missed = squared < 0.0
+        missed |= far <= near
+        with np.errstate(divide='ignore', invalid='ignore'):
+            low = np.maximum(low, self.w_of(1.0 / far))
+            high = np.minimum(high, np.where(near > 0.0, self.w_of(1.0 / near), np.inf))
+        return np.where(missed, np.inf, low), np.where(missed, -np.inf, high)
+
+    def constraints(self, theta: np.ndarray) -> list[tuple[Any, Any, Any]]:
+        """The region's reach and safety boundaries on the lines at angles theta (n,) as
+        quadratics (q2, q1, q0) in w (the reach disc: (|c|^2 - rho^2) u^2 - 2 (c . e) u + 1
+        times k (1 - kappa w)^2; the safety circle: w - w_s), trigonometric polynomials of
+        degree at most one in theta."""
+        out: list[tuple[Any, Any, Any]] = []
+        region, kappa, k = self.region, self.kappa, self.root_k ** 2
+        if region is None:
+            return out
+        if region.reach_active:
+            assert region.centre is not None
+            cx, cy = region.centre
+            a = cx * cx + cy * cy - region.radius ** 2
+            b = (np.cos(theta) * cx + np.sin(theta) * cy) * self.root_k
+            out.append((kappa * kappa * (a + 2.0 * b + k), 2.0 * kappa * (a - k) + 0.0 * b,
+                        a - 2.0 * b + k))
+        if region.safety_active:
+            zero = np.zeros(theta.size)
+            out.append((zero, zero + 1.0, zero - self.w_of(1.0 / region.safety)))
+        return out
+
     def best(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(best gain -cost (m^2), its w) over the chord of each line at angles theta (n,)
-        (rad): the larger of the chord's ends and the stationary points of N / D within it
-        (roots of a quadratic)."""
+        """(best gain -cost (m^2), its w) over the feasible interval of each line at angles
+        theta (n,) (rad): the larger of its ends and the stationary points of N / D within it
+        (roots of a quadratic); -inf where a line misses the region."""
         self.evaluated += theta.size
         n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
-        low, high, _, _ = self.chord(theta)
+        low, high = self.interval(theta)
         qa, qb, qc = n2 * d1 - n1 * d2, 2.0 * (n2 * d0 - n0 * d2), n1 * d0 - n0 * d1
         with np.errstate(invalid='ignore', divide='ignore'):
             q = -0.5 * (qb + np.copysign(np.sqrt(qb * qb - 4.0 * qa * qc), qb))
@@ -180,6 +226,11 @@ class Lines:
         """u = 1 / |p| (1/m) at coordinates w (module docstring)."""
         return (1.0 + self.kappa * w) / ((1.0 - self.kappa * w) * self.root_k)
 
+    def w_of(self, u: Any) -> Any:
+        """The coordinate w of u = 1 / |p| (1/m; the inverse of :meth:`u_of`)."""
+        scaled = u * self.root_k
+        return (scaled - 1.0) / (self.kappa * (scaled + 1.0))
+
     def point(self, theta: float, w: float) -> tuple[float, float]:
         """The point (m) at w on the line at angle theta (rad)."""
         u = self.u_of(w)
@@ -191,17 +242,23 @@ class Lines:
         chord's ends move like the square root of the distance to an edge)."""
         return self.centre + self.half * np.cos(tau)
 
+    def tau_of(self, theta: np.ndarray) -> np.ndarray:
+        """Wedge coordinates tau (rad) of line angles theta (the inverse of :meth:`angle`,
+        clipped to the wedge)."""
+        offset = np.mod(theta - self.centre + math.pi, 2.0 * math.pi) - math.pi
+        return np.arccos(np.clip(offset / self.half, -1.0, 1.0))
+
     def beaten(self, theta: np.ndarray, level: float) -> np.ndarray:
-        """Whether the chord of each line at angles theta (n,) (rad) holds a point with
-        L = N - level D > 0, i.e. a gain above ``level`` (m^2)."""
+        """Whether the feasible interval of each line at angles theta (n,) (rad) holds a point
+        with L = N - level D > 0, i.e. a gain above ``level`` (m^2)."""
         n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
         l2, l1, l0 = n2 - level * d2, n1 - level * d1, n0 - level * d0
-        low, high, _, _ = self.chord(theta)
+        low, high = self.interval(theta)
         with np.errstate(invalid='ignore', divide='ignore'):
             vertex = np.clip(-l1 / (2.0 * l2), low, high)
             ends = np.maximum((l2 * low + l1) * low + l0, (l2 * high + l1) * high + l0)
             inner = np.where(l2 < 0.0, (l2 * vertex + l1) * vertex + l0, -np.inf)
-            return np.maximum(ends, inner) > 0.0
+            return (np.maximum(ends, inner) > 0.0) & (low <= high)
 
     def events(self, level: float) -> np.ndarray:
         """Offsets from ``centre`` (rad) of the real roots in the wedge of the discriminant of
@@ -220,12 +277,21 @@ class Lines:
         _, _, g2, g0 = self.chord(theta)
         if wide:        # g0 as the polynomial sqrt k - a over the whole turn (chord() keeps
             g0 = self.root_k - self.problem.d_o * np.cos(theta - self.centre)   # the digits)
-        values = np.stack([l1 * l1 - 4.0 * l2 * l0,
-                           (l2 * g0 - l0 * g2) ** 2 + l1 * l1 * g2 * g0])
+        zero = np.zeros(theta.size)
+        slot = (g2, zero, g0)
+        quadratics = [(l2, l1, l0), slot, *self.constraints(theta)]
+        rows = [l1 * l1 - 4.0 * l2 * l0]
+        for i, first in enumerate(quadratics):     # every pair: L with each boundary, the
+            for second in quadratics[i + 1:]:       # boundaries with each other
+                rows.append(resultant(first, second))
+        for q2, q1, q0 in quadratics[2:]:           # the reach disc's tangent lines
+            rows.append(q1 * q1 - 4.0 * q2 * q0)
+        values = np.stack(rows)
         offsets = []
         if wide:
             fourier = np.fft.fft(values) / EVENT_SAMPLES
-            for row, degree in zip(fourier, (8, 10)):
+            for row in fourier:
+                degree = EVENT_HARMONICS
                 tail = np.abs(row[degree + 1:EVENT_SAMPLES - degree]).max()
                 self.unresolved |= bool(tail > TAIL * np.abs(row).max())
                 coefficients = row[np.arange(degree, -degree - 1, -1) % EVENT_SAMPLES]
@@ -237,7 +303,7 @@ class Lines:
         else:
             for coefficients in values @ transform.T:
                 self.unresolved |= bool(np.abs(coefficients[-2:]).max()
-                                        > TAIL * np.abs(coefficients).max())
+                                        > TAIL_CHEBYSHEV * np.abs(coefficients).max())
                 large = np.flatnonzero(np.abs(coefficients) > 1e-15 * np.abs(coefficients).max())
                 if large.size and large[-1] > 0:
                     roots = np.polynomial.chebyshev.chebroots(coefficients[:large[-1] + 1])
@@ -296,27 +362,75 @@ class Lines:
         return best_tau, best_gain, float(w[j])
 
 
-def polar_optimum(problem: StackedProblem
+def resultant(first: tuple[Any, Any, Any], second: tuple[Any, Any, Any]) -> Any:
+    """The resultant of a2 w^2 + a1 w + a0 and b2 w^2 + b1 w + b0 (coefficients arrays of one
+    shape): zero where they share a root (a leading coefficient 0 leaves a factor, no root
+    lost)."""
+    a2, a1, a0 = first
+    b2, b1, b0 = second
+    return (a2 * b0 - a0 * b2) ** 2 - (a2 * b1 - a1 * b2) * (a1 * b0 - a0 * b1)
+
+
+def joseph_on_lines(problem: StackedProblem, theta: np.ndarray, u: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(tr(W P_post W) (m^2), det S) at the points (cos theta, sin theta) / u (arrays (n,),
+    rad and 1/m), with P_post in Joseph form (as :func:`~formopt_ros.core.model.
+    ekf_update_stacked`, written for these rows: h_d = (c, s, 0), h_beta = u (-s, c, 0) - e3)."""
+    c, s = np.cos(theta), np.sin(theta)
+    H = np.zeros((theta.size, 2, 3))
+    H[:, 0, 0], H[:, 0, 1] = c, s
+    H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = -u * s, u * c, -1.0
+    r_d, r_b = problem.R
+    PH = problem.P @ np.swapaxes(H, 1, 2)                                  # (n, 3, 2)
+    s00 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 0]) + r_d
+    s01 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 1])
+    s11 = np.einsum('ni,ni->n', H[:, 1], PH[:, :, 1]) + r_b
+    det = s00 * s11 - s01 * s01
+    s00, s01, s11, det = s00[:, None], s01[:, None], s11[:, None], det[:, None]
+    K = np.stack([(PH[:, :, 0] * s11 - PH[:, :, 1] * s01) / det,
+                  (PH[:, :, 1] * s00 - PH[:, :, 0] * s01) / det], -1)            # (n, 3, 2)
+    A = np.eye(3) - K @ H
+    diagonal = np.einsum('nij,jk,nik->ni', A, problem.P, A) + r_d * K[:, :, 0] ** 2 \
+        + r_b * K[:, :, 1] ** 2
+    return diagonal[:, 0] + diagonal[:, 1] + problem.w22 * diagonal[:, 2], det[:, 0]
+
+
+def polar_optimum(problem: StackedProblem, region: Region | None = None,
+                  seeds: tuple[tuple[float, float], ...] = ()
                   ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
-    """The global minimum of the cost over the disc (module docstring).
+    """The global minimum of the cost over the disc, or over a non-empty ``region`` that
+    restricts it (module docstring); the lines through ``seeds`` (m) and, over a region,
+    through its corners and its point nearest the slot join the first grid (a sliver of a
+    region may fall between grid lines).
 
     Returns:
-        (point (m), its cost (m^2, :meth:`StackedProblem.cost_at`), proved lower bound of the
-        cost over the disc (m^2; -inf when MAX_ROUNDS witnesses did not close it),
+        (point (m), its cost (m^2, Joseph form), proved lower bound of the cost over the disc
+        or region (m^2; -inf when MAX_ROUNDS witnesses did not close it),
         diagnostics: rounds (witnesses refined), lines (lines whose best was computed),
-        unresolved (:class:`Lines`), cost_at_slot (m^2).)
+        unresolved (:class:`Lines`), met (False: no line found to meet a region a few
+        roundings wide; the point is then the region's point nearest the slot), cost_at_slot
+        (m^2).)
     """
-    lines = Lines(problem)
+    lines = Lines(problem, region)
     tau = np.linspace(0.0, math.pi, FIRST_GRID)
+    through = list(seeds)
+    if lines.region is not None:
+        through += [q for q in (lines.region.nearest(problem.slot), *lines.region.corners())
+                    if q is not None]
+    if through:
+        tau = np.unique(np.append(tau, lines.tau_of(np.array(
+            [math.atan2(q[1], q[0]) for q in through]))))
     gain, _ = lines.best(lines.angle(tau))
 
     def margin(best_gain: float) -> float:
         return (RTOL + ROUNDING) * abs(best_gain)
 
-    best_tau, best_gain, best_w = lines.refine(tau, gain, 0.01 * margin(float(gain.max())))
+    best_tau, best_gain, best_w = lines.refine(tau, gain, REFINED * margin(float(gain.max())))
     lower = -math.inf
     rounds = 0
     for rounds in range(MAX_ROUNDS + 1):
+        if not math.isfinite(best_gain):    # no line found to meet a region of a few roundings
+            break
         level = best_gain + margin(best_gain)
         tested = lines.to_test(level)
         witness = lines.beaten(tested, level)
@@ -325,22 +439,32 @@ def polar_optimum(problem: StackedProblem
             break
         if rounds == MAX_ROUNDS:
             break
-        tested_tau = np.arccos(np.clip((tested - lines.centre) / lines.half, -1.0, 1.0))
+        tested_tau = lines.tau_of(tested)
         order = np.argsort(tested_tau)
         tested_tau, witness = tested_tau[order], witness[order]
         tested_gain, _ = lines.best(lines.angle(tested_tau))
         j = int(np.argmax(np.where(witness, tested_gain, -np.inf)))
         around = slice(max(j - 1, 0), j + 2)
-        found = lines.refine(tested_tau[around], tested_gain[around], 0.01 * margin(best_gain))
+        found = lines.refine(tested_tau[around], tested_gain[around],
+                             REFINED * margin(best_gain))
         if found[1] > best_gain:
             best_tau, best_gain, best_w = found
-    best_theta = float(lines.angle(np.array([best_tau]))[0])
-    x, y = lines.point(best_theta, best_w)
     x_o, y_o = problem.slot
+    if math.isfinite(best_gain):
+        x, y = lines.point(float(lines.angle(np.array([best_tau]))[0]), best_w)
+    else:                                   # its point nearest the slot, uncertified
+        assert lines.region is not None
+        x, y = lines.region.nearest(problem.slot) or problem.slot
     outside = math.hypot(x - x_o, y - y_o) / problem.r
     if outside > 1.0:           # a chord's end off the circle by rounding: back onto it
         x, y = x_o + (x - x_o) / outside, y_o + (y - y_o) / outside
-    cost, at_slot = problem.cost_at(np.array([x, x_o]), np.array([y, y_o]))
+    if lines.region is not None and not lines.region.contains((x, y)):
+        nearest = lines.region.nearest((x, y))          # an end off its circle by rounding
+        if nearest is not None:
+            x, y = nearest
+    cost, at_slot = joseph_on_lines(problem, np.array([math.atan2(y, x), lines.centre]),
+                                    np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))[0]
     return (x, y), float(cost), min(lower, float(cost)), {
         'rounds': rounds, 'lines': lines.evaluated, 'unresolved': lines.unresolved,
+        'met': math.isfinite(best_gain),
         'cost_at_slot': float(at_slot)}

@@ -683,7 +683,7 @@ class RelaxedAlgebraicMethod(Strategy):
         if problem.measurement not in MEASUREMENT_KINDS:
             raise ValueError(f'RAM is the paper\'s method for one scalar measurement (range or '
                              f'bearing); it does not apply to a {problem.measurement!r} '
-                             f'measurement (use rq, which solves it by branch and bound)')
+                             f'measurement (use rq, which solves it with a certificate)')
         return ram_optimum(problem, bool(self.settings['fallback']))
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:

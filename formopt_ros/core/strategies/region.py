@@ -346,7 +346,7 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
                              details={'reason': 'the reach disc misses the slot disc outside '
                                       'the safety circle: heading for the disc',
                                       'region': 'empty'})
-    if stacked:                     # range-bearing: the branch and bound over the region
+    if stacked:                     # range-bearing: the lines through the leader, in the region
         nearest = region.nearest(disc.p)
         return stacked_plan(problem, method, region=region,  # type: ignore[arg-type]
                             seeds=() if nearest is None else (nearest,))
