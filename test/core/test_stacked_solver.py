@@ -233,3 +233,20 @@ def test_strategies_accept_range_bearing(method: str) -> None:
         assert solution.cost <= optimum.cost * (1 + 1e-4)
     with pytest.raises(ValueError, match="does not apply to a 'range-bearing'"):
         make_strategy('ram').plan(problem, context)
+
+
+def test_a_sliver_of_a_tiny_region_is_found_and_certified() -> None:
+    """A reach disc overlapping a disc of r = 7e-7 m by a sliver (from the region check's
+    generator): the reach chord computed from |c|^2 - rho^2 lost the overlap to rounding, and no
+    line met the region; from the centre's offset across each line it is found, the answer
+    lies in the region and is certified."""
+    problem = StackedProblem(
+        [[0.35659708504894083, 0.36021878460822343, -0.17527352374776503],
+         [0.36021878460822343, 0.4394900593108455, -0.27070566556318937],
+         [-0.17527352374776503, -0.27070566556318937, 0.22537734344417412]],
+        [0.3271693452974128, 0.4825681728574294], 7.242478550251385e-07, 0.28542199729238,
+        0.03952846018003374)
+    region = Region(problem.slot, problem.r, centre=(0.327170359609456, 0.48256892758754283),
+                    radius=5.400762588596938e-07)
+    solution = stacked_plan(problem, 'rq', region=region)
+    assert solution.certificate in CERTIFICATES and region.contains(solution.p)

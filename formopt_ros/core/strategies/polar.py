@@ -174,7 +174,9 @@ class Lines:
             assert self.region.centre is not None
             cx, cy = self.region.centre
             along = np.cos(theta) * cx + np.sin(theta) * cy
-            squared = along * along - (cx * cx + cy * cy - self.region.radius ** 2)
+            across = np.cos(theta) * cy - np.sin(theta) * cx      # the centre's offset from
+            radius = self.region.radius                            # the line: no cancellation
+            squared = (radius - across) * (radius + across)
             root = np.sqrt(np.maximum(squared, 0.0))
             near, far = np.maximum(near, along - root), np.minimum(far, along + root)
             missed = squared < 0.0
