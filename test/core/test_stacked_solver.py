@@ -154,7 +154,7 @@ def test_line_forms_are_the_cost(first: int, last: int) -> None:
             np.testing.assert_allclose(np.hypot(np.cos(theta) / ends - problem.slot[0],
                                                 np.sin(theta) / ends - problem.slot[1]),
                                        problem.r, rtol=1e-9)
-        best, _ = lines.best(theta)
+        best = lines.best(theta)[0]
         dense = lines.u_of(low[:, None] + (high - low)[:, None] * np.linspace(0.0, 1.0, 400))
         values = -problem.cost_at(np.cos(theta)[:, None] / dense,
                                   np.sin(theta)[:, None] / dense)
@@ -174,7 +174,7 @@ def test_level_test_agrees_with_dense_lines(first: int, last: int) -> None:
             continue
         lines = polar.Lines(problem)
         theta = lines.angle(np.linspace(0.0, math.pi, 2000))
-        best, _ = lines.best(theta)
+        best = lines.best(theta)[0]
         optimum = stacked_plan(problem, 'rq').cost
         assert not lines.beaten(theta, -optimum * (1 - 1e-9)).any(), index
         level = float(np.quantile(best, 0.5))

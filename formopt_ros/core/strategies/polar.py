@@ -78,13 +78,16 @@ WEDGE_GRID = 8
 ZOOM_LEVELS = 20
 ZOOM_LINES = 17
 #: The refinement stops when the parabola promises less than this fraction of the margin.
-REFINED = 0.1
+REFINED = 0.01
 #: Witnesses refined at most (a search beyond it is not certified).
 MAX_ROUNDS = 12
 #: Certificate name.
 POLAR = 'polar-lines'
 
 _HARMONICS = np.arange(5)
+#: Offsets (fractions of the wedge's half-width, both signs) of the lines closing in on the
+#: incumbent and, as wedge coordinates tau, on the edges (:meth:`Lines.to_test`).
+_CLOSING = np.concatenate([-(10.0 ** -np.arange(1.0, 11.0)), 10.0 ** -np.arange(1.0, 11.0)])
 _STENCIL = np.array([-1.0, 0.0, 1.0])
 
 
@@ -207,10 +210,12 @@ class Lines:
             out.append((zero, zero + 1.0, zero - self.w_of(1.0 / region.safety)))
         return out
 
-    def best(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(best gain -cost (m^2), its w) over the feasible interval of each line at angles
-        theta (n,) (rad): the larger of its ends and the stationary points of N / D within it
-        (roots of a quadratic); -inf where a line misses the region."""
+    def best(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(best gain -cost (m^2), its w, its branch) over the feasible interval of each line
+        at angles theta (n,) (rad): the larger of its ends (branches 0 and 1) and the
+        stationary points of N / D within it (roots of a quadratic, branches 2 and 3); -inf
+        where a line misses the region. The best gain is smooth along a branch; where the
+        two ends swap it has a kink."""
         self.evaluated += theta.size
         n2, n1, n0, d2, d1, d0 = self.coefficients(theta)
         low, high = self.interval(theta)
@@ -222,7 +227,7 @@ class Lines:
         gain = np.where((w >= low) & (w <= high) & np.isfinite(gain), gain, -np.inf)
         j = np.argmax(gain, axis=0)
         pick = np.arange(theta.size)
-        return gain[j, pick], w[j, pick]
+        return gain[j, pick], w[j, pick], j
 
     def u_of(self, w: Any) -> Any:
         """u = 1 / |p| (1/m) at coordinates w (module docstring)."""
@@ -314,14 +319,19 @@ class Lines:
         found = np.concatenate(offsets) if offsets else np.zeros(0)
         return found[np.abs(found) < self.half]
 
-    def to_test(self, level: float) -> np.ndarray:
+    def to_test(self, level: float, incumbent: float) -> np.ndarray:
         """Sorted angles (rad) to test at ``level``: the wedge's edges, the events, the
-        midpoints between consecutive ones and a fixed grid of the wedge."""
+        midpoints between consecutive ones, a fixed grid of the wedge, and lines closing in
+        geometrically on the incumbent's line (rad) and on the edges, where a thin piece of the
+        super-level set hides first (its ends are a near-double root, or a root next to the
+        edge's own)."""
         half = self.half
         edges = np.concatenate([[-half], np.sort(self.events(level)), [half]])
         grid = np.linspace(-half, half, WEDGE_GRID + 2)[1:-1]
-        return self.centre + np.sort(np.concatenate([edges, 0.5 * (edges[1:] + edges[:-1]),
-                                                     grid]))
+        near = np.clip(incumbent - self.centre + half * _CLOSING, -half, half)
+        return self.centre + np.sort(np.concatenate([
+            edges, 0.5 * (edges[1:] + edges[:-1]), grid, near,
+            half * np.sign(_CLOSING) * np.cos(_CLOSING)]))
 
     def refine(self, tau: np.ndarray, gain: np.ndarray, resolution: float
                ) -> tuple[float, float, float]:
@@ -329,14 +339,14 @@ class Lines:
         :meth:`angle`) with gains ``gain`` (m^2). Each level tries ZOOM_LINES lines spanning
         the best's neighbours and the vertex of the parabola through the best and its
         neighbours, so the bracket shrinks ZOOM_LINES / 2 times a level and faster where the
-        parabola is right; it stops when the parabola promises less than ``resolution`` (m^2)
-        over the best. Returns (tau rad, gain m^2, w of the line's best point)."""
+        parabola is right; it stops when the parabola through three lines of one branch (see
+        :meth:`best`) promises less than ``resolution`` (m^2) over the best (across a kink a
+        parabola misjudges). Returns (tau rad, gain m^2, w of the line's best point)."""
         tau, gain = np.asarray(tau, dtype=float), np.asarray(gain, dtype=float)
         j = int(np.argmax(gain))
         best_tau, best_gain = float(tau[j]), float(gain[j])
-        _, best_w = self.best(self.angle(tau[j:j + 1]))
-        w = np.full(tau.size, np.nan)
-        w[j] = best_w[0]
+        w, branch = np.full(tau.size, np.nan), np.full(tau.size, -1)
+        _, w[j:j + 1], branch[j:j + 1] = self.best(self.angle(tau[j:j + 1]))
         for level in range(ZOOM_LEVELS):
             low = float(tau[j - 1]) if j > 0 else best_tau
             high = float(tau[j + 1]) if j + 1 < tau.size else best_tau
@@ -346,19 +356,25 @@ class Lines:
                 rise_low = best_gain - float(gain[j - 1])
                 rise_high = best_gain - float(gain[j + 1])
                 denominator = b * rise_low + a * rise_high
+                one_branch = branch[j - 1] == branch[j] == branch[j + 1]
                 if denominator > 0.0:
                     shift = 0.5 * (a * a * rise_high - b * b * rise_low) / denominator
                     curvature = 2.0 * denominator / (a * b * (a + b))
-                    vertex, promise = best_tau + shift, 0.5 * curvature * shift * shift
-                elif max(rise_low, rise_high) < resolution:    # flat to the resolution
-                    promise = 0.0
+                    vertex = best_tau + shift
+                    promise = 0.5 * curvature * shift * shift if one_branch else math.inf
+                elif max(rise_low, rise_high) < resolution and one_branch:
+                    promise = 0.0                               # flat to the resolution
             if (promise < resolution and level > 0) or high - low <= 1e-15:
                 break
             trial = np.append(np.linspace(low, high, ZOOM_LINES), vertex)
-            trial_gain, trial_w = self.best(self.angle(trial))
+            trial_gain, trial_w, trial_branch = self.best(self.angle(trial))
             tau, first = np.unique(np.append(trial, best_tau), return_index=True)
             gain = np.append(trial_gain, best_gain)[first]
             w = np.append(trial_w, w[j])[first]
+            branch = np.append(trial_branch, branch[j])[first]
+            close = np.flatnonzero(np.diff(tau) <= 1e-13 * (1.0 + np.abs(tau[1:])))
+            drop = np.where(gain[close] < gain[close + 1], close, close + 1)  # keep the better
+            tau, gain, w, branch = (np.delete(a, drop) for a in (tau, gain, w, branch))
             j = int(np.argmax(gain))
             best_tau, best_gain = float(tau[j]), float(gain[j])
         return best_tau, best_gain, float(w[j])
@@ -422,7 +438,7 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
     if through:
         tau = np.unique(np.append(tau, lines.tau_of(np.array(
             [math.atan2(q[1], q[0]) for q in through]))))
-    gain, _ = lines.best(lines.angle(tau))
+    gain = lines.best(lines.angle(tau))[0]
 
     def margin(best_gain: float) -> float:
         return (RTOL + ROUNDING) * abs(best_gain)
@@ -434,7 +450,7 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
         if not math.isfinite(best_gain):    # no line found to meet a region of a few roundings
             break
         level = best_gain + margin(best_gain)
-        tested = lines.to_test(level)
+        tested = lines.to_test(level, float(lines.angle(np.array([best_tau]))[0]))
         witness = lines.beaten(tested, level)
         if not witness.any():
             lower = -math.inf if lines.unresolved else -level
@@ -444,7 +460,7 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
         tested_tau = lines.tau_of(tested)
         order = np.argsort(tested_tau)
         tested_tau, witness = tested_tau[order], witness[order]
-        tested_gain, _ = lines.best(lines.angle(tested_tau))
+        tested_gain = lines.best(lines.angle(tested_tau))[0]
         j = int(np.argmax(np.where(witness, tested_gain, -np.inf)))
         around = slice(max(j - 1, 0), j + 2)
         found = lines.refine(tested_tau[around], tested_gain[around],
