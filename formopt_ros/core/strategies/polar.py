@@ -1,6 +1,7 @@
-"""Certified range-bearing optimum over the disc, line by line through the leader.
+"""The certified range-bearing optimum over a disc or a region, by lines through the leader.
 
-See docs/range_bearing.md ("Over the disc: lines through the leader"). On the line through
+See docs/range_bearing.md ("Over the disc: lines through the leader", "Over a reachable
+set"). On the line through
 the leader at angle theta (a = (c, s, 0), b = (-s, c, 0), points p = (c, s) / u, u = 1 / |p|)
 the rows are exactly h_d = a and h_beta = u b - e3, so S = H P H' + R has entries of degree at
 most two in u, and so has C = tr(W P_post W) det S = tr(W P W) det S - tr(adj(S) H M H'):
@@ -29,6 +30,10 @@ at G = G* + margin no tested line (every root's angle, the midpoints between the
 grid of the wedge) holds a point of its chord with L > 0. A line that does is a witness: the
 search refines the best line around it (a line's best point is in closed form: a stationary
 point of N / D, a root of a quadratic, or an end of the chord) and tests again.
+
+Over a region the reach disc (convex along a ray from the leader) and the safety circle (a
+half-line) cut each chord to one interval, their boundaries are quadratics in w too, and the
+events add their resultants with L and with each other.
 
 The roots are floating-point eigenvalues; every root's angle is tested, spurious or not, so a
 real root could hide a piece of the super-level set only where L is at the level of its own
