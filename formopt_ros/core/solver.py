@@ -8,7 +8,10 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.cost import Problem
+from formopt_ros.core.model import RANGE_BEARING
+from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies import (
     BUILTIN, STRATEGIES, PlanContext, Solution, Strategy, make_strategy)
 from formopt_ros.core.strategies.region import plan_within
@@ -59,8 +62,9 @@ def timed_plan(strategy: Strategy, problem: Problem, context: PlanContext) -> So
 
 
 def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement: str,
-          method: str, rng: np.random.Generator | None = None,
-          context: PlanContext | None = None, **options: object) -> Solution:
+          method: str, sigma_bearing: float | None = None,
+          rng: np.random.Generator | None = None, context: PlanContext | None = None,
+          **options: object) -> Solution:
     """Choose the follower's next position in the disc |p - p_o| <= r (paper problem Pi_1).
 
     Args:
@@ -68,8 +72,12 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             definite (m^2, m rad, rad^2); the paper uses the covariance propagated to p_o.
         p_o: formation slot in the leader frame, shape (2,), m.
         r: allowed deviation, m; 1e-6 |p_o| <= r <= 0.999 |p_o|.
-        sigma: measurement noise standard deviation: m for 'range', rad for 'bearing'.
-        measurement: 'range' or 'bearing'.
+        sigma: measurement noise standard deviation: m for 'range' and 'range-bearing', rad
+            for 'bearing'.
+        measurement: 'range', 'bearing' or 'range-bearing' (both at once: docs/range_bearing.md;
+            every method but 'ram').
+        sigma_bearing: 'range-bearing' only, and required there: the bearing noise standard
+            deviation, rad.
         method: 'ram' (paper, analytic), 'rq' (exact eigen solver), 'gbs' (grid), 'mtf'
             (stay at p_o), 'crm' (random in the disc), 'mme' (sideways, alternating),
             'periodic' (plans for the long run through the estimator in ``context``; without
@@ -92,7 +100,9 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             variance of P outside ``cost.VARIANCE_RANGE`` ([1e-100, 1e25]), |p_o| outside
             ``cost.SLOT_DISTANCE_RANGE`` ([1e-3, 1e6] m), r outside [1e-6, 0.999] |p_o|,
             sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), an unknown measurement or a bad
-            option value (:func:`~formopt_ros.core.cost.check_problem`, one cheap check).
+            option value (:func:`~formopt_ros.core.cost.check_problem`, one cheap check), or
+            a sigma_bearing missing for 'range-bearing', outside SIGMA_RANGE or given for
+            another measurement.
         ValueError: for an rng that is not a numpy Generator, a context that is not a
             PlanContext, or an unknown method or option.
     """
@@ -107,4 +117,13 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
     context = context or DEFAULT_CONTEXT
     if rng is not None:
         context = replace(context, rng=rng)
-    return timed_plan(strategy, Problem(P, p_o, r, sigma, measurement), context)
+    if measurement == RANGE_BEARING:
+        if sigma_bearing is None:
+            raise InvalidInput('sigma_bearing', "is required for measurement='range-bearing'")
+        problem: Problem | StackedProblem = StackedProblem(P, p_o, r, sigma, sigma_bearing)
+    elif sigma_bearing is not None:
+        raise InvalidInput('sigma_bearing', f"is for measurement='range-bearing' only, got "
+                                            f'{measurement!r}')
+    else:
+        problem = Problem(P, p_o, r, sigma, measurement)
+    return timed_plan(strategy, problem, context)      # type: ignore[arg-type]

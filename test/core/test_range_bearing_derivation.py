@@ -24,7 +24,7 @@ def test_lines_through_the_leader_by_sympy() -> None:
     """sympy, for a symbolic P (3 x 3), W^2 = diag(1, 1, w22) and the rows h_d = (c, s, 0),
     h_beta = u (-s, c, 0) - e3 of the line at angle theta (polar.py): det S and
     C = tr(W P_post W) det S are polynomials of degree 2 in u whose coefficients are
-    trigonometric polynomials of degree at most 4 (in c, s: homogeneous after c^2 + s^2 = 1);
+    polynomials of degree 4 in c, s but trigonometric polynomials of degree at most 2 in theta;
     on u = (1 + kappa w) / ((1 - kappa w) sqrt k) the chord |p - p_o|^2 <= r^2 becomes
     (g2 w^2 + g0) / sqrt k <= 0 times a positive factor, with g2 = kappa^2 (a + sqrt k),
     g0 = sqrt k - a, a = |p_o| cos delta, when kappa = 2 r / (sqrt(d + r) + sqrt(d - r))^2;
@@ -38,11 +38,15 @@ def test_lines_through_the_leader_by_sympy() -> None:
     S = H * P * H.T + sp.diag(r_d, r_b)
     D = sp.expand(S.det())
     C = sp.expand((W2 * P).trace() * D - (S.adjugate() * H * P * W2 * P * H.T).trace())
+    z = sp.symbols('z')
+    on_circle = {c: (z + 1 / z) / 2, s: (z - 1 / z) / (2 * sp.I)}     # z = exp(i theta)
     for form in (D, C):
         poly = sp.Poly(form, u)
         assert poly.degree() == 2
         for coefficient in poly.all_coeffs():
             assert sp.Poly(coefficient, c, s).total_degree() <= 4
+            laurent = sp.Poly(sp.expand(coefficient.subs(on_circle) * z ** 4), z)
+            assert {k for (k,) in laurent.monoms()} <= {2, 3, 4, 5, 6}     # harmonics <= 2
     # C / D is the cost: the posterior P - P H' S^-1 H P at a numeric point
     rng = np.random.default_rng(SEED)
     q = np.linalg.qr(rng.standard_normal((3, 3)))[0]

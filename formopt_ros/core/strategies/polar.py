@@ -8,22 +8,25 @@ most two in u, and so has C = tr(W P_post W) det S = tr(W P W) det S - tr(adj(S)
 
     cost = C / D,   C and D = det S quadratics in u,
 
-with coefficients that are trigonometric polynomials of degree at most 4 in theta. The disc's
+with coefficients that are trigonometric polynomials of degree at most 2 in theta (S's 2 x 2
+minors are (u, -c, -s): Cauchy-Binet). The disc's
 u lie in [1 / (|p_o| + r), 1 / (|p_o| - r)]; the solver uses the projective coordinate w with
 u = (1 + kappa w) / ((1 - kappa w) sqrt k), k = |p_o|^2 - r^2, which maps w = -1, 0, 1 to the
 far end, the geometric middle and the near end; C and D times (1 - kappa w)^2 are quadratics
 in w with balanced values. They are taken from Joseph-form costs (as the EKF computes them) at
-w = -1, 0, 1 on 16 lines, so they carry the rounding of the cost, not of tr(W P W), and their
-Fourier series (harmonics 0..4) give them on any line. A line of the wedge
+w = -1, 0, 1 on 8 lines, so they carry the rounding of the cost, not of tr(W P W), and their
+Fourier series (harmonics 0..2) give them on any line. A line of the wedge
 |delta| <= asin(r / |p_o|) (delta = theta - theta_o) meets the disc in the chord
 g(w) = g2 w^2 + g0 <= 0 with g2 = kappa^2 (a + sqrt k), g0 = sqrt k - a, a = |p_o| cos delta.
 
-The solver maximises the gain -cost = N / D (N = -C). A level G is beaten somewhere in the disc
+The solver maximises the gain shift - cost = N / D (N = shift D - C), with shift = tr(W P W)
+where the measurement removes less than half of it and 0 otherwise, so that N keeps the digits of
+whichever of gain and posterior is the smaller. A level G is beaten somewhere in the disc
 iff some line's chord meets {w : L(w) = N - G D > 0}. As theta moves, that can change only
 where that super-level interval appears or vanishes (the discriminant l1^2 - 4 l2 l0 of L
 vanishes), where one of its ends crosses an end of the chord (the resultant
 (l2 g0 - l0 g2)^2 + l1^2 g2 g0 of L and g vanishes), or at the wedge's edges. Both are
-trigonometric polynomials in theta (degree 8 and 10): their real roots are among the complex
+trigonometric polynomials in theta (degree 4 and 6): their real roots are among the complex
 roots of a polynomial in exp(i theta), or of a Chebyshev interpolant over a narrow wedge.
 Between consecutive roots one line decides. So the certificate for an incumbent of gain G* is:
 at G = G* + margin no tested line (every root's angle, the midpoints between them, a fixed
@@ -37,7 +40,8 @@ events add their resultants with L and with each other.
 
 The roots are floating-point eigenvalues; every root's angle is tested, spurious or not, so a
 real root could hide a piece of the super-level set only where L is at the level of its own
-rounding. The certificate's gap is RTOL plus ROUNDING, of the cost.
+rounding. The certificate's gap is RTOL plus ROUNDING, of the cost, plus the quadratics'
+rounding (``Lines.rounding``).
 """
 from __future__ import annotations
 
@@ -51,18 +55,24 @@ from formopt_ros.core.stacked import StackedProblem
 
 #: Relative level above the incumbent at which the test closes (of the cost).
 RTOL = 1e-10
-#: Rounding margin of the quadratics and of each cost evaluation, relative to the cost.
+#: Rounding margin of the quadratics and of each cost evaluation, relative to the cost, and
+#: their rounding from the Joseph form's products (:func:`joseph_on_lines`: a bound of eps
+#: times the products' sizes, for 3-term sums and two products) times SERIES_ROUNDING (the
+#: quadratics are sums of 3 x 9 multiples of the samples, in w and in theta).
 ROUNDING = 1e-12
-#: Lines the quadratics' Fourier series are taken from (more than twice their degree, 4).
-SERIES_SAMPLES = 16
+JOSEPH_ROUNDING = 8.0
+SERIES_ROUNDING = 36.0
+#: Lines the quadratics' Fourier series are taken from (more than twice their degree, 2; the
+#: harmonics beyond it are their degree's self-check).
+SERIES_SAMPLES = 8
 #: Half-width of the wedge (rad) above which the events come from Fourier series over the
-#: whole turn (EVENT_SAMPLES lines, more than twice their degree, 10), below which from
+#: whole turn (EVENT_SAMPLES lines, more than twice their degree, 6), below which from
 #: Chebyshev interpolants over the wedge of degree EVENT_DEGREE plus EVENT_FREQUENCY per
 #: radian of half-width (a trigonometric polynomial of degree 10 over [-h, h] has Chebyshev
 #: coefficients below 1e-13 of the largest beyond about 10 + 20 h).
 FOURIER_WEDGE = 0.3
-EVENT_SAMPLES = 32
-EVENT_HARMONICS = 10
+EVENT_SAMPLES = 16
+EVENT_HARMONICS = 6
 EVENT_DEGREE = 10
 EVENT_FREQUENCY = 20.0
 #: Largest coefficient beyond an event polynomial's degree in its Fourier series (measured:
@@ -89,7 +99,7 @@ MAX_ROUNDS = 12
 #: Certificate name.
 POLAR = 'polar-lines'
 
-_HARMONICS = np.arange(5)
+_HARMONICS = np.arange(3)
 #: Offsets (fractions of the wedge's half-width, both signs) of the lines closing in on the
 #: incumbent and, as wedge coordinates tau, on the edges (:meth:`Lines.to_test`).
 _CLOSING = np.concatenate([-(10.0 ** -np.arange(1.0, 11.0)), 10.0 ** -np.arange(1.0, 11.0)])
@@ -119,13 +129,17 @@ class Lines:
         centre, half: the slot's direction and the wedge's half-angle asin(r / |p_o|) (rad).
         root_k, kappa: sqrt(|p_o|^2 - r^2) (m) and kappa of the coordinate w (module
             docstring).
-        series: Fourier coefficients (6, 5) (complex, harmonics 0..4) over theta of the
-            quadratics in w: n2, n1, n0 (N = -C, m^2 times the unit of D) and d2, d1, d0.
+        series: Fourier coefficients (6, 3) (complex, harmonics 0..2) over theta of the
+            quadratics in w: n2, n1, n0 (N = (shift - cost) D, m^2 times the unit of D) and
+            d2, d1, d0.
+        shift: tr(W P W) or 0 (m^2, module docstring): the gains are shift - cost.
+        rounding: the quadratics' rounding in the cost (m^2): SERIES_ROUNDING times the
+            largest of :func:`joseph_on_lines`'s bounds on their samples.
         region: the reachable region that restricts the disc (None: the disc).
         evaluated: lines whose best point was computed.
-        unresolved: an event polynomial's series did not end where its degree says (a
-            harmonic beyond it, or a Chebyshev tail, above TAIL of the largest coefficient):
-            its roots are not trusted and no certificate is given.
+        unresolved: the quadratics' or an event polynomial's series did not end where its
+            degree says (a harmonic beyond it, or a Chebyshev tail, above TAIL of the largest
+            coefficient): their roots are not trusted and no certificate is given.
     """
 
     def __init__(self, problem: StackedProblem, region: Region | None = None) -> None:
@@ -138,17 +152,23 @@ class Lines:
         self.kappa = 2.0 * r / (math.sqrt(d_o + r) + math.sqrt(d_o - r)) ** 2
         theta = np.arange(SERIES_SAMPLES) * (2.0 * math.pi / SERIES_SAMPLES)
         u = np.repeat(self.u_of(_STENCIL), SERIES_SAMPLES)
-        cost, det = joseph_on_lines(problem, np.tile(theta, 3), u)
+        cost, det, rounding = joseph_on_lines(problem, np.tile(theta, 3), u)
+        self.shift = problem.base_cost if 2.0 * float(np.median(cost)) > problem.base_cost \
+            else 0.0
+        self.rounding = SERIES_ROUNDING * float(rounding.max())
         det = det * np.repeat((1.0 - self.kappa * _STENCIL) ** 2, SERIES_SAMPLES)
         rows = []
-        for values in (-cost * det, det):
+        for values in (((self.shift - cost) * det).astype(float), det.astype(float)):
             low, mid, high = values.reshape(3, SERIES_SAMPLES)
             rows += [0.5 * (high + low) - mid, 0.5 * (high - low), mid]
-        series = np.fft.fft(np.stack(rows))[:, :5] * (2.0 / SERIES_SAMPLES)
+        fourier = np.fft.fft(np.stack(rows)) * (2.0 / SERIES_SAMPLES)
+        series = fourier[:, :_HARMONICS.size]
         series[:, 0] *= 0.5
         self.series = series
         self.evaluated = 0
-        self.unresolved = False
+        tail = np.abs(fourier[:, _HARMONICS.size:SERIES_SAMPLES - _HARMONICS.size + 1])
+        self.unresolved = bool(any(tail[group].max() > TAIL * np.abs(fourier[group]).max()
+                                   for group in (slice(0, 3), slice(3, 6))))     # N, then D
 
     def coefficients(self, theta: np.ndarray) -> tuple[np.ndarray, ...]:
         """(n2, n1, n0, d2, d1, d0): the quadratics N and D in w on the lines at angles theta
@@ -216,8 +236,8 @@ class Lines:
         return out
 
     def best(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(best gain -cost (m^2), its w, its branch) over the feasible interval of each line
-        at angles theta (n,) (rad): the larger of its ends (branches 0 and 1) and the
+        """(best gain shift - cost (m^2), its w, its branch) over the feasible interval of each
+        line at angles theta (n,) (rad): the larger of its ends (branches 0 and 1) and the
         stationary points of N / D within it (roots of a quadratic, branches 2 and 3); -inf
         where a line misses the region. The best gain is smooth along a branch; where the
         two ends swap it has a kink."""
@@ -395,16 +415,26 @@ def resultant(first: tuple[Any, Any, Any], second: tuple[Any, Any, Any]) -> Any:
 
 
 def joseph_on_lines(problem: StackedProblem, theta: np.ndarray, u: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """(tr(W P_post W) (m^2), det S) at the points (cos theta, sin theta) / u (arrays (n,),
-    rad and 1/m), with P_post in Joseph form (as :func:`~formopt_ros.core.model.
-    ekf_update_stacked`, written for these rows: h_d = (c, s, 0), h_beta = u (-s, c, 0) - e3)."""
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(tr(W P_post W) (m^2), det S (both ``np.longdouble``), the cost's rounding (m^2)) at the
+    points (cos theta, sin theta) / u (arrays (n,), rad and 1/m), with P_post in Joseph form (as
+    :func:`~formopt_ros.core.model.ekf_update_stacked`, written for these rows:
+    h_d = (c, s, 0), h_beta = u (-s, c, 0) - e3).
+
+    Computed in ``np.longdouble`` (extended precision on x86-64): Joseph's products cancel to
+    the posterior, so their rounding is eps tr(W (|A| |P| |A|' + K^2 R) W), which exceeds the
+    cost's own eps where the update removes most of the prior (a posterior 1e-7 of tr(W P W)
+    leaves 1e-9 of the cost in float64). The rounding returned is JOSEPH_ROUNDING times that
+    bound with the long type's eps (float64's where the long type is no longer)."""
+    long = np.longdouble
+    theta, u = np.asarray(theta, dtype=long), np.asarray(u, dtype=long)
     c, s = np.cos(theta), np.sin(theta)
-    H = np.zeros((theta.size, 2, 3))
+    H = np.zeros((theta.size, 2, 3), dtype=long)
     H[:, 0, 0], H[:, 0, 1] = c, s
     H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = -u * s, u * c, -1.0
-    r_d, r_b = problem.R
-    PH = problem.P @ np.swapaxes(H, 1, 2)                                  # (n, 3, 2)
+    r_d, r_b = (long(value) for value in problem.R)
+    P = problem.P.astype(long)
+    PH = P @ np.swapaxes(H, 1, 2)                                          # (n, 3, 2)
     s00 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 0]) + r_d
     s01 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 1])
     s11 = np.einsum('ni,ni->n', H[:, 1], PH[:, :, 1]) + r_b
@@ -412,10 +442,13 @@ def joseph_on_lines(problem: StackedProblem, theta: np.ndarray, u: np.ndarray
     s00, s01, s11, det = s00[:, None], s01[:, None], s11[:, None], det[:, None]
     K = np.stack([(PH[:, :, 0] * s11 - PH[:, :, 1] * s01) / det,
                   (PH[:, :, 1] * s00 - PH[:, :, 0] * s01) / det], -1)            # (n, 3, 2)
-    A = np.eye(3) - K @ H
-    diagonal = np.einsum('nij,jk,nik->ni', A, problem.P, A) + r_d * K[:, :, 0] ** 2 \
-        + r_b * K[:, :, 1] ** 2
-    return diagonal[:, 0] + diagonal[:, 1] + problem.w22 * diagonal[:, 2], det[:, 0]
+    A = np.eye(3, dtype=long) - K @ H
+    noise = r_d * K[:, :, 0] ** 2 + r_b * K[:, :, 1] ** 2
+    diagonal = np.einsum('nij,jk,nik->ni', A, P, A) + noise
+    size = np.einsum('nij,jk,nik->ni', np.abs(A), np.abs(P), np.abs(A)) + noise
+    weights = np.array([1.0, 1.0, problem.w22], dtype=long)
+    rounding = JOSEPH_ROUNDING * float(np.finfo(long).eps) * (size @ weights)
+    return diagonal @ weights, det[:, 0], rounding.astype(float)
 
 
 def polar_optimum(problem: StackedProblem, region: Region | None = None,
@@ -430,7 +463,8 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
         (point (m), its cost (m^2, Joseph form), proved lower bound of the cost over the disc
         or region (m^2; -inf when MAX_ROUNDS witnesses did not close it),
         diagnostics: rounds (witnesses refined), lines (lines whose best was computed),
-        unresolved (:class:`Lines`), met (False: no line found to meet a region a few
+        unresolved (:class:`Lines`), rounding (``Lines.rounding`` relative to the cost),
+        met (False: no line found to meet a region a few
         roundings wide; the point is then the region's point nearest the slot), cost_at_slot
         (m^2).)
     """
@@ -446,7 +480,7 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
     gain = lines.best(lines.angle(tau))[0]
 
     def margin(best_gain: float) -> float:
-        return (RTOL + ROUNDING) * abs(best_gain)
+        return (RTOL + ROUNDING) * abs(lines.shift - best_gain) + lines.rounding
 
     best_tau, best_gain, best_w = lines.refine(tau, gain, REFINED * margin(float(gain.max())))
     lower = -math.inf
@@ -458,7 +492,7 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
         tested = lines.to_test(level, float(lines.angle(np.array([best_tau]))[0]))
         witness = lines.beaten(tested, level)
         if not witness.any():
-            lower = -math.inf if lines.unresolved else -level
+            lower = -math.inf if lines.unresolved else lines.shift - level
             break
         if rounds == MAX_ROUNDS:
             break
@@ -485,9 +519,11 @@ def polar_optimum(problem: StackedProblem, region: Region | None = None,
         nearest = lines.region.nearest((x, y))          # an end off its circle by rounding
         if nearest is not None:
             x, y = nearest
-    cost, at_slot = joseph_on_lines(problem, np.array([math.atan2(y, x), lines.centre]),
-                                    np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))[0]
-    return (x, y), float(cost), min(lower, float(cost)), {
+    (cost, at_slot), _, (rounding, _) = joseph_on_lines(
+        problem, np.array([math.atan2(y, x), lines.centre]),
+        np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
+    return (x, y), float(cost), min(lower, float(cost - rounding)), {
         'rounds': rounds, 'lines': lines.evaluated, 'unresolved': lines.unresolved,
+        'rounding': lines.rounding / float(cost) if cost > 0.0 else math.inf,
         'met': math.isfinite(best_gain),
         'cost_at_slot': float(at_slot)}

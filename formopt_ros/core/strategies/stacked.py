@@ -26,7 +26,7 @@ def stacked_plan(problem: StackedProblem, method: str, region: Region | None = N
     ``region`` that restricts it (``seeds``: feasible points (m) whose lines the search tries
     first), as a Solution with ``details['certificate_gap']`` and ``details['lower_bound']``
     (certificate 'polar-lines'). An answer whose gap exceeds CERTIFIED_GAP is the best point
-    found, with ``fallback = 'grid'``, certificate 'none' and the gap in the reason."""
+    found, with ``fallback = 'best-line'``, certificate 'none' and the gap in the reason."""
     p, cost, lower, info = polar_optimum(problem, region, seeds)
     at_slot = info.pop('cost_at_slot')
     restricted = region is not None and region.restricts
@@ -36,13 +36,16 @@ def stacked_plan(problem: StackedProblem, method: str, region: Region | None = N
     certified = gap <= CERTIFIED_GAP
     details = {'certificate_gap': gap, 'lower_bound': lower, **info}
     if not certified:
+        rounding = (f', the cost\'s rounding alone {info["rounding"]:.2g} of it (a posterior '
+                    f'{cost / problem.base_cost:.2g} of tr(W P W))')
         details['reason'] = (f'{POLAR} closed to a gap of {gap:.3g} only ({info["lines"]} '
                              f'lines, {info["rounds"]} witnesses'
                              f'{", event polynomials unresolved" if info["unresolved"] else ""}'
+                             f'{rounding if info["rounding"] > 0.1 * CERTIFIED_GAP else ""}'
                              f'{"" if info["met"] else ", no line met the region"})')
     solution = make_solution(problem, p, method, on_boundary=on_boundary,  # type: ignore
                              candidates=info['lines'], details=details,
-                             fallback=None if certified else 'grid',
+                             fallback=None if certified else 'best-line',
                              certificate=POLAR if certified else 'none')
     # the Joseph-form costs (base_cost - gain_at carries rounding of eps tr(W P W))
     return replace(solution, cost=cost, cost_at_slot=at_slot)

@@ -142,7 +142,7 @@ class EstimatorPlannerNode(Node):
         self.solve_times: list[float] = []
         self.slow_plans = 0                    # realtime plans that took longer than a step
         #: plans that fell back, by kind (e.g. 'unreachable': the reach disc missed the slot's
-        #: disc; 'rq': RAM could not prove its answer; 'grid': a range-bearing search that did
+        #: disc; 'rq': RAM could not prove its answer; 'best-line': a range-bearing search that did
         #: not close)
         self.plan_fallbacks: dict[str, int] = {}
         self.last_planned = 0                 # the step of the last plan counted
