@@ -50,6 +50,8 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.cost import Problem
+from formopt_ros.core.model import BEARING, RANGE
 from formopt_ros.core.reach import Region
 from formopt_ros.core.stacked import StackedProblem
 
@@ -142,7 +144,7 @@ class Lines:
             coefficient): their roots are not trusted and no certificate is given.
     """
 
-    def __init__(self, problem: StackedProblem, region: Region | None = None) -> None:
+    def __init__(self, problem: Problem | StackedProblem, region: Region | None = None) -> None:
         self.problem = problem
         self.region = region if region is not None and region.restricts else None
         d_o, r = problem.d_o, problem.r
@@ -312,7 +314,9 @@ class Lines:
         zero = np.zeros(theta.size)
         slot = (g2, zero, g0)
         quadratics = [(l2, l1, l0), slot, *self.constraints(theta)]
-        rows = [l1 * l1 - 4.0 * l2 * l0]
+        # range: N and D are multiples of (1 - kappa w)^2 (a line's cost is constant), so L's
+        # discriminant vanishes identically and only the sign of L's factor changes
+        rows = [] if self.problem.measurement == RANGE else [l1 * l1 - 4.0 * l2 * l0]
         for i, first in enumerate(quadratics):     # every pair: L with each boundary, the
             for second in quadratics[i + 1:]:       # boundaries with each other
                 rows.append(resultant(first, second))
@@ -414,12 +418,13 @@ def resultant(first: tuple[Any, Any, Any], second: tuple[Any, Any, Any]) -> Any:
     return (a2 * b0 - a0 * b2) ** 2 - (a2 * b1 - a1 * b2) * (a1 * b0 - a0 * b1)
 
 
-def joseph_on_lines(problem: StackedProblem, theta: np.ndarray, u: np.ndarray
+def joseph_on_lines(problem: Problem | StackedProblem, theta: np.ndarray, u: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(tr(W P_post W) (m^2), det S (both ``np.longdouble``), the cost's rounding (m^2)) at the
     points (cos theta, sin theta) / u (arrays (n,), rad and 1/m), with P_post in Joseph form (as
-    :func:`~formopt_ros.core.model.ekf_update_stacked`, written for these rows:
-    h_d = (c, s, 0), h_beta = u (-s, c, 0) - e3).
+    :func:`~formopt_ros.core.model.ekf_update_stacked`), written for the rows of the problem's
+    measurement on these lines: h_d = (c, s, 0) and h_beta = u (-s, c, 0) - e3, or one of them
+    (then det S = S).
 
     Computed in ``np.longdouble`` (extended precision on x86-64): Joseph's products cancel to
     the posterior, so their rounding is eps tr(W (|A| |P| |A|' + K^2 R) W), which exceeds the
@@ -429,29 +434,33 @@ def joseph_on_lines(problem: StackedProblem, theta: np.ndarray, u: np.ndarray
     long = np.longdouble
     theta, u = np.asarray(theta, dtype=long), np.asarray(u, dtype=long)
     c, s = np.cos(theta), np.sin(theta)
-    H = np.zeros((theta.size, 2, 3), dtype=long)
-    H[:, 0, 0], H[:, 0, 1] = c, s
-    H[:, 1, 0], H[:, 1, 1], H[:, 1, 2] = -u * s, u * c, -1.0
-    r_d, r_b = (long(value) for value in problem.R)
-    P = problem.P.astype(long)
-    PH = P @ np.swapaxes(H, 1, 2)                                          # (n, 3, 2)
-    s00 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 0]) + r_d
-    s01 = np.einsum('ni,ni->n', H[:, 0], PH[:, :, 1])
-    s11 = np.einsum('ni,ni->n', H[:, 1], PH[:, :, 1]) + r_b
-    det = s00 * s11 - s01 * s01
-    s00, s01, s11, det = s00[:, None], s01[:, None], s11[:, None], det[:, None]
-    K = np.stack([(PH[:, :, 0] * s11 - PH[:, :, 1] * s01) / det,
-                  (PH[:, :, 1] * s00 - PH[:, :, 0] * s01) / det], -1)            # (n, 3, 2)
+    rows = []
+    if problem.measurement != BEARING:
+        rows.append(np.stack([c, s, np.zeros_like(c)], -1))
+    if problem.measurement != RANGE:
+        rows.append(np.stack([-u * s, u * c, -np.ones_like(c)], -1))
+    variances = [long(v) for v in np.atleast_1d(problem.R)]
+    H = np.stack(rows, 1)                                                  # (n, m, 3)
+    P = np.asarray(problem.P, dtype=long)
+    PH = P @ np.swapaxes(H, 1, 2)                                          # (n, 3, m)
+    S = H @ PH + np.diag(variances)                                        # (n, m, m)
+    if len(rows) == 1:
+        det, adjugate = S[:, 0, 0], np.ones_like(S)
+    else:
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        adjugate = np.stack([np.stack([S[:, 1, 1], -S[:, 0, 1]], -1),
+                             np.stack([-S[:, 1, 0], S[:, 0, 0]], -1)], 1)
+    K = PH @ adjugate / det[:, None, None]                                 # (n, 3, m)
     A = np.eye(3, dtype=long) - K @ H
-    noise = r_d * K[:, :, 0] ** 2 + r_b * K[:, :, 1] ** 2
+    noise = (K * K) @ np.array(variances, dtype=long)                      # (n, 3)
     diagonal = np.einsum('nij,jk,nik->ni', A, P, A) + noise
     size = np.einsum('nij,jk,nik->ni', np.abs(A), np.abs(P), np.abs(A)) + noise
-    weights = np.array([1.0, 1.0, problem.w22], dtype=long)
+    weights = np.array([1.0, 1.0, problem.d_o * problem.d_o], dtype=long)
     rounding = JOSEPH_ROUNDING * float(np.finfo(long).eps) * (size @ weights)
-    return diagonal @ weights, det[:, 0], rounding.astype(float)
+    return diagonal @ weights, det, rounding.astype(float)
 
 
-def polar_optimum(problem: StackedProblem, region: Region | None = None,
+def polar_optimum(problem: Problem | StackedProblem, region: Region | None = None,
                   seeds: tuple[tuple[float, float], ...] = ()
                   ) -> tuple[tuple[float, float], float, float, dict[str, Any]]:
     """The global minimum of the cost over the disc, or over a non-empty ``region`` that

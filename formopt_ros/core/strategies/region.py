@@ -35,8 +35,11 @@ pins them down), then, one constraint at a time, 0 and the critical points of de
 margin is positive but below that bound, it is repeated in exact rational arithmetic on the
 exact data (the circles' forms as the floats they are). With one active constraint the
 S-lemma makes this complete; with two (a corner, or one arc while another circle also bounds
-the set) it is sufficient only: when it fails, the answer is the best of the enumerated KKT
-points, named 'all-critical-points', and the solution says so (``fallback`` 'enumeration').
+the set) it is sufficient only: when it fails, the lines through the leader decide
+(:mod:`~formopt_ros.core.strategies.polar`, as for range-bearing: a line's cost is a ratio of
+quadratics in 1/|p| for one row too), seeded with the best KKT point: certificate
+'polar-lines'. Only if they do not close is the answer the best of the enumerated KKT points,
+named 'all-critical-points', and the solution says so (``fallback`` 'enumeration').
 """
 from __future__ import annotations
 
@@ -348,7 +351,7 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
                                       'region': 'empty'})
     if stacked:                     # range-bearing: the lines through the leader, in the region
         nearest = region.nearest(disc.p)
-        return stacked_plan(problem, method, region=region,  # type: ignore[arg-type]
+        return stacked_plan(problem, method, region=region,
                             seeds=() if nearest is None else (nearest,))
     interval = region.direction_interval() if problem.measurement == RANGE else None
     if problem.measurement == RANGE:
@@ -374,6 +377,9 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     if name in PROVED:
         return make_solution(problem, p, method, on_boundary, len(points), certificate=name,
                              details=details, gain=g)
+    lines = stacked_plan(problem, method, region=region, seeds=(p,))
+    if lines.certificate in STACKED_CERTIFICATES:
+        return lines
     details['reason'] = ('the S-lemma with several constraints found no multipliers: the '
                          f'best of {len(feasible)} enumerated KKT points and samples')
     return make_solution(problem, p, method, on_boundary, len(points), fallback=ENUMERATION,

@@ -409,7 +409,7 @@ def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
     A range-bearing problem (:class:`~formopt_ros.core.stacked.StackedProblem`) goes to its
     own certified solver, :func:`~formopt_ros.core.strategies.stacked.stacked_plan`."""
     if problem.measurement == RANGE_BEARING:
-        return stacked_plan(problem, method)  # type: ignore[arg-type]
+        return stacked_plan(problem, method)
     if problem.measurement == 'range':
         return _plan_range(problem, method)
     tried: list[tuple[float, float]] = []

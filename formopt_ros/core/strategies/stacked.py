@@ -1,14 +1,17 @@
-"""The certified range-bearing optimum as a Solution, over the disc or a reachable region.
+"""The certified optimum by lines through the leader as a Solution, over a disc or a region.
 
-The solver is :func:`formopt_ros.core.strategies.polar.polar_optimum` (lines through the
-leader, docs/range_bearing.md); this module turns its answer into a
-:class:`~formopt_ros.core.strategies.base.Solution` and says when it is not certified.
+The solver is :func:`formopt_ros.core.strategies.polar.polar_optimum` (docs/range_bearing.md);
+it is RQ for range-bearing, and decides a scalar problem over a reachable region where the
+S-lemma does not (:func:`~formopt_ros.core.strategies.region.rq_in_region`). This module turns
+its answer into a :class:`~formopt_ros.core.strategies.base.Solution` and says when it is not
+certified.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import replace
 
+from formopt_ros.core.cost import Problem
 from formopt_ros.core.reach import Region
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies.base import Solution, make_solution
@@ -20,13 +23,14 @@ CERTIFIED_GAP = 1e-9
 CERTIFICATES = (POLAR,)
 
 
-def stacked_plan(problem: StackedProblem, method: str, region: Region | None = None,
+def stacked_plan(problem: Problem | StackedProblem, method: str, region: Region | None = None,
                  seeds: tuple[tuple[float, float], ...] = ()) -> Solution:
-    """The certified optimum of a range-bearing problem over the disc, or over a non-empty
-    ``region`` that restricts it (``seeds``: feasible points (m) whose lines the search tries
-    first), as a Solution with ``details['certificate_gap']`` and ``details['lower_bound']``
-    (certificate 'polar-lines'). An answer whose gap exceeds CERTIFIED_GAP is the best point
-    found, with ``fallback = 'best-line'``, certificate 'none' and the gap in the reason."""
+    """The certified optimum of a range-bearing (or scalar) problem over the disc, or over a
+    non-empty ``region`` that restricts it (``seeds``: feasible points (m) whose lines the
+    search tries first), as a Solution with ``details['certificate_gap']`` and
+    ``details['lower_bound']`` (certificate 'polar-lines'). An answer whose gap exceeds
+    CERTIFIED_GAP is the best point found, with ``fallback = 'best-line'``, certificate 'none'
+    and the gap in the reason."""
     p, cost, lower, info = polar_optimum(problem, region, seeds)
     at_slot = info.pop('cost_at_slot')
     restricted = region is not None and region.restricts
@@ -36,8 +40,8 @@ def stacked_plan(problem: StackedProblem, method: str, region: Region | None = N
     certified = gap <= CERTIFIED_GAP
     details = {'certificate_gap': gap, 'lower_bound': lower, **info}
     if not certified:
-        rounding = (f', the cost\'s rounding alone {info["rounding"]:.2g} of it (a posterior '
-                    f'{cost / problem.base_cost:.2g} of tr(W P W))')
+        rounding = (f', the cost\'s rounding alone {info["rounding"]:.2g} of it '
+                    f'(a posterior {cost / problem.base_cost:.2g} of tr(W P W))')
         details['reason'] = (f'{POLAR} closed to a gap of {gap:.3g} only ({info["lines"]} '
                              f'lines, {info["rounds"]} witnesses'
                              f'{", event polynomials unresolved" if info["unresolved"] else ""}'
