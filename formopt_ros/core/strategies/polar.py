@@ -59,11 +59,12 @@ from formopt_ros.core.stacked import StackedProblem
 RTOL = 1e-10
 #: Rounding margin of the quadratics and of each cost evaluation, relative to the cost, and
 #: their rounding from the Joseph form's products (:func:`joseph_on_lines`: a bound of eps
-#: times the products' sizes, for 3-term sums and two products) times SERIES_ROUNDING (the
-#: quadratics are sums of 3 x 9 multiples of the samples, in w and in theta).
+#: times the products' sizes, for 3-term sums and two products) times SERIES_ROUNDING (a
+#: sample's error moves harmonic 0 by at most itself and harmonics 1, 2 by twice it: 5 on a
+#: line; the stencil's n2, n1, n0 by 2, 1, 1 of it: 4 for |w| <= 1).
 ROUNDING = 1e-12
 JOSEPH_ROUNDING = 8.0
-SERIES_ROUNDING = 36.0
+SERIES_ROUNDING = 20.0
 #: Lines the quadratics' Fourier series are taken from (more than twice their degree, 2; the
 #: harmonics beyond it are their degree's self-check).
 SERIES_SAMPLES = 8
