@@ -76,10 +76,11 @@ def check_disc(x_o: float, y_o: float, r: float) -> float:
     if not low <= d_o <= high:
         raise InvalidInput('p_o', f'must lie at a distance in [{low:g}, {high:g}] m from the '
                                   f'leader, got |p_o| = {d_o:.6g} m')
-    if not MIN_DEVIATION * d_o <= r <= MAX_DEVIATION * d_o:
+    slack = 1.0 + 1e-12            # |p_o| from numpy's norm or math.hypot: an ulp apart
+    if not MIN_DEVIATION * d_o / slack <= r <= MAX_DEVIATION * d_o * slack:
         raise InvalidInput('r', f'must lie in [{MIN_DEVIATION:g}, {MAX_DEVIATION}] |p_o| = '
-                                f'[{MIN_DEVIATION * d_o:.6g}, {MAX_DEVIATION * d_o:.6g}] m (the '
-                                f'disc keeps clear of the leader), got {r:.6g} m')
+                                f'[{MIN_DEVIATION * d_o!r}, {MAX_DEVIATION * d_o!r}] m (the '
+                                f'disc keeps clear of the leader), got {r!r} m')
     return d_o
 
 

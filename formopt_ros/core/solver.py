@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.checks import InvalidInput
+from formopt_ros.core.checks import InvalidInput, as_choice
 from formopt_ros.core.cost import Problem
-from formopt_ros.core.model import RANGE_BEARING
+from formopt_ros.core.model import MEASUREMENT_KINDS, RANGE_BEARING
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.strategies import (
     BUILTIN, STRATEGIES, PlanContext, Solution, Strategy, make_strategy)
@@ -102,7 +102,7 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             sigma outside ``cost.SIGMA_RANGE`` ([1e-9, 1e6]), an unknown measurement or a bad
             option value (:func:`~formopt_ros.core.cost.check_problem`, one cheap check), or
             a sigma_bearing missing for 'range-bearing', outside SIGMA_RANGE or given for
-            another measurement.
+            another measurement, or a ``context.region`` built for another slot or r.
         ValueError: for an rng that is not a numpy Generator, a context that is not a
             PlanContext, or an unknown method or option.
     """
@@ -117,6 +117,7 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
     context = context or DEFAULT_CONTEXT
     if rng is not None:
         context = replace(context, rng=rng)
+    as_choice('measurement', measurement, (*MEASUREMENT_KINDS, RANGE_BEARING))
     if measurement == RANGE_BEARING:
         if sigma_bearing is None:
             raise InvalidInput('sigma_bearing', "is required for measurement='range-bearing'")
@@ -126,4 +127,11 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
                                             f'{measurement!r}')
     else:
         problem = Problem(P, p_o, r, sigma, measurement)
+    region = context.region
+    if region is not None and (
+            math.hypot(region.slot[0] - problem.slot[0], region.slot[1] - problem.slot[1])
+            > 1e-9 * region.scale or abs(region.r - problem.r) > 1e-9 * region.scale):
+        raise InvalidInput('region', f'must be built for this problem\'s slot and r '
+                                     f'({problem.slot}, {problem.r!r} m), got {region.slot}, '
+                                     f'{region.r!r} m')
     return timed_plan(strategy, problem, context)      # type: ignore[arg-type]

@@ -321,6 +321,24 @@ def test_good_problem_is_accepted() -> None:
         assert problem.d_o == pytest.approx(math.sqrt(5.0), rel=1e-15)  # rounding only
 
 
+def test_solve_takes_r_at_the_bound_from_either_norm_and_refuses_a_foreign_region() -> None:
+    """r = 0.999 |p_o| is accepted whether |p_o| came from numpy's norm or math.hypot (they
+    differ by an ulp on some slots); a context.region built for another slot or r is refused
+    naming 'region' (its answer would lie outside the problem's disc)."""
+    from formopt_ros.core.reach import Region
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        p_o = rng.uniform(-10.0, 10.0, 2)
+        for d_o in (float(np.linalg.norm(p_o)), math.hypot(*p_o)):
+            solve(GOOD_P, p_o, 0.999 * d_o, 0.05, measurement=RANGE, method='mtf')
+    foreign = (Region((-1.5, 2.5), 0.22, (-1.4, 2.5), 0.15), Region((-1.0, 2.0), 0.5))
+    for region in foreign:
+        with pytest.raises(InvalidInput) as error:
+            solve(GOOD_P, np.array([-1.0, 2.0]), 0.22, 0.05, measurement=RANGE, method='rq',
+                  context=PlanContext(region=region))
+        assert error.value.name == 'region'
+
+
 def test_solve_rejects_unknown_method_and_option() -> None:
     """solve() names the unknown method or option in its ValueError."""
     with pytest.raises(ValueError, match=r"^method must be one of .*'simplex'"):

@@ -237,8 +237,8 @@ def exact_cost(problem: StackedProblem, p: np.ndarray) -> float:
 def extreme_problem(rng: np.random.Generator, informative: bool) -> StackedProblem:
     """A problem beyond the generated families. Informative: prior condition 1e6..1e12,
     sigma_d 1e-4..1 m, sigma_beta 1e-5..0.1 rad, so the posterior can be 1e-11 of tr(W P W).
-    Weak: prior 1e-7..1e-5, slot 100-1000 m away, sigmas 0.3-3 m and 0.3-1 rad, so the gain
-    can be 1e-6 of tr(W P W)."""
+    Weak: prior variances 1e-17..1e-5, slot 1-1000 m away, sigmas 0.3-3 m and 0.3-1 rad, so
+    the gain can be 1e-17 of tr(W P W)."""
     q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
     if informative:
         condition = 10.0 ** rng.uniform(6.0, 12.0)
@@ -246,8 +246,8 @@ def extreme_problem(rng: np.random.Generator, informative: bool) -> StackedProbl
             -2.0, 2.0)
         d_o, sigmas = 10.0 ** rng.uniform(0.0, 2.5), 10.0 ** rng.uniform([-4.0, -5.0], [0.0, -1.0])
     else:
-        eigenvalues = 10.0 ** rng.uniform(-7.0, -5.0, 3)
-        d_o, sigmas = 10.0 ** rng.uniform(2.0, 3.0), rng.uniform([0.3, 0.3], [3.0, 1.0])
+        eigenvalues = 10.0 ** rng.uniform(-1.0, 1.0, 3) * 10.0 ** rng.uniform(-17.0, -6.0)
+        d_o, sigmas = 10.0 ** rng.uniform(0.0, 3.0), rng.uniform([0.3, 0.3], [3.0, 1.0])
     P = (q * eigenvalues) @ q.T
     theta = rng.uniform(-math.pi, math.pi)
     return StackedProblem(0.5 * (P + P.T), [d_o * math.cos(theta), d_o * math.sin(theta)],
@@ -255,9 +255,9 @@ def extreme_problem(rng: np.random.Generator, informative: bool) -> StackedProbl
 
 
 def test_extremes_are_certified_or_say_rounding() -> None:
-    """Beyond the families (:func:`extreme_problem`, 40 of each kind): a weak measurement far
-    from the leader is always certified (its gains keep their digits: N = (tr(W P W) - cost)
-    D); an informative one is certified or flagged with the cost's rounding in the reason;
+    """Beyond the families (:func:`extreme_problem`, 40 of each kind): a weak measurement is
+    always certified (its gains keep their digits: N = gain D, the gain summed directly); an
+    informative one is certified or flagged with the cost's rounding in the reason;
     either way the lower bound is below the exact cost of the answer (mpmath), and a certified
     gap is within CERTIFIED_GAP of it."""
     rng = np.random.default_rng(SEED + 7)
@@ -295,6 +295,9 @@ def test_solve_plans_range_bearing() -> None:
         assert error.value.name == 'sigma_bearing'
     with pytest.raises(ValueError, match='does not apply'):
         solve(*args, measurement=RANGE_BEARING, sigma_bearing=0.01, method='ram')
+    with pytest.raises(InvalidInput) as error:          # a typo lists the three kinds
+        solve(*args, measurement='range_bearing', sigma_bearing=0.01, method='rq')
+    assert error.value.name == 'measurement' and RANGE_BEARING in error.value.reason
 
 
 @pytest.mark.parametrize('method', ['rq', 'gbs', 'mtf', 'crm', 'mme', 'periodic'])

@@ -13,9 +13,11 @@ minors are (u, -c, -s): Cauchy-Binet). The disc's
 u lie in [1 / (|p_o| + r), 1 / (|p_o| - r)]; the solver uses the projective coordinate w with
 u = (1 + kappa w) / ((1 - kappa w) sqrt k), k = |p_o|^2 - r^2, which maps w = -1, 0, 1 to the
 far end, the geometric middle and the near end; C and D times (1 - kappa w)^2 are quadratics
-in w with balanced values. They are taken from Joseph-form costs (as the EKF computes them) at
-w = -1, 0, 1 on 8 lines, so they carry the rounding of the cost, not of tr(W P W), and their
-Fourier series (harmonics 0..2) give them on any line. A line of the wedge
+in w with balanced values. They are taken from Joseph-form costs (as the EKF computes them;
+gains summed directly where the gain is the smaller part) in extended precision at
+w = -1, 0, 1 on 8 lines, so they carry the rounding of the cost (or gain), not of tr(W P W),
+and their Fourier series (harmonics 0..2) give them on any line. Where a bound of the gain
+(:func:`gain_bound`) is below RTOL of the cost, every point is optimal to the gap: the slot. A line of the wedge
 |delta| <= asin(r / |p_o|) (delta = theta - theta_o) meets the disc in the chord
 g(w) = g2 w^2 + g0 <= 0 with g2 = kappa^2 (a + sqrt k), g0 = sqrt k - a, a = |p_o| cos delta.
 
@@ -155,13 +157,13 @@ class Lines:
         self.kappa = 2.0 * r / (math.sqrt(d_o + r) + math.sqrt(d_o - r)) ** 2
         theta = np.arange(SERIES_SAMPLES) * (2.0 * math.pi / SERIES_SAMPLES)
         u = np.repeat(self.u_of(_STENCIL), SERIES_SAMPLES)
-        cost, det, rounding = joseph_on_lines(problem, np.tile(theta, 3), u)
-        self.shift = problem.base_cost if 2.0 * float(np.median(cost)) > problem.base_cost \
-            else 0.0
+        cost, gain, det, rounding = joseph_on_lines(problem, np.tile(theta, 3), u)
+        weak = 2.0 * float(np.median(cost)) > problem.base_cost      # the gain is the smaller
+        self.shift = problem.base_cost if weak else 0.0
         self.rounding = SERIES_ROUNDING * float(rounding.max())
         det = det * np.repeat((1.0 - self.kappa * _STENCIL) ** 2, SERIES_SAMPLES)
         rows = []
-        for values in (((self.shift - cost) * det).astype(float), det.astype(float)):
+        for values in (((gain if weak else -cost) * det).astype(float), det.astype(float)):
             low, mid, high = values.reshape(3, SERIES_SAMPLES)
             rows += [0.5 * (high + low) - mid, 0.5 * (high - low), mid]
         fourier = np.fft.fft(np.stack(rows)) * (2.0 / SERIES_SAMPLES)
@@ -420,12 +422,14 @@ def resultant(first: tuple[Any, Any, Any], second: tuple[Any, Any, Any]) -> Any:
 
 
 def joseph_on_lines(problem: Problem | StackedProblem, theta: np.ndarray, u: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(tr(W P_post W) (m^2), det S (both ``np.longdouble``), the cost's rounding (m^2)) at the
-    points (cos theta, sin theta) / u (arrays (n,), rad and 1/m), with P_post in Joseph form (as
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(tr(W P_post W) (m^2), the gain tr(W P H' S^-1 H P W) (m^2), det S (all three
+    ``np.longdouble``), the cost's rounding (m^2)) at the points (cos theta, sin theta) / u
+    (arrays (n,), rad and 1/m), with P_post in Joseph form (as
     :func:`~formopt_ros.core.model.ekf_update_stacked`), written for the rows of the problem's
     measurement on these lines: h_d = (c, s, 0) and h_beta = u (-s, c, 0) - e3, or one of them
-    (then det S = S).
+    (then det S = S). The gain is summed directly (P H' adj(S) H P / det S), so it keeps its
+    digits where it is a tiny part of tr(W P W).
 
     Computed in ``np.longdouble`` (extended precision on x86-64): Joseph's products cancel to
     the posterior, so their rounding is eps tr(W (|A| |P| |A|' + K^2 R) W), which exceeds the
@@ -458,7 +462,20 @@ def joseph_on_lines(problem: Problem | StackedProblem, theta: np.ndarray, u: np.
     size = np.einsum('nij,jk,nik->ni', np.abs(A), np.abs(P), np.abs(A)) + noise
     weights = np.array([1.0, 1.0, problem.d_o * problem.d_o], dtype=long)
     rounding = JOSEPH_ROUNDING * float(np.finfo(long).eps) * (size @ weights)
-    return diagonal @ weights, det, rounding.astype(float)
+    gain = np.einsum('nim,nmk,nik->ni', PH, adjugate, PH) / det[:, None]
+    return diagonal @ weights, gain @ weights, det, rounding.astype(float)
+
+
+def gain_bound(problem: Problem | StackedProblem) -> float:
+    """An upper bound of the gain tr(W P W) - tr(W P_post W) (m^2) over the disc:
+    tr(W P H' S^-1 H P W) <= sum_j |W P h_j|^2 / sigma_j^2 (S >= R), with |W P h| <= ||W P||_2
+    |h|, |h_d| = 1 and |h_beta|^2 = 1 + 1 / |p|^2 <= 1 + 1 / (|p_o| - r)^2."""
+    P = np.asarray(problem.P, dtype=float)
+    spectral = float(np.linalg.norm(np.array([1.0, 1.0, problem.d_o])[:, None] * P, 2)) ** 2
+    variances = np.atleast_1d(problem.R)
+    rows = {RANGE: [1.0], BEARING: [1.0 + (problem.d_o - problem.r) ** -2.0]}.get(
+        problem.measurement, [1.0, 1.0 + (problem.d_o - problem.r) ** -2.0])
+    return spectral * float(np.sum(np.array(rows) / variances))
 
 
 def polar_optimum(problem: Problem | StackedProblem, region: Region | None = None,
@@ -478,6 +495,17 @@ def polar_optimum(problem: Problem | StackedProblem, region: Region | None = Non
         roundings wide; the point is then the region's point nearest the slot), cost_at_slot
         (m^2).)
     """
+    bound = gain_bound(problem)
+    if bound <= RTOL * (problem.base_cost - bound):     # every point is optimal to the gap
+        restricted = region is not None and region.restricts
+        nearest = region.nearest(problem.slot) if restricted else None    # type: ignore
+        x, y = nearest or problem.slot
+        (cost, at_slot), _, _, _ = joseph_on_lines(
+            problem, np.array([math.atan2(y, x), math.atan2(*problem.slot[::-1])]),
+            np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
+        return (x, y), float(cost), problem.base_cost - bound, {
+            'rounds': 0, 'lines': 0, 'unresolved': False, 'rounding': 0.0, 'met': True,
+            'cost_at_slot': float(at_slot)}
     lines = Lines(problem, region)
     tau = np.linspace(0.0, math.pi, FIRST_GRID)
     through = list(seeds)
@@ -529,7 +557,7 @@ def polar_optimum(problem: Problem | StackedProblem, region: Region | None = Non
         nearest = lines.region.nearest((x, y))          # an end off its circle by rounding
         if nearest is not None:
             x, y = nearest
-    (cost, at_slot), _, (rounding, _) = joseph_on_lines(
+    (cost, at_slot), _, _, (rounding, _) = joseph_on_lines(
         problem, np.array([math.atan2(y, x), lines.centre]),
         np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
     return (x, y), float(cost), min(lower, float(cost - rounding)), {
