@@ -17,8 +17,9 @@ in w with balanced values. They are taken from Joseph-form costs (as the EKF com
 gains summed directly where the gain is the smaller part) in extended precision at
 w = -1, 0, 1 on 8 lines, so they carry the rounding of the cost (or gain), not of tr(W P W),
 and their Fourier series (harmonics 0..2) give them on any line. Where a bound of the gain
-(:func:`gain_bound`) is below RTOL of the cost, every point is optimal to the gap: the slot. A line of the wedge
-|delta| <= asin(r / |p_o|) (delta = theta - theta_o) meets the disc in the chord
+(:func:`gain_bound`) is below RTOL of the cost, every point is optimal to the gap: the slot.
+A line of the wedge |delta| <= asin(r / |p_o|) (delta = theta - theta_o) meets the disc in the
+chord
 g(w) = g2 w^2 + g0 <= 0 with g2 = kappa^2 (a + sqrt k), g0 = sqrt k - a, a = |p_o| cos delta.
 
 The solver maximises the gain shift - cost = N / D (N = shift D - C), with shift = tr(W P W)
