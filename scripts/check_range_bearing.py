@@ -21,7 +21,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / 'test' / part) for par
 from test_stacked_solver import (  # noqa: E402
     FAMILIES, SEED, generated_problem, reference_cost)
 
-from formopt_ros.core.strategies.stacked import CERTIFICATES, stacked_plan  # noqa: E402
+from formopt_ros.core.strategies.stacked import CERTIFICATES, lines_plan  # noqa: E402
 
 COUNT = 10_002
 
@@ -37,7 +37,7 @@ def solve_range(bounds: tuple[int, int, str]) -> list[dict[str, object]]:
         if index < first:
             continue
         start = time.perf_counter()
-        solution = stacked_plan(problem, 'rq')
+        solution = lines_plan(problem, 'rq')
         elapsed = time.perf_counter() - start
         reference, _ = reference_cost(problem)
         row = {'index': index, 'family': family,

@@ -16,7 +16,7 @@ from formopt_ros.core.strategies import make_strategy
 from formopt_ros.core.strategies.base import PlanContext
 from formopt_ros.core.reach import Region
 from formopt_ros.core.strategies import polar
-from formopt_ros.core.strategies.stacked import CERTIFICATES, CERTIFIED_GAP, stacked_plan
+from formopt_ros.core.strategies.stacked import CERTIFICATES, CERTIFIED_GAP, lines_plan
 from harness import split_by_tier
 from harness.problems import STACKED_FAMILIES as FAMILIES
 from harness.problems import stacked_problem as generated_problem
@@ -86,7 +86,7 @@ def check_problems(count: int, seed: int) -> dict[str, dict[str, float]]:
         family = FAMILIES[index % len(FAMILIES)]
         row = out[family]
         problem = generated_problem(rng, family)
-        solution = stacked_plan(problem, 'rq')
+        solution = lines_plan(problem, 'rq')
         reference, _ = reference_cost(problem)
         assert problem.feasible(solution.p)
         row['problems'] += 1
@@ -184,7 +184,7 @@ def test_level_test_agrees_with_dense_lines(first: int, last: int) -> None:
         lines = polar.Lines(problem)
         theta = lines.angle(np.linspace(0.0, math.pi, 2000))
         best = lines.shift - lines.best(theta)[0]           # the cost of each line's best
-        optimum = stacked_plan(problem, 'rq').cost
+        optimum = lines_plan(problem, 'rq').cost
         assert not lines.beaten(theta, lines.shift - optimum * (1 - 1e-9)).any(), index
         level = float(np.quantile(best, 0.5))
         dense = dense_chord_costs(problem, lines, theta[::50]).min(axis=1)
@@ -204,7 +204,7 @@ def test_unclosed_searches_fall_back_visibly(monkeypatch: pytest.MonkeyPatch) ->
     unresolved = polar.Lines.events
     monkeypatch.setattr(polar.Lines, 'events', lambda self, level: (
         setattr(self, 'unresolved', True), unresolved(self, level))[1])
-    solution = stacked_plan(problem, 'rq')
+    solution = lines_plan(problem, 'rq')
     assert solution.certificate == 'none' and 'unresolved' in solution.details['reason']
     monkeypatch.setattr(polar.Lines, 'events', unresolved)
     monkeypatch.setattr(polar, 'MAX_ROUNDS', 0)
@@ -215,7 +215,7 @@ def test_unclosed_searches_fall_back_visibly(monkeypatch: pytest.MonkeyPatch) ->
         return float(tau[j]), float(gain[j]), float(self.best(self.angle(tau[j:j + 1]))[1][0])
     monkeypatch.setattr(polar.Lines, 'refine', worst_line)
     for kwargs in ({}, {'region': region}):
-        solution = stacked_plan(problem, 'rq', **kwargs)    # type: ignore[arg-type]
+        solution = lines_plan(problem, 'rq', **kwargs)    # type: ignore[arg-type]
         assert solution.certificate == 'none' and solution.fallback == 'best-line'
         assert 'gap' in solution.details['reason'] and problem.feasible(solution.p)
         assert region.contains(solution.p) or not kwargs
@@ -265,7 +265,7 @@ def test_extremes_are_certified_or_say_rounding() -> None:
     for index in range(80):
         informative = index % 2 == 0
         problem = extreme_problem(rng, informative)
-        solution = stacked_plan(problem, 'rq')
+        solution = lines_plan(problem, 'rq')
         exact = exact_cost(problem, solution.p)
         lower = solution.details['lower_bound']
         assert lower <= exact, (index, problem, lower, exact)
@@ -287,7 +287,7 @@ def test_solve_plans_range_bearing() -> None:
     solution = solve(*args, measurement=RANGE_BEARING, sigma_bearing=problem.sigma_bearing,
                      method='rq')
     assert solution.certificate == polar.POLAR
-    assert solution.cost == stacked_plan(problem, 'rq').cost
+    assert solution.cost == lines_plan(problem, 'rq').cost
     for measurement, sigma_bearing in ((RANGE_BEARING, None), ('range', 0.01),
                                        (RANGE_BEARING, -0.01)):
         with pytest.raises(InvalidInput) as error:
@@ -307,7 +307,7 @@ def test_strategies_accept_range_bearing(method: str) -> None:
     are feasible and no better than it."""
     rng = np.random.default_rng(SEED)
     problem = generated_problem(rng, 'moderate')
-    optimum = stacked_plan(problem, 'rq')
+    optimum = lines_plan(problem, 'rq')
     context = PlanContext(rng=np.random.default_rng(0))
     solution = make_strategy(method).plan(problem, context)
     assert solution.measurement == RANGE_BEARING and problem.feasible(solution.p)
@@ -333,5 +333,5 @@ def test_a_sliver_of_a_tiny_region_is_found_and_certified() -> None:
         0.03952846018003374)
     region = Region(problem.slot, problem.r, centre=(0.327170359609456, 0.48256892758754283),
                     radius=5.400762588596938e-07)
-    solution = stacked_plan(problem, 'rq', region=region)
+    solution = lines_plan(problem, 'rq', region=region)
     assert solution.certificate in CERTIFICATES and region.contains(solution.p)

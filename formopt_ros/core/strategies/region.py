@@ -58,7 +58,7 @@ from formopt_ros.core.strategies.base import PlanContext, Solution, Strategy, ma
 from formopt_ros.core.strategies.certificate import (
     BOUNDARY, CRITICAL_POINTS, GAP_RTOLS, INTERIOR, NONE, PROVED)
 from formopt_ros.core.strategies.stacked import CERTIFICATES as STACKED_CERTIFICATES
-from formopt_ros.core.strategies.stacked import stacked_plan
+from formopt_ros.core.strategies.stacked import lines_plan
 from formopt_ros.core.strategies.verify import exact_forms
 from formopt_ros.core.strategies.rq import (
     _circle_series, range_stationary_directions, rq_optimum, top_generalized_eigenvector)
@@ -351,8 +351,8 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
                                       'region': 'empty'})
     if stacked:                     # range-bearing: the lines through the leader, in the region
         nearest = region.nearest(disc.p)
-        return stacked_plan(problem, method, region=region,
-                            seeds=() if nearest is None else (nearest,))
+        return lines_plan(problem, method, region=region,
+                          seeds=() if nearest is None else (nearest,))
     interval = region.direction_interval() if problem.measurement == RANGE else None
     if problem.measurement == RANGE:
         assert interval is not None
@@ -377,7 +377,7 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     if name in PROVED:
         return make_solution(problem, p, method, on_boundary, len(points), certificate=name,
                              details=details, gain=g)
-    lines = stacked_plan(problem, method, region=region, seeds=(p,))
+    lines = lines_plan(problem, method, region=region, seeds=(p,))
     if lines.certificate in STACKED_CERTIFICATES:
         return lines
     details['reason'] = ('the S-lemma with several constraints found no multipliers: the '

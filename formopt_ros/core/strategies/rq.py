@@ -43,7 +43,7 @@ from formopt_ros.core.linalg import EPS, top_eigenpair3
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING
-from formopt_ros.core.strategies.stacked import stacked_plan
+from formopt_ros.core.strategies.stacked import lines_plan
 from formopt_ros.core.strategies.certificate import PROVED, proved_batch
 from formopt_ros.core.strategies.common import (
     boundary_points, boundary_stationarity, check_points, gains_tie, polish_boundary_angles,
@@ -407,9 +407,9 @@ def _plan_range_by_stationarity(problem: Problem, method: str) -> Solution:
 def rq_optimum(problem: Problem, method: str = 'rq') -> Solution:
     """Certified optimum of problem Pi_1 through generalised eigenvalues (module docstring).
     A range-bearing problem (:class:`~formopt_ros.core.stacked.StackedProblem`) goes to its
-    own certified solver, :func:`~formopt_ros.core.strategies.stacked.stacked_plan`."""
+    own certified solver, :func:`~formopt_ros.core.strategies.stacked.lines_plan`."""
     if problem.measurement == RANGE_BEARING:
-        return stacked_plan(problem, method)
+        return lines_plan(problem, method)
     if problem.measurement == 'range':
         return _plan_range(problem, method)
     tried: list[tuple[float, float]] = []

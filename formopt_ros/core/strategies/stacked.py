@@ -23,8 +23,8 @@ CERTIFIED_GAP = 1e-9
 CERTIFICATES = (POLAR,)
 
 
-def stacked_plan(problem: Problem | StackedProblem, method: str, region: Region | None = None,
-                 seeds: tuple[tuple[float, float], ...] = ()) -> Solution:
+def lines_plan(problem: Problem | StackedProblem, method: str, region: Region | None = None,
+               seeds: tuple[tuple[float, float], ...] = ()) -> Solution:
     """The certified optimum of a range-bearing (or scalar) problem over the disc, or over a
     non-empty ``region`` that restricts it (``seeds``: feasible points (m) whose lines the
     search tries first), as a Solution with ``details['certificate_gap']`` and
@@ -55,4 +55,4 @@ def stacked_plan(problem: Problem | StackedProblem, method: str, region: Region 
     return replace(solution, cost=cost, cost_at_slot=at_slot)
 
 
-__all__ = ['CERTIFICATES', 'CERTIFIED_GAP', 'stacked_plan']
+__all__ = ['CERTIFICATES', 'CERTIFIED_GAP', 'lines_plan']
