@@ -473,10 +473,19 @@ def gain_bound(problem: Problem | StackedProblem) -> float:
     |h|, |h_d| = 1 and |h_beta|^2 = 1 + 1 / |p|^2 <= 1 + 1 / (|p_o| - r)^2."""
     P = np.asarray(problem.P, dtype=float)
     spectral = float(np.linalg.norm(np.array([1.0, 1.0, problem.d_o])[:, None] * P, 2)) ** 2
-    variances = np.atleast_1d(problem.R)
-    rows = {RANGE: [1.0], BEARING: [1.0 + (problem.d_o - problem.r) ** -2.0]}.get(
-        problem.measurement, [1.0, 1.0 + (problem.d_o - problem.r) ** -2.0])
-    return spectral * float(np.sum(np.array(rows) / variances))
+    bearing = 1.0 + (problem.d_o - problem.r) ** -2.0
+    rows = {RANGE: [1.0], BEARING: [bearing]}.get(problem.measurement, [1.0, bearing])
+    return spectral * float(np.sum(np.array(rows) / np.atleast_1d(problem.R)))
+
+
+def cost_here_and_at_slot(problem: Problem | StackedProblem, x: float, y: float
+                          ) -> tuple[float, float, float]:
+    """(cost at (x, y), cost at the slot, the first's rounding bound) (m^2), by
+    :func:`joseph_on_lines`."""
+    (cost, at_slot), _, _, (rounding, _) = joseph_on_lines(
+        problem, np.array([math.atan2(y, x), math.atan2(problem.slot[1], problem.slot[0])]),
+        np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
+    return float(cost), float(at_slot), float(rounding)
 
 
 def polar_optimum(problem: Problem | StackedProblem, region: Region | None = None,
@@ -501,12 +510,10 @@ def polar_optimum(problem: Problem | StackedProblem, region: Region | None = Non
         restricted = region is not None and region.restricts
         nearest = region.nearest(problem.slot) if restricted else None    # type: ignore
         x, y = nearest or problem.slot
-        (cost, at_slot), _, _, _ = joseph_on_lines(
-            problem, np.array([math.atan2(y, x), math.atan2(*problem.slot[::-1])]),
-            np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
-        return (x, y), float(cost), problem.base_cost - bound, {
+        cost, at_slot, _ = cost_here_and_at_slot(problem, x, y)
+        return (x, y), cost, problem.base_cost - bound, {
             'rounds': 0, 'lines': 0, 'unresolved': False, 'rounding': 0.0, 'met': True,
-            'cost_at_slot': float(at_slot)}
+            'cost_at_slot': at_slot}
     lines = Lines(problem, region)
     tau = np.linspace(0.0, math.pi, FIRST_GRID)
     through = list(seeds)
@@ -558,11 +565,8 @@ def polar_optimum(problem: Problem | StackedProblem, region: Region | None = Non
         nearest = lines.region.nearest((x, y))          # an end off its circle by rounding
         if nearest is not None:
             x, y = nearest
-    (cost, at_slot), _, _, (rounding, _) = joseph_on_lines(
-        problem, np.array([math.atan2(y, x), lines.centre]),
-        np.array([1.0 / math.hypot(x, y), 1.0 / problem.d_o]))
-    return (x, y), float(cost), min(lower, float(cost - rounding)), {
+    cost, at_slot, rounding = cost_here_and_at_slot(problem, x, y)
+    return (x, y), cost, min(lower, cost - rounding), {
         'rounds': rounds, 'lines': lines.evaluated, 'unresolved': lines.unresolved,
-        'rounding': lines.rounding / float(cost) if cost > 0.0 else math.inf,
-        'met': math.isfinite(best_gain),
-        'cost_at_slot': float(at_slot)}
+        'rounding': lines.rounding / cost if cost > 0.0 else math.inf,
+        'met': math.isfinite(best_gain), 'cost_at_slot': at_slot}
