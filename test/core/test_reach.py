@@ -3,7 +3,6 @@ every strategy inside it, the scenario's limits at the boundary and the study's 
 from __future__ import annotations
 
 import math
-import os
 from collections import Counter
 
 import numpy as np
@@ -24,7 +23,7 @@ from formopt_ros.core.strategies.periodic_design import (
 from formopt_ros.core.strategies.polar import POLAR
 from formopt_ros.core.strategies.region import rq_in_region
 from formopt_ros.core.study import StudyConfig, follower_motion, run_study, summarize
-from harness.problems import families, stacked_problem
+from harness.problems import families, scaled, stacked_problem
 
 #: The issue's bar: relative cost excess over the dense reference ...
 REFERENCE_RTOL = 1e-9
@@ -180,7 +179,7 @@ def _check_against_reference(kind: str, count: int, seed: int) -> Counter[str]:
 
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_region_optimum_quick(kind: str) -> None:
-    """10 generated problems per sensor (the slow tier runs 2,000): RQ's point lies in the
+    """10 generated problems per sensor (the slow tier runs 200): RQ's point lies in the
     region, is certified (by the S-lemma or by the lines through the leader) and costs at most
     the dense reference (1 + 1e-9)."""
     tally = _check_against_reference(kind, 10, 7)
@@ -190,14 +189,14 @@ def test_region_optimum_quick(kind: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize('kind', [RANGE, BEARING])
 def test_region_optimum_dense_reference(kind: str) -> None:
-    """2,000 generated problems per sensor (every family of the certified tier: tiny and large
+    """200 generated problems per sensor (every family of the certified tier: tiny and large
     r, scaled, ill-conditioned; reach discs that barely meet the disc; safety circles cutting
     it) within 1e-9 relative of the dense reference (1e-8 for reachable dots under a
     micrometre), never uncertified: by the S-lemma, or where two constraints are active and it
     is only sufficient (corners), by the lines through the leader (measured: see
     docs/certification.md).
-    FORMOPT_REACH_PROBLEMS sets the count (the issue's bar is 10,000)."""
-    count = int(os.environ.get('FORMOPT_REACH_PROBLEMS', '2000'))
+    FORMOPT_TEST_SCALE=50 runs the issue's 10,000."""
+    count = scaled(200)
     tally = _check_against_reference(kind, count, 28)
     print(kind, dict(tally))
     assert tally['proof'] + tally['lines'] >= count, tally
@@ -229,7 +228,7 @@ def test_range_bearing_over_the_region() -> None:
 @pytest.mark.parametrize('kind', [RANGE, pytest.param(BEARING, marks=pytest.mark.slow)])
 @pytest.mark.parametrize('names', [
     ('rq', 'ram', 'gbs', 'mtf', 'crm', 'mme', 'lookahead'),
-    pytest.param(('periodic',), marks=pytest.mark.slow)],     # its design within reach: 8 s
+    pytest.param(('periodic',), marks=pytest.mark.slow)],     # its design within reach
     ids=['others', 'periodic'])
 def test_every_strategy_plans_inside_the_region(kind: str, names: tuple[str, ...]) -> None:
     """Under a 1.5 m/s limit and a safety distance every strategy's waypoint lies in the
