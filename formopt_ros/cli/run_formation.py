@@ -280,8 +280,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of scripts/run_formation.sh; SIGINT, SIGTERM and SIGHUP (the terminal
     closed) stop the run like Ctrl-C: every node ends, the summary is written (naming the
     signal), exit 1; signals after the first are ignored while the run stops. SIGINT too when
-    the shell started the run in the background (`&`), which ignores it by default. The
-    caller's handlers are restored on return."""
+    the shell started the run in the background (`&`), which ignores it by default."""
     args = build_parser().parse_args(argv)
 
     def interrupt(signum: int, frame: Any) -> None:
@@ -292,14 +291,9 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(other, signal.SIG_IGN)
         raise KeyboardInterrupt
 
-    stopping = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-    previous = {signum: signal.signal(signum, interrupt) for signum in stopping}
-    try:
-        return run(args)
-    finally:        # a caller in the same process (a test, a script) gets its handlers back
-        for signum, handler in previous.items():
-            if handler is not None:
-                signal.signal(signum, handler)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, interrupt)
+    return run(args)
 
 
 if __name__ == '__main__':
