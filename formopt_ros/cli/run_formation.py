@@ -7,6 +7,7 @@ OUT/summary.json. scripts/run_formation.sh is its shell front end; the checks be
 live beside it."""
 from __future__ import annotations
 
+import faulthandler
 import json
 import math
 import os
@@ -81,6 +82,9 @@ def build_parser() -> ArgumentParser:
 #: An estimator whose run has not started this long after it did ends the run (a peer
 #: frozen or failing before the first step), s.
 START_TIMEOUT = 60.0
+#: Seconds into a stop (two stops of at most 20 s, then the summary) after which every thread's
+#: stack is printed to stderr: a stop that hangs shows where.
+STOP_REPORT_AFTER = 45.0
 
 
 def run(args: Any) -> int:
@@ -280,7 +284,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of scripts/run_formation.sh; SIGINT, SIGTERM and SIGHUP (the terminal
     closed) stop the run like Ctrl-C: every node ends, the summary is written (naming the
     signal), exit 1; signals after the first are ignored while the run stops. SIGINT too when
-    the shell started the run in the background (`&`), which ignores it by default."""
+    the shell started the run in the background (`&`), which ignores it by default. A stop
+    still running STOP_REPORT_AFTER s after the signal prints every thread's stack to stderr."""
     args = build_parser().parse_args(argv)
 
     def interrupt(signum: int, frame: Any) -> None:
@@ -289,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         RECEIVED_SIGNALS.append(signal.Signals(signum).name)
         for other in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(other, signal.SIG_IGN)
+        faulthandler.dump_traceback_later(STOP_REPORT_AFTER)
         raise KeyboardInterrupt
 
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):

@@ -399,7 +399,11 @@ def test_a_signal_ends_every_process_and_writes_the_summary(
     for _ in range(3):                           # an impatient user: the later ones are ignored
         process.send_signal(signum)
         time.sleep(0.3)
-    _, stderr = process.communicate(timeout=60)
+    try:
+        _, stderr = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:           # the stop hung: its stacks are on stderr
+        process.kill()
+        pytest.fail(f'no exit 60 s after the signal: {process.communicate()[1]}')
     assert process.returncode == 1, stderr
     summary = json.loads((out / 'summary.json').read_text())
     assert not summary['ok'] and summary['failure'].startswith(
