@@ -11,7 +11,8 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
-from formopt_ros.cli.supervisor import CONFIGURATION_EXIT, exit_failure, interrupted
+from formopt_ros.cli.supervisor import (
+    CONFIGURATION_EXIT, exit_failure, interrupted_by, supervising)
 from formopt_ros.core.formation import Formation, FollowerSpec
 from formopt_ros.wire.topics import real_frames
 
@@ -127,21 +128,21 @@ def run_real(formation: Formation, launcher: Any, out: Path, prefix: str, steps:
           f'{time.strftime("%H:%M:%S", time.localtime(start_time))}); logs in {out}')
     everything = [p for pair in pairs.values() for p in pair] + ([recorder] if recorder else [])
     failure = ''
-    try:
-        while time.time() < start_time + duration:
+    with supervising():
+        while not failure and time.time() < start_time + duration:
             dead = [p for p in everything if not p.alive()]
             if dead:
                 failure = f'{dead[0].name} {dead[0].exit_text()} before the run finished:\n' \
                           f'{dead[0].tail()}'
-                break
+            failure = interrupted_by() or failure
             time.sleep(0.05)
-    except KeyboardInterrupt:
-        failure = interrupted()
-    # the estimators first (their summaries judge fresh streams), then the sims, the recorder
-    launcher.stop([e for _, e in pairs.values()])
-    launcher.stop([s for s, _ in pairs.values()])
-    if recorder is not None:
-        launcher.stop([recorder])
+        # the estimators first (their summaries judge fresh streams), then the sims, the
+        # recorder
+        launcher.stop([e for _, e in pairs.values()])
+        launcher.stop([s for s, _ in pairs.values()])
+        if recorder is not None:
+            launcher.stop([recorder])
+    failure = failure or interrupted_by()
     return summarise(formation, pairs, out if record else None, prefix, failure)
 
 

@@ -7,11 +7,9 @@ OUT/summary.json. scripts/run_formation.sh is its shell front end; the checks be
 live beside it."""
 from __future__ import annotations
 
-import faulthandler
 import json
 import math
 import os
-import signal
 import sys
 import time
 import uuid
@@ -25,8 +23,8 @@ from formopt_ros.cli.preflight import (
     real_names)
 from formopt_ros.cli.real_run import run_real
 from formopt_ros.cli.supervisor import (
-    PROG, RECEIVED_SIGNALS, Launcher, Process, exit_failure, global_remaps, interrupted, orphaned,
-    supervise)
+    PROG, Launcher, Process, exit_failure, global_remaps, interrupted, interrupted_by, orphaned,
+    stop_on_signals, supervise, supervising)
 from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
@@ -82,9 +80,6 @@ def build_parser() -> ArgumentParser:
 #: An estimator whose run has not started this long after it did ends the run (a peer
 #: frozen or failing before the first step), s.
 START_TIMEOUT = 60.0
-#: Seconds into a stop (two stops of at most 20 s, then the summary) after which every thread's
-#: stack is printed to stderr: a stop that hangs shows where.
-STOP_REPORT_AFTER = 45.0
 
 
 def run(args: Any) -> int:
@@ -190,21 +185,21 @@ def run_simulated(args: Any, formation: Formation, formation_file: Path | None,
     estimators = [e for _, e in nodes.values()]
     others = [leader] + [s for s, _ in nodes.values()]
     failure = ''
-    try:
+    with supervising():
         while not failure and not all(e.ended for e in estimators):
-            failure = supervise(estimators, others, recorder, args.respawn) or \
+            failure = interrupted_by() or \
+                supervise(estimators, others, recorder, args.respawn) or \
                 orphaned([(e, [leader, s]) for s, e in nodes.values()])
             if not failure and time.monotonic() - started > args.timeout:
                 failure = f'timeout after {args.timeout:g} s'
             time.sleep(0.05)
         failure = failure or supervise(estimators, others, recorder, 0)
-    except KeyboardInterrupt:
-        failure = interrupted()
-    wall = time.monotonic() - started
-    # the formation first, the recorder last, so that it keeps their last messages
-    launcher.stop(estimators + others)
-    if recorder is not None:
-        launcher.stop([recorder])
+        wall = time.monotonic() - started
+        # the formation first, the recorder last, so that it keeps their last messages
+        launcher.stop(estimators + others)
+        if recorder is not None:
+            launcher.stop([recorder])
+    failure = failure or interrupted_by()
     return write_summary(args, formation, out, launcher, leader, nodes, recorder, failure,
                          wall, prefix, run_id)
 
@@ -288,17 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     still running STOP_REPORT_AFTER s after the signal prints every thread's stack to stderr."""
     args = build_parser().parse_args(argv)
 
-    def interrupt(signum: int, frame: Any) -> None:
-        # once: the stop that follows (bounded by the stop's grace periods) must not be cut
-        # short by a second Ctrl-C, or nothing would write the summary
-        RECEIVED_SIGNALS.append(signal.Signals(signum).name)
-        for other in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            signal.signal(other, signal.SIG_IGN)
-        faulthandler.dump_traceback_later(STOP_REPORT_AFTER)
-        raise KeyboardInterrupt
-
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, interrupt)
+    stop_on_signals()
     return run(args)
 
 

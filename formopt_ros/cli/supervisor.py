@@ -4,12 +4,15 @@ run_formation itself is killed, the kernel ends its nodes: :func:`die_with_paren
 from __future__ import annotations
 
 import ctypes
+import faulthandler
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,8 +43,51 @@ def die_with_parent() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
-#: Names of the signals that stopped the run (set by run_formation's handler).
+#: Names of the signals that stopped the run (set by :func:`stop_on_signals`'s handler).
 RECEIVED_SIGNALS: list[str] = []
+#: Seconds after the first signal (two stops of at most 20 s, then the summary) at which a stop
+#: still running prints every thread's stack to stderr: a stop that hangs shows where.
+STOP_REPORT_AFTER = 45.0
+#: True while a loop polls the processes (:func:`supervising`).
+_polling = False
+
+
+def stop_on_signals() -> None:
+    """SIGINT, SIGTERM and SIGHUP stop the run like Ctrl-C, once: the first is recorded in
+    RECEIVED_SIGNALS, later ones are ignored (the stop that follows, bounded by its grace
+    periods, must not be cut short, or nothing would write the summary). Outside
+    :func:`supervising` the handler raises KeyboardInterrupt; inside, the polling loop ends
+    the run at its next poll. A stop still running STOP_REPORT_AFTER s later prints every
+    thread's stack to stderr."""
+    def interrupt(signum: int, frame: Any) -> None:
+        RECEIVED_SIGNALS.append(signal.Signals(signum).name)
+        for other in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(other, signal.SIG_IGN)
+        faulthandler.dump_traceback_later(STOP_REPORT_AFTER)
+        if not _polling:
+            raise KeyboardInterrupt
+
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, interrupt)
+
+
+@contextmanager
+def supervising() -> Iterator[None]:
+    """A block that polls processes: a signal only records itself there (the block checks
+    :func:`interrupted_by`), because a KeyboardInterrupt raised inside Popen.poll() between
+    its lock's acquire and its try would leave the lock held, and every later wait() of that
+    process would block forever."""
+    global _polling
+    _polling = True
+    try:
+        yield
+    finally:
+        _polling = False
+
+
+def interrupted_by() -> str:
+    """'interrupted by SIGHUP' once a signal came, else ''."""
+    return interrupted() if RECEIVED_SIGNALS else ''
 
 
 def interrupted() -> str:
@@ -239,4 +285,5 @@ def global_remaps(prefix: str) -> list[str]:
 
 
 __all__ = ['CONFIGURATION_EXIT', 'RECEIVED_SIGNALS', 'Launcher', 'Process', 'exit_failure',
-           'format_value', 'global_remaps', 'interrupted', 'orphaned', 'supervise']
+           'format_value', 'global_remaps', 'interrupted', 'interrupted_by', 'orphaned',
+           'stop_on_signals', 'supervise', 'supervising']

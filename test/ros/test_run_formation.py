@@ -414,6 +414,38 @@ def test_a_signal_ends_every_process_and_writes_the_summary(
     assert not _alive_with(str(out))
 
 
+SIGNAL_WHILE_POLLING = """
+import os, signal, subprocess, sys
+from formopt_ros.cli import supervisor
+supervisor.stop_on_signals()
+child = subprocess.Popen(['sleep', '30'])
+with supervisor.supervising():
+    os.kill(os.getpid(), signal.SIGHUP)
+    while child.poll() is None and not supervisor.interrupted_by():
+        pass
+    os.kill(os.getpid(), signal.SIGTERM)
+    child.kill()
+    print(supervisor.interrupted_by(), child.wait())
+os.kill(os.getpid(), signal.SIGINT)
+if sys.argv[1] == 'outside':
+    supervisor.RECEIVED_SIGNALS.clear()
+    supervisor.stop_on_signals()
+    os.kill(os.getpid(), signal.SIGINT)
+"""
+
+
+@pytest.mark.parametrize('where', ['inside', 'outside'])
+def test_a_signal_while_processes_are_polled_is_only_recorded(where: str) -> None:
+    """While run_formation polls its processes a signal only records itself (raised there, a
+    KeyboardInterrupt can leave Popen.poll()'s lock held and the stop's wait() blocks for
+    ever); later signals are ignored; outside the polling the first signal raises."""
+    result = subprocess.run([sys.executable, '-c', SIGNAL_WHILE_POLLING, where],
+                            capture_output=True, text=True, timeout=60)
+    assert result.stdout.split('\n')[0] == 'interrupted by SIGHUP -9'
+    assert (result.returncode, 'KeyboardInterrupt' in result.stderr) == \
+        ((-signal.SIGINT, True) if where == 'outside' else (0, False))
+
+
 def test_nodes_end_when_run_formation_is_killed(tmp_path: Path, ros_domain: int) -> None:
     """run_formation killed by SIGKILL once its nodes are up (no handler of it runs): the kernel
     sends each node SIGTERM, each writes its summary saying so (not ok: stopped before the last
