@@ -100,7 +100,7 @@ class _PerTrialPlanner:
             region = reach_region(s.p_o, s.r, x_t, leader, s.dt, s.kinematics, s.max_speed,
                                   s.safety_distance)
             context = PlanContext(step, leader, self.rngs[t], view, s.dt, s.sigma_v,
-                                  s.sigma_omega, s.kinematics, region)
+                                  s.sigma_omega, s.kinematics, region, s)
             solution = timed_plan(strategy, problems.problem(t), context)
             p[t], times[t], fallback[t] = solution.p, solution.solve_time_s, \
                 solution.fallback is not None

@@ -381,7 +381,7 @@ class EstimatorPlanner:
         region = reach_region(s.p_o, s.r, self.x, leader, s.dt, s.kinematics, s.max_speed,
                               s.safety_distance)
         context = PlanContext(step, leader, self.rng, view, s.dt, s.sigma_v, s.sigma_omega,
-                              s.kinematics, region)
+                              s.kinematics, region, s)
         solution = timed_plan(self.strategy, problem, context)
         self._target = solution.p
         command = motion_commands(self.x, solution.p, s.dt, leader[0][0], leader[0][1],

@@ -143,6 +143,8 @@ class PlanContext:
         kinematics: the motion model, 'exact' or 'euler' (core/model.py).
         region: the reachable set of the step (speed limit, safety distance), or None for the
             whole disc (the paper's protocol); see :mod:`formopt_ros.core.reach`.
+        scenario: the run's scenario (its ``leader`` is the path the simulated leader drives),
+            or None for a one-off problem.
     """
 
     step: int = 1
@@ -154,6 +156,7 @@ class PlanContext:
     sigma_omega: float = 0.1
     kinematics: str = EXACT
     region: Region | None = None
+    scenario: Scenario | None = None
 
     @property
     def leader_straight(self) -> bool:

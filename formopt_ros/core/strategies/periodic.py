@@ -24,9 +24,11 @@ keeps one velocity (v, omega), straight or on an arc, the conditions are station
 frame and the cycle is designed for them (it rotates with the leader). When the expected
 leader velocity is not constant over the step, or the conditions changed (the slot or r, or a
 noise level, the leader velocity, dt or the limits by more than ``replan_tolerance``) and have
-not yet held for SETTLE_DECISIONS decisions (an S-curve never holds them), or the cycle does
-not fit the reachable set, it plays greedy; once new conditions held, it designs again (or
-takes the cached design) and starts over at 2.
+not yet held for SETTLE_DECISIONS decisions, or the cycle does not fit the reachable set, it
+plays greedy; once new conditions held, it designs again (or takes the cached design) and
+starts over at 2. Behind a leader whose path repeats every N steps (an S-curve, whose velocity
+never holds) it plays greedy for the first N steps and then a cycle of N points locked to the
+path's phase (:mod:`.phase_locked`), when one beats greedy.
 Every point is either RQ's (feasible) or a point of the cycle, in the problem's own disc.
 ``Solution.details`` says which mode chose the point and why, and counts re-plans, returns to
 greedy, decisions made greedy while the leader's velocity changed, and switch tests.
@@ -45,6 +47,8 @@ from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
     PatternDesign, SteadyConditions, cached_design, fits_reach, greedy_target, noise_free_step)
+from formopt_ros.core.strategies.phase_locked import (
+    PhaseLockedDesign, design_phase_locked, path_period)
 from formopt_ros.core.strategies.rq import rq_optimum
 
 if TYPE_CHECKING:
@@ -104,6 +108,8 @@ class PeriodicPattern(Strategy):
         #: the conditions that held over the last decisions without a change, and how many
         self.streak: tuple[SteadyConditions | None, int] = (None, 0)
         self.design: PatternDesign | None = None
+        #: the cycle locked to a repeating leader path (False: none beats greedy)
+        self.locked: PhaseLockedDesign | bool | None = None
         self.mode = GREEDY
         self.phase = 0                     # phase of the cycle reached by the last target
         self.next_check = 1                # step of the next switch test
@@ -126,6 +132,9 @@ class PeriodicPattern(Strategy):
         """The next position: RQ's, or the cycle's next point (see the module docstring)."""
         if context.estimator is None:
             return self._greedy(problem, 'no estimator: one-off problem')
+        locked = self._phase_locked(problem, context)
+        if locked is not None:
+            return locked
         conditions = steady_conditions(problem, context)
         settled = self._settled(conditions)
         if conditions is None or not settled:
@@ -163,6 +172,34 @@ class PeriodicPattern(Strategy):
             return self._greedy(problem, 'cycle point outside the disc', designed)
         return make_solution(problem, point, self.name, True,
                              details=self._details(PATTERN, 'cycle', designed))
+
+    def _phase_locked(self, problem: Problem, context: PlanContext) -> Solution | None:
+        """Behind a leader whose path repeats every N steps (an S-curve): greedy over its
+        first period, then the point of this step's phase of the cycle locked to the path
+        (:mod:`.phase_locked`, designed at step N + 1), or greedy when none beats greedy.
+        None when the path does not repeat."""
+        scenario = context.scenario
+        period = None if scenario is None else path_period(scenario.leader, scenario.dt)
+        if scenario is None or period is None:
+            return None
+        self.mode = GREEDY
+        if context.step <= period:
+            return self._greedy(problem, "transient: the leader path's first period")
+        designed = self.locked is None
+        if self.locked is None:
+            self.locked = design_phase_locked(scenario) or False
+        found = self.locked if isinstance(self.locked, PhaseLockedDesign) else None
+        time_s = found.design_time_s if designed and found else None
+        if found is None:
+            return self._greedy(problem, 'no cycle locked to the leader path beats greedy',
+                                time_s)
+        self.phase = (context.step - 1) % period
+        point = found.points[self.phase].copy()
+        if context.region is None and not problem.feasible(point):   # not seen: designed in it
+            return self._greedy(problem, 'cycle point outside the disc', time_s)
+        self.mode = PATTERN
+        return make_solution(problem, point, self.name, True, details=self._details(
+            PATTERN, 'cycle locked to the leader path', time_s))
 
     def _greedy(self, problem: Problem, reason: str,
                 design_time_s: float | None = None) -> Solution:
@@ -278,6 +315,14 @@ class PeriodicPattern(Strategy):
 def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     """One line on the cycle PERIODIC plays in ``scenario`` and the time its design took (from
     this process's cache: free after a run, designed now otherwise)."""
+    if path_period(scenario.leader, scenario.dt) is not None:
+        locked = design_phase_locked(scenario)
+        if locked is None:
+            return 'no cycle locked to the repeating leader path beats greedy (greedy throughout)'
+        return (f'cycle of {locked.period} points locked to the leader path, played after its '
+                f'first period: steady tr(W P W) {locked.steady_cost:.6g} m^2 against greedy\'s '
+                f'{locked.greedy_cost:.6g} m^2 (noise-free), designed in '
+                f'{locked.design_time_s:.1f} s (once per scenario and worker process)')
     conditions = SteadyConditions.from_scenario(scenario)
     if conditions is None:
         return "the leader's velocity changes from the start: no cycle (greedy while it does)"

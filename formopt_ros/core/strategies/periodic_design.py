@@ -121,6 +121,11 @@ class SteadyConditions:
         v_l, omega_l = scenario.leader.velocity(0, scenario.dt)
         if scenario.leader.velocity(SUBSTEPS, scenario.dt) != (v_l, omega_l):
             return None
+        return cls.at_velocity(scenario, v_l, omega_l)
+
+    @classmethod
+    def at_velocity(cls, scenario: Scenario, v_l: float, omega_l: float) -> SteadyConditions:
+        """The conditions of ``scenario`` with the leader at (v_l m/s, omega_l rad/s)."""
         reach = math.inf if scenario.max_speed is None else \
             scenario.max_speed * SUBSTEPS * scenario.dt
         return cls(scenario.measurement, scenario.p_o, scenario.r, scenario.sigma, v_l, omega_l,

@@ -1,0 +1,210 @@
+"""PERIODIC behind a leader whose path repeats (an S-curve): a cycle locked to the path's phase.
+
+A leader on an S-curve of period T changes its velocity every step, so no stationary cycle
+exists; but the conditions of step n repeat with n mod N, N = T / (2 dt) steps, so the whole
+planning problem is periodic with N. A cycle of N points, point k played at every step
+n = k mod N, has a periodic steady state like a stationary cycle's.
+
+Design (docs/lookahead.md, "PERIODIC on an S-curve"): greedy (RQ over the reachable set) runs on
+the noise-free recursion with each step's own leader velocity (``phase_conditions``) until its
+loop repeats; its last N targets are refined by SLSQP on the mean tr(W P W) of one period of the
+recursion, settled period by period from the last settled posterior (the product
+of N = 100 symplectic maps is too ill-conditioned for the eigenvector route of
+:func:`.periodic_design.periodic_solutions`), under the constraints of a design within reach:
+every move inside its step's reach disc, every point outside the safety distance and in the
+slot's disc, or, in the steps where greedy itself could not reach the disc, no farther from
+the slot than greedy was. The forward-difference gradient costs three move maps a coordinate
+(a point enters the maps of the moves into it and the next two). The design is kept when it
+is at least MIN_GAIN below greedy's steady state. A local method, like the design within
+reach.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from formopt_ros.core.formulas import weight_vector, weighted_trace
+from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.strategies.periodic_design import (
+    SteadyConditions, arrival_pose, greedy_target, lft, move_map, noise_free_step, reach_map)
+
+if TYPE_CHECKING:
+    from formopt_ros.core.scenario import LeaderPath, Scenario
+
+#: Longest leader period (steps) a cycle is designed for.
+LONGEST_PERIOD = 400
+#: Leader periods greedy runs on the noise-free recursion before its loop is taken.
+GREEDY_LAPS = 20
+#: A cycle's steady state is settled when a period's mean tr(W P W) moves less than SETTLED
+#: (relative) from the one before, starting from the last settled posterior; at most
+#: MAX_PERIODS periods.
+SETTLED = 1e-12
+MAX_PERIODS = 500
+#: SLSQP's iterations at most and its tolerance on the cost.
+ITERATIONS = 60
+FTOL = 1e-12
+#: A design is kept when its steady state is at least this fraction below greedy's.
+MIN_GAIN = 0.01
+#: Forward-difference step of the gradient, m.
+GRADIENT_STEP = 1e-7
+
+
+@dataclass(frozen=True)
+class PhaseLockedDesign:
+    """A cycle locked to the leader path's phase.
+
+    Attributes:
+        points: the point of each phase (N, 2), leader frame, m; step n (1-based) targets
+            ``points[(n - 1) % N]``.
+        steady_cost: the cycle's mean steady tr(W P W) on the noise-free recursion, m^2.
+        greedy_cost: greedy's, on the same recursion, m^2.
+        design_time_s: wall time of the design, s.
+    """
+
+    points: np.ndarray
+    steady_cost: float
+    greedy_cost: float
+    design_time_s: float
+
+    @property
+    def period(self) -> int:
+        """N, steps."""
+        return len(self.points)
+
+
+def path_period(path: LeaderPath, dt: float) -> int | None:
+    """N: the steps after which the leader's velocity repeats, for an S-curve whose period is
+    a whole number of steps (at most LONGEST_PERIOD); None for any other path."""
+    if path.kind != 's-curve' or path.amplitude == 0.0:
+        return None
+    steps = path.period / (SUBSTEPS * dt)
+    whole = round(steps)
+    if not 2 <= whole <= LONGEST_PERIOD or abs(steps - whole) > 1e-9 * whole:
+        return None
+    return whole
+
+
+def phase_conditions(scenario: Scenario, period: int) -> list[SteadyConditions]:
+    """The conditions of each phase k (the leader's velocity at the start of step k + 1)."""
+    return [SteadyConditions.at_velocity(scenario, *scenario.leader.velocity(k * SUBSTEPS,
+                                                                             scenario.dt))
+            for k in range(period)]
+
+
+class _PeriodCost:
+    """The mean tr(W P W) (m^2) of one period of a phase-locked cycle, and its gradient."""
+
+    def __init__(self, phases: list[SteadyConditions], start: np.ndarray) -> None:
+        self.phases, self.start = phases, start
+        self.w2 = weight_vector(phases[0].slot) ** 2
+
+    def maps(self, points: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The move maps into each point (N, 6, 6) and the pose before each move."""
+        c, n = self.phases, len(points)
+        pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], c[-1])
+        maps, poses = np.empty((n, 6, 6)), []
+        for k in range(n):
+            poses.append(pose)
+            maps[k], pose = move_map(pose, points[k], c[k])
+        return maps, poses
+
+    def settle(self, maps: np.ndarray) -> np.ndarray:
+        """Mean tr(W P W) over a period of maps (B, N, 6, 6), (B,), m^2 (inf without a steady
+        state): periods of the recursion from the last settled posterior until a period's mean
+        moves less than SETTLED (relative), at most MAX_PERIODS."""
+        P = np.repeat(self.start[None], len(maps), axis=0)
+        costs = np.empty((maps.shape[1], len(maps)))
+        previous = np.full(len(maps), np.inf)
+        for _ in range(MAX_PERIODS):
+            for k in range(maps.shape[1]):
+                P = lft(maps[:, k], P)
+                P = 0.5 * (P + np.swapaxes(P, 1, 2))
+                costs[k] = np.einsum('i,nii->n', self.w2, P)
+            means = costs.mean(axis=0)
+            with np.errstate(invalid='ignore'):
+                if np.all((np.abs(means - previous) <= SETTLED * means) | ~np.isfinite(means)):
+                    break
+            previous = means
+        ok = np.all(costs > 0.0, axis=0) & np.all(np.isfinite(P), axis=(1, 2))
+        if ok[0]:
+            self.start = P[0]
+        return np.where(ok, means, np.inf)
+
+    def __call__(self, z: np.ndarray) -> float:
+        return float(self.settle(self.maps(z.reshape(-1, 2))[0][None])[0])
+
+    def gradient(self, z: np.ndarray) -> np.ndarray:
+        points = z.reshape(-1, 2)
+        n, c = len(points), self.phases
+        maps, poses = self.maps(points)
+        batch = np.repeat(maps[None], 2 * n + 1, axis=0)
+        for i in range(2 * n):
+            j, after, later = i // 2, (i // 2 + 1) % n, (i // 2 + 2) % n
+            moved = points.copy()
+            moved[j, i % 2] += GRADIENT_STEP
+            pose_j = arrival_pose(np.array([*moved[j - 1], 0.0]), moved[j], c[j])
+            pose_after = arrival_pose(np.array([*moved[j], 0.0]), moved[after], c[after])
+            batch[i + 1, j] = move_map(poses[j], moved[j], c[j])[0]
+            batch[i + 1, after] = move_map(pose_j, moved[after], c[after])[0]
+            batch[i + 1, later] = move_map(pose_after, moved[later], c[later])[0]
+        costs = self.settle(batch)
+        gradient = (costs[1:] - costs[0]) / GRADIENT_STEP
+        return np.where(np.isfinite(gradient), gradient, 0.0)
+
+
+def _margins(z: np.ndarray, phases: list[SteadyConditions], radii2: np.ndarray) -> np.ndarray:
+    """Constraint margins (m^2, >= 0 when met): moves in their reach discs, points within
+    radii2 of the slot and outside the safety circle."""
+    points, c = z.reshape(-1, 2), phases[0]
+    margins = [radii2 - np.sum((points - c.slot) ** 2, axis=1)]
+    if c.limited:
+        moves = np.array([points[k] - (linear @ points[k - 1] + offset) for k, (offset, linear)
+                          in enumerate(reach_map(phase) for phase in phases)])
+        margins.append(c.reach * c.reach - np.sum(moves ** 2, axis=1))
+    if c.safety > 0.0:
+        margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
+    return np.concatenate(margins)
+
+
+@functools.lru_cache(maxsize=8)
+def design_phase_locked(scenario: Scenario) -> PhaseLockedDesign | None:
+    """The phase-locked cycle for ``scenario``'s leader path (module docstring), or None when
+    the path does not repeat or no cycle found beats greedy by MIN_GAIN. Cached per process."""
+    from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
+    started = time.perf_counter()
+    period = path_period(scenario.leader, scenario.dt)
+    if period is None:
+        return None
+    phases = phase_conditions(scenario, period)
+    slot = phases[0].slot
+    x, P = np.array([*slot, 0.0]), np.diag([0.1, 0.1, 4e-4])
+    targets, costs = np.empty((period, 2)), np.empty(period)
+    for _ in range(GREEDY_LAPS):
+        for k, phase in enumerate(phases):
+            targets[k] = greedy_target(x, P, phase)
+            x, P = noise_free_step(x, P, targets[k], phase)
+            costs[k] = weighted_trace(P, slot)
+    greedy_cost = float(costs.mean())
+    radii2 = np.maximum(scenario.r ** 2, np.sum((targets - slot) ** 2, axis=1))
+    objective = _PeriodCost(phases, P)
+    result = minimize(objective, targets.ravel(), jac=objective.gradient, method='SLSQP',
+                      constraints=[{'type': 'ineq', 'fun': _margins,
+                                    'args': (phases, radii2)}],
+                      options={'maxiter': ITERATIONS, 'ftol': FTOL})
+    points = result.x.reshape(-1, 2)
+    offsets = points - slot                  # SLSQP may end a little outside: back inside
+    distance = np.hypot(offsets[:, 0], offsets[:, 1])
+    points = slot + offsets * np.minimum(1.0, np.sqrt(radii2) / np.maximum(distance, 1e-300))[
+        :, None]
+    cost = objective(points.ravel())
+    if not math.isfinite(cost) or cost > (1.0 - MIN_GAIN) * greedy_cost:
+        return None
+    return PhaseLockedDesign(points, cost, greedy_cost, time.perf_counter() - started)
+
+
+__all__ = ['PhaseLockedDesign', 'design_phase_locked', 'path_period', 'phase_conditions']
