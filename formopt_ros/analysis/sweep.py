@@ -11,6 +11,7 @@ import os
 import signal
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import CancelledError, Executor
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ import numpy as np
 
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.strategies.registry import QUIET_ENV
+from formopt_ros.core.study import POLL_S
 from formopt_ros.core.sweep import (
     AXES, GAIN_COLUMNS, RESULT_COLUMNS, Cell, cell_key, point_label, run_cell, with_gains)
 
@@ -205,7 +207,8 @@ def _ignoring_interrupts() -> Iterator[None]:
 def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = None,
               scheduler: str | None = None,
               progress: Callable[[int], None] | None = None,
-              finished: Callable[[str, dict[str, Any]], None] | None = None) -> SweepOutcome:
+              finished: Callable[[str, dict[str, Any]], None] | None = None,
+              stop: Callable[[], bool] | None = None) -> SweepOutcome:
     """Run every cell not in ``cache`` on Dask and store each in the cache as it finishes.
 
     Args:
@@ -216,6 +219,8 @@ def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = Non
             else a local cluster).
         progress: called with the number of cells newly available (reused ones first).
         finished: called with (key, row) after each computed cell is stored.
+        stop: polled every POLL_S s while the cells run; True raises KeyboardInterrupt there
+            (a Ctrl-C the caller recorded: :func:`~formopt_ros.cli.common.ctrl_c_deferred`).
 
     A KeyboardInterrupt (Ctrl-C) cancels the remaining cells and propagates; every cell
     finished before it is in the cache. A cell whose computation raises is reported in
@@ -237,24 +242,32 @@ def run_cells(cells: Sequence[Cell], cache: CellCache, workers: int | None = Non
         with dask_client(workers, scheduler) as client:
             futures = client.map(run_cell, list(todo.values()), key=list(todo), pure=False)
             try:
-                for future in as_completed(futures):
-                    key = str(future.key)
-                    try:
-                        row = future.result()
-                    except CancelledError as error:
-                        raise ConnectionError('the Dask cluster dropped the sweep (its scheduler '
-                                              'or every worker stopped)') from error
-                    except Exception as error:      # the cell's strategy failed: report it
-                        outcome.failures[key] = ' '.join(
-                            f'{type(error).__name__}: {error}'.split())
+                completed = as_completed(futures)
+                while not completed.is_empty():
+                    if stop is not None and stop():
+                        raise KeyboardInterrupt
+                    if stop is not None and not completed.has_ready():
+                        time.sleep(POLL_S)
                         continue
-                    cache.put(key, row)
-                    found[key] = row
-                    outcome.computed.append(key)
-                    if finished:
-                        finished(key, row)
-                    if progress:
-                        progress(sum(1 for k in keys if k == key))
+                    for future in completed.next_batch(block=True):
+                        key = str(future.key)
+                        try:
+                            row = future.result()
+                        except CancelledError as error:
+                            raise ConnectionError('the Dask cluster dropped the sweep (its '
+                                                  'scheduler or every worker stopped)'
+                                                  ) from error
+                        except Exception as error:      # the cell's strategy failed
+                            outcome.failures[key] = ' '.join(
+                                f'{type(error).__name__}: {error}'.split())
+                            continue
+                        cache.put(key, row)
+                        found[key] = row
+                        outcome.computed.append(key)
+                        if finished:
+                            finished(key, row)
+                        if progress:
+                            progress(sum(1 for k in keys if k == key))
             except BaseException:
                 client.cancel(futures)
                 raise

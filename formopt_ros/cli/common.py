@@ -3,12 +3,15 @@ exit code 2, never a traceback; argument types that check ranges and refuse to o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import math
 import os
+import signal
 import sys
 import tempfile
-from collections.abc import Callable, Mapping, Sequence
+import threading
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -45,6 +48,26 @@ def command(prog: str) -> Callable[[Main], Main]:
                 return SYSTEM_EXIT
         return run  # type: ignore[return-value]
     return wrap
+
+
+@contextlib.contextmanager
+def ctrl_c_deferred() -> Iterator[Callable[[], bool]]:
+    """Ctrl-C (SIGINT) inside the block only records itself: the block polls the callable it
+    gets and raises KeyboardInterrupt at that safe point, and the block's end raises it if
+    nothing did. Raised wherever the main thread happens to be, a KeyboardInterrupt can land
+    inside a library's locking (a Dask client's, a Popen's) and hang the shutdown that
+    follows. Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield lambda: bool(received)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
 
 
 class ArgumentParser(argparse.ArgumentParser):

@@ -8,7 +8,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import CancelledError, Executor
 from functools import partial
 from pathlib import Path
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from formopt_ros.cli.common import (
-    ArgumentParser, command, fail, integer, name_list, new_folder, number)
+    ArgumentParser, command, ctrl_c_deferred, fail, integer, name_list, new_folder, number)
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
@@ -453,10 +453,12 @@ def comparison_lines(folder: Path) -> list[str]:
 
 @contextlib.contextmanager
 def study_workers(jobs: int, scheduler: str | None
-                  ) -> Iterator[tuple[Executor | None, int, str]]:
-    """(executor, number of workers, where) of a study: this process for one job without a
-    scheduler, else Dask (:func:`~formopt_ros.analysis.sweep.dask_executor`); without Dask
-    installed, a local process pool. A scheduler that cannot be reached ends the command."""
+                  ) -> Iterator[tuple[Executor | None, int, str, Callable[[], bool] | None]]:
+    """(executor, number of workers, where, stop) of a study: this process for one job without
+    a scheduler, else Dask (:func:`~formopt_ros.analysis.sweep.dask_executor`); without Dask
+    installed, a local process pool. A scheduler that cannot be reached ends the command. On
+    Dask a Ctrl-C only sets ``stop`` (:func:`~formopt_ros.cli.common.ctrl_c_deferred`): the
+    study raises KeyboardInterrupt where it polls it, never inside the client's locking."""
     prog = 'formopt-montecarlo'
     try:
         from formopt_ros.analysis.sweep import dask_executor, scheduler_address
@@ -464,19 +466,20 @@ def study_workers(jobs: int, scheduler: str | None
     except ImportError:
         if scheduler:
             fail(prog, "--scheduler: Dask is not installed: pip install 'dask[distributed]'")
-        yield None, jobs, f'{jobs} process(es), no Dask'
+        yield None, jobs, f'{jobs} process(es), no Dask', None
         return
     if jobs == 1 and not address:
-        yield None, 1, '1 process'
+        yield None, 1, '1 process', None
         return
     with contextlib.ExitStack() as stack:
+        stop = stack.enter_context(ctrl_c_deferred())
         try:
             executor, workers = stack.enter_context(dask_executor(jobs, address))
         except OSError as error:
             fail(prog, f'--scheduler: {error}')
         try:
             yield executor, workers, f'Dask at {address}' if address else \
-                f'local Dask cluster of {workers} workers'
+                f'local Dask cluster of {workers} workers', stop
         except CancelledError:
             fail(prog, 'the Dask cluster dropped the study (its scheduler or its workers '
                        'stopped); the kinds written before are complete')
@@ -519,17 +522,17 @@ def main(argv: list[str] | None = None) -> int:
                           '--steps')
     bar = progress_bar(args.trials * sum(len(c.strategies) for c in configs + comparison),
                        ' + '.join(kinds))
-    with study_workers(args.jobs, args.scheduler) as (executor, workers, where):
+    with study_workers(args.jobs, args.scheduler) as (executor, workers, where, stop):
         # each kind's outputs (figures take a second) are written as soon as its runs are in,
         # while the workers go on with the other kinds
         try:
             results = run_studies(configs, workers, bar.update if bar else None, args.engine,
                                   partial(write_into, args.out, not args.no_figures,
                                           allow_inconsistent=args.allow_inconsistent),
-                                  executor)
+                                  executor, stop)
             if comparison:
                 compared = run_studies(comparison, workers, bar.update if bar else None,
-                                       args.engine, executor=executor)
+                                       args.engine, executor=executor, stop=stop)
         except OutsideTheDisc as error:             # a plugin's point is never scored
             if bar:
                 bar.close()

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from formopt_ros.cli.common import (
-    INTERRUPTED_EXIT, ArgumentParser, command, fail, integer, name_list)
+    INTERRUPTED_EXIT, ArgumentParser, command, ctrl_c_deferred, fail, integer, name_list)
 from formopt_ros.cli.montecarlo import option_setting, progress_bar, strategy_options
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.strategies import STRATEGIES
@@ -219,8 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     bar = progress_bar(len(cells), 'cells', 'cell')
     try:
-        outcome = run_cells(cells, cache, args.workers, address,
-                            bar.update if bar else None)
+        with ctrl_c_deferred() as stop:
+            outcome = run_cells(cells, cache, args.workers, address,
+                                bar.update if bar else None, stop=stop)
     except (KeyboardInterrupt, ConnectionError) as error:
         if bar:
             bar.close()

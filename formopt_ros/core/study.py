@@ -38,6 +38,8 @@ METHODS = tuple(name for name in BUILTIN if name != 'lookahead')
 STUDY_OPTIONS: dict[str, dict[str, object]] = {'gbs': {'cell': 0.01}}
 #: Simulation engines.
 ENGINES = ('batched', 'per-trial')
+#: Seconds between polls of a study's ``stop`` while its tasks run on an executor.
+POLL_S = 0.1
 #: A strategy is flagged inconsistent when its trial-mean NEES lies outside the 95 % band
 #: (:func:`nees_band`) on more than this share of the steps (a consistent filter: about 5 %;
 #: the paper's observable strategies 4-7 %, docs/results.md) ...
@@ -221,7 +223,8 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
                 progress: Callable[[int], None] | None = None,
                 engine: str = 'batched',
                 finish: Callable[[StudyResult], Any] | None = None,
-                executor: Executor | None = None) -> list[StudyResult]:
+                executor: Executor | None = None,
+                stop: Callable[[], bool] | None = None) -> list[StudyResult]:
     """Run every (strategy, trial) of every config, in parallel (default: one process per core).
 
     Args:
@@ -238,6 +241,8 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
         executor: where the tasks run, any :class:`concurrent.futures.Executor` (e.g. a Dask
             client's ``get_executor(pure=False)``: ``formopt-montecarlo`` runs on Dask), left
             open; None: see ``jobs``.
+        stop: with ``executor``, polled every POLL_S s while the tasks run; True cancels the
+            unfinished tasks and raises KeyboardInterrupt (a Ctrl-C recorded by the caller).
     """
     if engine not in ENGINES:
         raise ValueError(f'engine must be one of {ENGINES}, got {engine!r}')
@@ -269,7 +274,7 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
             finish(done)
 
     if executor is not None:
-        _run_on({executor.submit(_task, task) for task in ordered}, collect)
+        _run_on({executor.submit(_task, task) for task in ordered}, collect, stop)
     elif jobs == 1 or len(ordered) == 1:
         for task in ordered:
             collect(_task(task))
@@ -293,12 +298,17 @@ def run_studies(configs: list[StudyConfig], jobs: int | None = None,
     return results
 
 
-def _run_on(futures: set[Future[Output]], collect: Callable[[Output], None]) -> None:
+def _run_on(futures: set[Future[Output]], collect: Callable[[Output], None],
+            stop: Callable[[], bool] | None = None) -> None:
     """Collect each task's output as it comes; on any exception (Ctrl-C included) the
-    unfinished tasks are cancelled."""
+    unfinished tasks are cancelled; ``stop`` (polled every POLL_S s) raises KeyboardInterrupt
+    when it returns True."""
     try:
         while futures:
-            complete, futures = wait(futures, return_when=FIRST_COMPLETED)
+            complete, futures = wait(futures, None if stop is None else POLL_S,
+                                     FIRST_COMPLETED)
+            if stop is not None and stop():
+                raise KeyboardInterrupt
             for future in complete:
                 collect(future.result())
     except BaseException:

@@ -211,3 +211,26 @@ def test_the_audit_forgives_one_step_in_flight_per_restart(tmp_path: Path) -> No
         recording, failure = audit_recording(tmp_path, '/p', leader, {}, restarts)
         assert recording['missing'] == {'/p/leader/odom': short}
         assert bool(failure) == fails and recording['lost_in_flight'] != fails, (short, restarts)
+
+
+DEFERRED = """
+import os, signal, sys
+from formopt_ros.cli.common import ctrl_c_deferred
+with ctrl_c_deferred() as stop:
+    os.kill(os.getpid(), signal.SIGINT)
+    print('recorded', stop(), flush=True)
+    if sys.argv[1] == 'poll' and stop():
+        raise KeyboardInterrupt
+    print('block ends', flush=True)
+"""
+
+
+@pytest.mark.parametrize('where', ['poll', 'end'])
+def test_ctrl_c_in_a_deferred_block_is_raised_where_it_is_polled(where: str) -> None:
+    """Inside ctrl_c_deferred a SIGINT only records itself; KeyboardInterrupt comes where the
+    block polls it, or when the block ends."""
+    result = subprocess.run([sys.executable, '-c', DEFERRED, where], capture_output=True,
+                            text=True, timeout=60)
+    expected = 'recorded True\n' + ('' if where == 'poll' else 'block ends\n')
+    assert (result.stdout, result.returncode) == (expected, -signal.SIGINT)
+    assert 'KeyboardInterrupt' in result.stderr
