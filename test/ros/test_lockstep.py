@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from harness.ros import node_scenario
+from formopt_ros.core.scenario import LeaderPath
 from formopt_ros.core.simulation import run_trial
 
 STEPS = 60
@@ -64,6 +65,28 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
     assert summary['message_counts']['received'] == {
         'leader_odom': 2 * STEPS, 'follower_odom': 2 * STEPS, 'measurement': parts,
         'truth': STEPS}
+
+
+@pytest.mark.slow
+def test_periodic_behind_an_s_curve_equals_run_trial(formation) -> None:
+    """PERIODIC behind an S-curve of 2 s (20 steps) at 2 m/s: the estimator node designs the
+    cycle locked to the path inside decision 21 and plays it; every estimate and covariance
+    equals run_trial's, whose moves after the first period are not greedy's."""
+    curve = {'path': 's-curve', 'amplitude': 0.5, 'period': 2.0, 'max_speed': 2.0}
+    run = formation({'measurement': 'bearing', 'strategy': 'periodic', 'seed': SEED,
+                     'steps': STEPS, 'resend_timeout': 60.0, **curve})
+    assert run.run(timeout=120.0), f'estimator at step {run.estimator.session.step} of {STEPS}'
+    scenario = node_scenario('bearing', leader=LeaderPath('s-curve', 1.0, amplitude=0.5,
+                                                          period=2.0), max_speed=2.0)
+    ref = run_trial(scenario, 'periodic', SEED, 0, STEPS)
+    greedy = run_trial(scenario, 'rq', SEED, 0, STEPS)
+    np.testing.assert_array_equal(ref.waypoints[:20], greedy.waypoints[:20])
+    assert np.max(np.hypot(*(ref.waypoints[20:] - greedy.waypoints[20:]).T)) > 0.01
+    assert len(run.probe.estimates) == STEPS
+    for k, (x, P) in enumerate(run.probe.estimates):
+        np.testing.assert_allclose(x, ref.estimate[k], rtol=0, atol=TOL, err_msg=f'step {k + 1}')
+        np.testing.assert_allclose(P, ref.covariance[k], rtol=0, atol=TOL,
+                                   err_msg=f'step {k + 1}')
 
 
 def test_diagnostics_every_status_period_while_steps_complete(formation) -> None:
