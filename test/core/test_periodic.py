@@ -443,7 +443,7 @@ def test_only_a_whole_number_of_steps_repeats() -> None:
     assert path_period(LeaderPath('arc', 1.0, yaw_rate=0.1), dt) is None
 
 
-@pytest.mark.parametrize('kind', ['range', 'bearing'])
+@pytest.mark.parametrize('kind', ['range', pytest.param('bearing', marks=pytest.mark.slow)])
 def test_the_phase_locked_cycle_costs_what_it_says(kind: str) -> None:
     """Played on the noise-free recursion from the paper's initial covariance for 30 periods,
     with each step's own leader velocity, the locked cycle's last period has the design's steady
@@ -475,7 +475,7 @@ def test_the_phase_locked_cycle_costs_what_it_says(kind: str) -> None:
     assert np.max(np.hypot(*np.array(moves).T)) <= phases[0].reach * (1.0 + 1e-3)
 
 
-@pytest.mark.parametrize('kind', ['range', 'bearing'])
+@pytest.mark.parametrize('kind', ['range', pytest.param('bearing', marks=pytest.mark.slow)])
 def test_behind_a_repeating_path_greedy_then_the_locked_cycle(kind: str) -> None:
     """One seeded trial of 200 steps behind the 2 s S-curve at 2 m/s: the first period (20
     steps) is RQ's, bit for bit, then the locked cycle (projected onto the reachable set where
