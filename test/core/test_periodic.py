@@ -435,10 +435,13 @@ def fast_s_curve(kind: str, **overrides: object) -> Scenario:
 
 def test_only_a_whole_number_of_steps_repeats() -> None:
     """The S-curve of period 10 s repeats every 100 steps (dt 0.05 s, two sub-steps); a period
-    of 10.03 s, a straight leader and an arc do not repeat."""
+    of 10.03 s, one of 0.5 s (5 steps: the velocity changes too much within a step for the
+    design), a straight leader and an arc do not count as repeating."""
     dt = 0.05
     assert path_period(LeaderPath('s-curve', 1.0, amplitude=0.5, period=10.0), dt) == 100
+    assert path_period(LeaderPath('s-curve', 1.0, amplitude=0.5, period=1.0), dt) == 10
     assert path_period(LeaderPath('s-curve', 1.0, amplitude=0.5, period=10.03), dt) is None
+    assert path_period(LeaderPath('s-curve', 1.0, amplitude=0.5, period=0.5), dt) is None
     assert path_period(LeaderPath('straight', 1.0), dt) is None
     assert path_period(LeaderPath('arc', 1.0, yaw_rate=0.1), dt) is None
 
@@ -473,6 +476,16 @@ def test_the_phase_locked_cycle_costs_what_it_says(kind: str) -> None:
     moves = [design.points[k] - (linear @ design.points[k - 1] + offset)
              for k, (offset, linear) in enumerate(map(reach_map, phases))]
     assert np.max(np.hypot(*np.array(moves).T)) <= phases[0].reach * (1.0 + 1e-3)
+
+
+def test_no_locked_cycle_where_greedy_never_settles() -> None:
+    """A leader turning on the spot (speed 0) leaves greedy's noise-free covariance growing:
+    no design (at once, not after SLSQP's iterations), and PERIODIC plays greedy."""
+    scenario = Scenario.paper('bearing', leader=LeaderPath('s-curve', 0.0, amplitude=0.5,
+                                                           period=2.0))
+    assert design_phase_locked(scenario) is None
+    np.testing.assert_array_equal(run_trial(scenario, 'periodic', SEED, 0, 40).waypoints,
+                                  run_trial(scenario, 'rq', SEED, 0, 40).waypoints)
 
 
 @pytest.mark.parametrize('kind', ['range', pytest.param('bearing', marks=pytest.mark.slow)])
