@@ -110,6 +110,7 @@ class PeriodicPattern(Strategy):
         self.design: PatternDesign | None = None
         #: the cycle locked to a repeating leader path (False: none beats greedy)
         self.locked: PhaseLockedDesign | bool | None = None
+        self.locked_for: Scenario | None = None      # the scenario it was designed for
         self.mode = GREEDY
         self.phase = 0                     # phase of the cycle reached by the last target
         self.next_check = 1                # step of the next switch test
@@ -185,9 +186,9 @@ class PeriodicPattern(Strategy):
         self.mode = GREEDY
         if context.step <= period:
             return self._greedy(problem, "transient: the leader path's first period")
-        designed = self.locked is None
-        if self.locked is None:
-            self.locked = design_phase_locked(scenario) or False
+        designed = self.locked is None or self.locked_for != scenario
+        if designed:        # the first time, or the scenario changed (a node's parameters)
+            self.locked, self.locked_for = design_phase_locked(scenario) or False, scenario
         found = self.locked if isinstance(self.locked, PhaseLockedDesign) else None
         time_s = found.design_time_s if designed and found else None
         if found is None:
