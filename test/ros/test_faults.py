@@ -224,8 +224,10 @@ def test_an_estimator_restarted_without_checkpoint_rejoins(formation) -> None:
     waits), finishes the run (no hang) and says so in its summary and diagnostics."""
     from formopt_ros.ros.nodes.estimator_planner import REJOIN_INFLATION
     steps = 60
+    # resends are not needed here; one on a loaded machine repeats a step whose copies are
+    # then refused as duplicates (rejected_odometry 2 in one CI run)
     run = formation({'measurement': 'range', 'strategy': 'ram', 'seed': SEED, 'steps': steps,
-                     'resend_timeout': 0.3})
+                     'resend_timeout': 2.0})
     assert run.spin_until(lambda: run.estimator.session.step >= 15, 30.0)
     run.restart('estimator_planner', down=0.2)
     assert run.spin_until(lambda: run.estimator.rejoined is not None and
@@ -246,7 +248,8 @@ def test_an_estimator_restarted_without_checkpoint_rejoins(formation) -> None:
     assert run.follower.summary()['counters']['stale_waypoints'] >= 1
     assert run.leader.summary()['stale_waypoints'] >= 1
     statuses = run.probe.step_statuses()
-    assert statuses[-1].step == steps and statuses[-1].rejected_odometry == 0
+    assert (statuses[-1].step, statuses[-1].rejected_odometry) == (steps, 0), \
+        run.estimator.session.last_reason
     diagnostic = run.estimator.diagnostic()
     assert f"rejoined at step {rejoined['at_step']}" in diagnostic.message
     nees = normalized_estimation_error(run.follower.truth.x, session.estimator.x,
