@@ -47,8 +47,7 @@ from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
     PatternDesign, SteadyConditions, cached_design, fits_reach, greedy_target, noise_free_step)
-from formopt_ros.core.strategies.phase_locked import (
-    PhaseLockedDesign, design_phase_locked, path_period)
+from formopt_ros.core.strategies.phase_locked import design_phase_locked, path_period
 from formopt_ros.core.strategies.rq import rq_optimum
 
 if TYPE_CHECKING:
@@ -108,9 +107,8 @@ class PeriodicPattern(Strategy):
         #: the conditions that held over the last decisions without a change, and how many
         self.streak: tuple[SteadyConditions | None, int] = (None, 0)
         self.design: PatternDesign | None = None
-        #: the cycle locked to a repeating leader path (False: none beats greedy)
-        self.locked: PhaseLockedDesign | bool | None = None
-        self.locked_for: Scenario | None = None      # the scenario it was designed for
+        #: the scenario whose locked cycle (designed once per process) was last played
+        self.locked_for: Scenario | None = None
         self.mode = GREEDY
         self.phase = 0                     # phase of the cycle reached by the last target
         self.next_check = 1                # step of the next switch test
@@ -186,10 +184,9 @@ class PeriodicPattern(Strategy):
         self.mode = GREEDY
         if context.step <= period:
             return self._greedy(problem, "transient: the leader path's first period")
-        designed = self.locked is None or self.locked_for != scenario
-        if designed:        # the first time, or the scenario changed (a node's parameters)
-            self.locked, self.locked_for = design_phase_locked(scenario) or False, scenario
-        found = self.locked if isinstance(self.locked, PhaseLockedDesign) else None
+        # the first time, or the scenario changed (a node's parameters): report the design
+        designed, self.locked_for = self.locked_for != scenario, scenario
+        found = design_phase_locked(scenario)
         time_s = found.design_time_s if designed and found else None
         if found is None:
             return self._greedy(problem, 'no cycle locked to the leader path beats greedy',
