@@ -475,7 +475,7 @@ def test_the_phase_locked_cycle_costs_what_it_says(kind: str) -> None:
     assert np.all(np.hypot(*(design.points - phases[0].slot).T) <= allowed)
     moves = [design.points[k] - (linear @ design.points[k - 1] + offset)
              for k, (offset, linear) in enumerate(map(reach_map, phases))]
-    assert np.max(np.hypot(*np.array(moves).T)) <= phases[0].reach * (1.0 + 1e-3)
+    assert np.max(np.hypot(*np.array(moves).T)) <= phases[0].reach * (1.0 + 1e-9)
 
 
 def test_no_locked_cycle_where_greedy_never_settles() -> None:

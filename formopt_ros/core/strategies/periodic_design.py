@@ -36,7 +36,7 @@ import math
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -394,14 +394,63 @@ def arrival_pose(x: np.ndarray, target: np.ndarray, conditions: SteadyConditions
     return x
 
 
-def cycle_maps(points: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+def cycle_maps(points: np.ndarray, conditions: SteadyConditions | Sequence[SteadyConditions]
+               ) -> np.ndarray:
     """Symplectic maps (m, 6, 6) of the moves into each of the cycle's points (m, 2), with
-    the cycle's headings (the heading at a point is that of the move into it)."""
-    pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], conditions)
+    the cycle's headings (the heading at a point is that of the move into it). ``conditions``:
+    one for every move, or those of each move (a cycle locked to a leader path's phase)."""
+    phases = _per_move(conditions, len(points))
+    pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], phases[-1])
     maps = np.empty((len(points), 6, 6))
     for k, point in enumerate(points):
-        maps[k], pose = move_map(pose, point, conditions)
+        maps[k], pose = move_map(pose, point, phases[k])
     return maps
+
+
+def perturbed_cycle_maps(points: np.ndarray,
+                         conditions: SteadyConditions | Sequence[SteadyConditions],
+                         steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The move maps of a cycle (m, 2) and of its 2m forward-difference perturbations, the
+    flattened coordinate i moved by steps[i] (2m,), m: maps (2m + 1, m, 6, 6) and points
+    (2m + 1, m, 2), the unperturbed cycle first.
+
+    The pose at a point does not depend on the heading before the move into it (the protocol
+    turns towards the target first), so the map of the move into point k depends on points
+    k-2, k-1 and k only: a perturbation costs three move maps, not a whole cycle.
+    """
+    m = len(points)
+    phases = _per_move(conditions, m)
+    poses = [arrival_pose(np.array([*points[k - 1], 0.0]), points[k], phases[k])
+             for k in range(m)]
+    maps = np.array([move_map(poses[k - 1], points[k], phases[k])[0] for k in range(m)])
+    batch_maps = np.repeat(maps[None], 2 * m + 1, axis=0)
+    batch_points = np.repeat(points[None], 2 * m + 1, axis=0)
+    for i, step in enumerate(steps):
+        j, moved = i // 2, batch_points[i + 1]
+        moved[j, i % 2] += step
+        after, later = (j + 1) % m, (j + 2) % m
+        pose_j = arrival_pose(np.array([*moved[j - 1], 0.0]), moved[j], phases[j])
+        pose_after = arrival_pose(np.array([*moved[j], 0.0]), moved[after], phases[after])
+        batch_maps[i + 1, j] = move_map(poses[j - 1], moved[j], phases[j])[0]
+        batch_maps[i + 1, after] = move_map(pose_j, moved[after], phases[after])[0]
+        batch_maps[i + 1, later] = move_map(pose_after, moved[later], phases[later])[0]
+    return batch_maps, batch_points
+
+
+def forward_difference(costs: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The gradient (2m,) from the costs (2m + 1,) and points (2m + 1, m, 2) of
+    :func:`perturbed_cycle_maps` (the step each coordinate really moved); 0 where a perturbed
+    cycle has no steady state."""
+    moved = (points[1:] - points[0]).reshape(len(costs) - 1, -1).sum(axis=1)
+    with np.errstate(invalid='ignore'):
+        gradient = (costs[1:] - costs[0]) / moved
+    return np.where(np.isfinite(gradient), gradient, 0.0)
+
+
+def _per_move(conditions: SteadyConditions | Sequence[SteadyConditions],
+              m: int) -> Sequence[SteadyConditions]:
+    """The conditions of each of m moves."""
+    return (conditions,) * m if isinstance(conditions, SteadyConditions) else conditions
 
 
 def evaluate_cycles(maps: np.ndarray, points: np.ndarray, conditions: SteadyConditions
@@ -618,12 +667,9 @@ def loop_length(targets: np.ndarray, longest: int, tolerance: float) -> int | No
 
 class CycleObjective:
     """The mean steady tr(W P W) (m^2) of a cycle given by its flattened points z (2m,) (m),
-    and its forward-difference gradient (SciPy's step, sqrt(eps) max(1, |z_i|)).
-
-    The pose at a point does not depend on the heading before the move into it (the protocol
-    turns towards the target first), so the map of the move into point k depends on points
-    k-2, k-1 and k only: a gradient costs three move maps per coordinate and one batched
-    steady-state solve, where a plain finite difference costs a whole cycle per coordinate.
+    and its forward-difference gradient (SciPy's step, sqrt(eps) max(1, |z_i|)): three move
+    maps per coordinate (:func:`perturbed_cycle_maps`) and one batched steady-state solve,
+    where a plain finite difference costs a whole cycle per coordinate.
     """
 
     def __init__(self, conditions: SteadyConditions) -> None:
@@ -640,29 +686,11 @@ class CycleObjective:
     def gradient(self, z: np.ndarray) -> np.ndarray:
         """d cost / d z (2m,), m^2 per m; 0 where a perturbed cycle has no steady state."""
         c = self.conditions
-        points = z.reshape(-1, 2)
-        m = len(points)
-        poses = [arrival_pose(np.array([*points[k - 1], 0.0]), points[k], c) for k in range(m)]
-        maps = np.array([move_map(poses[k - 1], points[k], c)[0] for k in range(m)])
         steps = math.sqrt(np.finfo(float).eps) * np.where(z >= 0.0, 1.0, -1.0) \
             * np.maximum(1.0, np.abs(z))
-        batch_maps = np.repeat(maps[None], 2 * m + 1, axis=0)
-        batch_points = np.repeat(points[None], 2 * m + 1, axis=0)
-        for i, step in enumerate(steps):
-            j, moved = i // 2, batch_points[i + 1]
-            moved[j, i % 2] += step
-            after, later = (j + 1) % m, (j + 2) % m
-            pose_j = arrival_pose(np.array([*moved[j - 1], 0.0]), moved[j], c)
-            pose_after = arrival_pose(np.array([*moved[j], 0.0]), moved[after], c)
-            batch_maps[i + 1, j] = move_map(poses[j - 1], moved[j], c)[0]
-            batch_maps[i + 1, after] = move_map(pose_j, moved[after], c)[0]
-            batch_maps[i + 1, later] = move_map(pose_after, moved[later], c)[0]
-        self.evaluations += 2 * m + 1
-        costs = evaluate_cycles(batch_maps, batch_points, c)[0]
-        with np.errstate(invalid='ignore'):
-            gradient = (costs[1:] - costs[0]) / (batch_points[1:] - points).reshape(2 * m, -1) \
-                .sum(axis=1)
-        return np.where(np.isfinite(gradient), gradient, 0.0)
+        maps, points = perturbed_cycle_maps(z.reshape(-1, 2), c, steps)
+        self.evaluations += len(maps)
+        return forward_difference(evaluate_cycles(maps, points, c)[0], points)
 
 
 def refine_cycle(start: np.ndarray, objective: CycleObjective) -> tuple[float, np.ndarray]:

@@ -30,8 +30,10 @@ import numpy as np
 
 from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.reach import Region
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, arrival_pose, greedy_target, lft, move_map, noise_free_step, reach_map)
+    SteadyConditions, cycle_maps, forward_difference, greedy_target, lft, noise_free_step,
+    perturbed_cycle_maps, reach_map)
 
 if TYPE_CHECKING:
     from formopt_ros.core.scenario import LeaderPath, Scenario
@@ -61,6 +63,8 @@ FTOL = 1e-12
 MIN_GAIN = 0.01
 #: Forward-difference step of the gradient, m.
 GRADIENT_STEP = 1e-7
+#: Passes round the cycle that move SLSQP's last points into their regions.
+REPAIR_PASSES = 10
 
 
 @dataclass(frozen=True)
@@ -112,16 +116,6 @@ class _PeriodCost:
         self.phases, self.start = phases, start
         self.w2 = weight_vector(phases[0].slot) ** 2
 
-    def maps(self, points: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-        """The move maps into each point (N, 6, 6) and the pose before each move."""
-        c, n = self.phases, len(points)
-        pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], c[-1])
-        maps, poses = np.empty((n, 6, 6)), []
-        for k in range(n):
-            poses.append(pose)
-            maps[k], pose = move_map(pose, points[k], c[k])
-        return maps, poses
-
     def settle(self, maps: np.ndarray) -> np.ndarray:
         """Mean tr(W P W) over a period of maps (B, N, 6, 6), (B,), m^2 (inf without a steady
         state): periods of the recursion from the last settled posterior until a period's mean
@@ -145,25 +139,12 @@ class _PeriodCost:
         return np.where(ok, means, np.inf)
 
     def __call__(self, z: np.ndarray) -> float:
-        return float(self.settle(self.maps(z.reshape(-1, 2))[0][None])[0])
+        return float(self.settle(cycle_maps(z.reshape(-1, 2), self.phases)[None])[0])
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
-        points = z.reshape(-1, 2)
-        n, c = len(points), self.phases
-        maps, poses = self.maps(points)
-        batch = np.repeat(maps[None], 2 * n + 1, axis=0)
-        for i in range(2 * n):
-            j, after, later = i // 2, (i // 2 + 1) % n, (i // 2 + 2) % n
-            moved = points.copy()
-            moved[j, i % 2] += GRADIENT_STEP
-            pose_j = arrival_pose(np.array([*moved[j - 1], 0.0]), moved[j], c[j])
-            pose_after = arrival_pose(np.array([*moved[j], 0.0]), moved[after], c[after])
-            batch[i + 1, j] = move_map(poses[j], moved[j], c[j])[0]
-            batch[i + 1, after] = move_map(pose_j, moved[after], c[after])[0]
-            batch[i + 1, later] = move_map(pose_after, moved[later], c[later])[0]
-        costs = self.settle(batch)
-        gradient = (costs[1:] - costs[0]) / GRADIENT_STEP
-        return np.where(np.isfinite(gradient), gradient, 0.0)
+        maps, points = perturbed_cycle_maps(z.reshape(-1, 2), self.phases,
+                                            np.full(len(z), GRADIENT_STEP))
+        return forward_difference(self.settle(maps), points)
 
 
 def _margins(z: np.ndarray, phases: list[SteadyConditions], radii2: np.ndarray) -> np.ndarray:
@@ -178,6 +159,29 @@ def _margins(z: np.ndarray, phases: list[SteadyConditions], radii2: np.ndarray) 
     if c.safety > 0.0:
         margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
     return np.concatenate(margins)
+
+
+def _into_regions(points: np.ndarray, phases: list[SteadyConditions],
+                  radii: np.ndarray) -> np.ndarray:
+    """The cycle (N, 2) with each point in turn moved to the nearest point of its step's
+    region (radii[k] about the slot, the reach disc of the move from the point before, outside
+    the safety circle), REPAIR_PASSES times round at most: SLSQP stops at its iteration cap,
+    possibly a little outside its constraints. A point whose region is empty stays."""
+    points = points.copy()
+    for _ in range(REPAIR_PASSES):
+        moved = False
+        for k, phase in enumerate(phases):
+            centre = None
+            if phase.limited:
+                offset, linear = reach_map(phase)
+                centre = tuple(linear @ points[k - 1] + offset)
+            region = Region(phase.p_o, float(radii[k]), centre, phase.reach, phase.safety)
+            nearest = None if region.contains(points[k]) else region.nearest(points[k])
+            if nearest is not None:
+                points[k], moved = nearest, True
+        if not moved:
+            break
+    return points
 
 
 @functools.lru_cache(maxsize=8)
@@ -207,11 +211,7 @@ def design_phase_locked(scenario: Scenario) -> PhaseLockedDesign | None:
                       constraints=[{'type': 'ineq', 'fun': _margins,
                                     'args': (phases, radii2)}],
                       options={'maxiter': ITERATIONS, 'ftol': FTOL})
-    points = result.x.reshape(-1, 2)
-    offsets = points - slot                  # SLSQP may end a little outside: back inside
-    distance = np.hypot(offsets[:, 0], offsets[:, 1])
-    points = slot + offsets * np.minimum(1.0, np.sqrt(radii2) / np.maximum(distance, 1e-300))[
-        :, None]
+    points = _into_regions(result.x.reshape(-1, 2), phases, np.sqrt(radii2))
     cost = objective(points.ravel())
     if not math.isfinite(cost) or cost > (1.0 - MIN_GAIN) * greedy_cost:
         return None
