@@ -172,7 +172,7 @@ TURN = LeaderPath(kind='segments', segments=(Segment(20.0, 1.0), Segment(6.0, 1.
 @pytest.mark.parametrize('kind', ['range', pytest.param('bearing', marks=pytest.mark.slow)])
 @pytest.mark.parametrize('overrides', [
     {'r': 1e-3 * math.sqrt(5)}, {'r': 0.95 * math.sqrt(5)}, {'r': 0.3 * math.sqrt(5)},
-    {'leader': TURN}, {'leader': LeaderPath('s-curve', 1.0, amplitude=0.5, period=8.0)},
+    {'leader': TURN}, {'leader': LeaderPath('s-curve', 1.0, amplitude=0.5, period=2.0)},
     {'leader': LeaderPath.constant(0.0)}, {'sigma_v': 0.0, 'sigma_omega': 0.0}],
     ids=['tiny-r', 'r-near-slot-distance', 'r-30%', 'turn', 's-curve', 'leader-stopped',
          'no-odometry-noise'])
