@@ -78,12 +78,13 @@ class MotionCommand:
     """Commanded follower velocities per sub-step of one measurement step.
 
     Attributes:
-        linear: forward speed per sub-step, m/s, length SUBSTEPS.
-        angular: yaw rate per sub-step, rad/s, length SUBSTEPS.
+        linear: forward speed per sub-step, m/s, length SUBSTEPS (floats, or arrays (T,) for
+            a batch of poses).
+        angular: yaw rate per sub-step, rad/s, length SUBSTEPS (likewise).
     """
 
-    linear: tuple[float, ...]
-    angular: tuple[float, ...]
+    linear: tuple[Any, ...]
+    angular: tuple[Any, ...]
 
 
 def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
@@ -114,7 +115,8 @@ def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
 
 def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
                     omega_l: float, kinematics: str = EXACT) -> MotionCommand:
-    """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m).
+    """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m);
+    for poses (T, 3) the velocities of each sub-step are arrays (T,) where they differ.
 
     Sub-step 1 rotates in place (v = 0) to the heading of the remaining displacement; sub-step
     2 translates (omega = omega_L, i.e. no turn relative to the leader) so that the propagated
@@ -122,7 +124,9 @@ def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
     leader moves at (v_l m/s, omega_l rad/s).
     """
     speed, turn_rate = command_velocities(x, target, dt, v_l, omega_l, kinematics)
-    return MotionCommand((0.0, float(speed)), (float(turn_rate), omega_l))
+    if x.ndim == 1:
+        speed, turn_rate = float(speed), float(turn_rate)
+    return MotionCommand((0.0, speed), (turn_rate, omega_l))
 
 
 def predict_move(x: np.ndarray, P: np.ndarray, target: np.ndarray,

@@ -19,7 +19,9 @@ from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.strategies.certificate import PROVED
 from formopt_ros.core.strategies.periodic_design import (
-    CycleObjective, SteadyConditions, cached_design, fits_reach, greedy_loop)
+    CycleObjective, SteadyConditions, cached_design, cycle_margins, cycle_margins_jacobian,
+    fits_reach, greedy_loop)
+from formopt_ros.core.strategies.phase_locked import phase_conditions
 from formopt_ros.core.strategies.polar import POLAR
 from formopt_ros.core.strategies.region import rq_in_region
 from formopt_ros.core.study import StudyConfig, follower_motion, run_study, summarize
@@ -272,6 +274,28 @@ def test_cycle_gradient_equals_whole_cycle_differences(kind: str) -> None:
         assert np.all(np.isfinite(gradient)) and np.linalg.norm(gradient) > 0.0
         np.testing.assert_allclose(gradient, reference, rtol=0,
                                    atol=1e-5 * np.linalg.norm(reference))
+
+
+def test_cycle_margins_jacobian_equals_differences() -> None:
+    """The constraints' Jacobian SLSQP gets (analytic: each margin is quadratic in one or two
+    points) equals central differences (step 1e-6 m) to 1e-8, for cycles of 1, 2 and 7 points
+    behind a straight leader with a safety distance, on an arc, and per move along an S-curve
+    with a radius per point."""
+    rng = np.random.default_rng(11)
+    s_curve = Scenario.paper(RANGE, max_speed=2.0,
+                             leader=LeaderPath('s-curve', 1.0, amplitude=0.5, period=2.0))
+    cases = [(SteadyConditions.from_scenario(Scenario.paper(
+        RANGE, max_speed=1.8, safety_distance=1.0)), None), (SteadyConditions.from_scenario(
+            Scenario.paper(BEARING, max_speed=2.5, leader=LeaderPath('arc', 1.0, yaw_rate=0.3))),
+            None), (phase_conditions(s_curve, 20), rng.uniform(0.04, 0.06, 20))]
+    for conditions, radii2 in cases:
+        for m in (1, 2, 7) if radii2 is None else (20,):
+            z = (np.array([-1.0, 2.0]) + 0.2 * rng.standard_normal((m, 2))).ravel()
+            jacobian = cycle_margins_jacobian(z, conditions, radii2)
+            reference = np.stack([(cycle_margins(z + step, conditions, radii2)
+                                   - cycle_margins(z - step, conditions, radii2)) / 2e-6
+                                  for step in 1e-6 * np.eye(z.size)], axis=1)
+            np.testing.assert_allclose(jacobian, reference, rtol=0, atol=1e-8)
 
 
 @pytest.mark.slow

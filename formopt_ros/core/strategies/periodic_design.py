@@ -32,11 +32,12 @@ reach, disc and safety constraints, on the same exact periodic steady state.
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -185,13 +186,15 @@ class SteadyConditions:
         return Problem(P, self.slot, self.r, self.sigma, self.measurement, False)
 
     def information(self, x: np.ndarray) -> np.ndarray:
-        """H' R^-1 H (3, 3) of the measurement at pose x (3,) (both rows for 'range-bearing')."""
+        """H' R^-1 H (3, 3) of the measurement at pose x (3,), or (B, 3, 3) at poses (B, 3)
+        (both rows for 'range-bearing')."""
         if self.measurement != RANGE_BEARING:
             h = measurement_jacobian(self.measurement, x)
-            return np.outer(h, h) / (self.sigma * self.sigma)
-        h_d, h_b = measurement_jacobian(RANGE_BEARING, x)
-        return np.outer(h_d, h_d) / (self.sigma * self.sigma) + \
-            np.outer(h_b, h_b) / (self.sigma_bearing * self.sigma_bearing)
+            return h[..., :, None] * h[..., None, :] / (self.sigma * self.sigma)
+        rows = measurement_jacobian(RANGE_BEARING, x)
+        h_d, h_b = rows[..., 0, :], rows[..., 1, :]
+        return h_d[..., :, None] * h_d[..., None, :] / (self.sigma * self.sigma) + \
+            h_b[..., :, None] * h_b[..., None, :] / (self.sigma_bearing * self.sigma_bearing)
 
 
 def noise_free_step(x: np.ndarray, P: np.ndarray, target: np.ndarray,
@@ -228,25 +231,43 @@ def lft(M: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.swapaxes(np.linalg.solve(np.swapaxes(Y, -1, -2), np.swapaxes(X, -1, -2)), -1, -2)
 
 
+def move_maps(x: np.ndarray, targets: np.ndarray,
+              conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
+    """The 6 x 6 symplectic maps (B, 6, 6) of B steps (drive from poses x (B, 3) to targets
+    (B, 2), measure there) and the poses (B, 3) at the targets; see the module docstring. The
+    protocol's commands (:func:`.protocol.motion_commands`), batched."""
+    c = conditions
+    command = motion_commands(x, targets, c.dt, c.v_l, c.omega_l, c.kinematics)
+    Phi, GQG = np.eye(3), np.zeros((3, 3))       # the sub-steps composed: P -> Phi P Phi' + GQG
+    for v_f, omega_f in zip(command.linear, command.angular):
+        Phi_j, GQG_j = transition_matrices(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.sigma_v,
+                                           c.sigma_omega, kinematics=c.kinematics)
+        Phi, GQG = Phi_j @ Phi, Phi_j @ GQG @ np.swapaxes(Phi_j, 1, 2) + GQG_j
+        x = propagate_state(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.kinematics)
+    Phi_inv_t = np.swapaxes(np.linalg.inv(Phi), 1, 2)
+    M = np.zeros((len(x), 6, 6))
+    M[:, :3, :3], M[:, :3, 3:], M[:, 3:, 3:] = Phi, GQG @ Phi_inv_t, Phi_inv_t
+    M[:, 3:] += c.information(x) @ M[:, :3]
+    return M, x
+
+
+def arrival_poses(starts: np.ndarray, targets: np.ndarray,
+                  conditions: SteadyConditions) -> np.ndarray:
+    """The poses (B, 3) at targets (B, 2) after the protocol's moves from positions starts
+    (B, 2) (the heading there does not matter: the protocol turns towards the target first)."""
+    c = conditions
+    x = np.concatenate([starts, np.zeros((len(starts), 1))], axis=1)
+    command = motion_commands(x, targets, c.dt, c.v_l, c.omega_l, c.kinematics)
+    for v_f, omega_f in zip(command.linear, command.angular):
+        x = propagate_state(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.kinematics)
+    return x
+
+
 def move_map(x: np.ndarray, target: np.ndarray,
              conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
-    """The 6 x 6 symplectic map of one step (drive from pose x (3,) to target (2,), measure)
-    and the pose (3,) at the target; see the module docstring."""
-    c = conditions
-    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l, c.kinematics)
-    Phi, GQG = np.eye(3), np.zeros((3, 3))       # the sub-steps composed: P -> Phi P Phi' + GQG
-    for j in range(SUBSTEPS):
-        Phi_j, GQG_j = transition_matrices(x, command.linear[j], command.angular[j], c.dt,
-                                           c.v_l, c.omega_l, c.sigma_v, c.sigma_omega,
-                                           kinematics=c.kinematics)
-        Phi, GQG = Phi_j @ Phi, Phi_j @ GQG @ Phi_j.T + GQG_j
-        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l,
-                            c.kinematics)
-    Phi_inv_t = np.linalg.inv(Phi).T
-    M = np.zeros((6, 6))
-    M[:3, :3], M[:3, 3:], M[3:, 3:] = Phi, GQG @ Phi_inv_t, Phi_inv_t
-    M[3:] += c.information(x) @ M[:3]
-    return M, x
+    """:func:`move_maps` of one step: its map (6, 6) and the pose (3,) at the target."""
+    M, pose = move_maps(x[None], np.asarray(target, dtype=float)[None], conditions)
+    return M[0], pose[0]
 
 
 def solve_rows(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -384,27 +405,15 @@ def _weighted_ratio_trace(X: np.ndarray, Y: np.ndarray, w: np.ndarray) -> np.nda
     return np.real(total / det)
 
 
-def arrival_pose(x: np.ndarray, target: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
-    """The pose (3,) at target (2,) after the protocol's move from pose x (3,)."""
-    c = conditions
-    command = motion_commands(x, target, c.dt, c.v_l, c.omega_l, c.kinematics)
-    for j in range(SUBSTEPS):
-        x = propagate_state(x, command.linear[j], command.angular[j], c.dt, c.v_l, c.omega_l,
-                            c.kinematics)
-    return x
-
-
 def cycle_maps(points: np.ndarray, conditions: SteadyConditions | Sequence[SteadyConditions]
                ) -> np.ndarray:
     """Symplectic maps (m, 6, 6) of the moves into each of the cycle's points (m, 2), with
     the cycle's headings (the heading at a point is that of the move into it). ``conditions``:
     one for every move, or those of each move (a cycle locked to a leader path's phase)."""
     phases = _per_move(conditions, len(points))
-    pose = arrival_pose(np.array([*points[-2], 0.0]), points[-1], phases[-1])
-    maps = np.empty((len(points), 6, 6))
-    for k, point in enumerate(points):
-        maps[k], pose = move_map(pose, point, phases[k])
-    return maps
+    before, previous = np.roll(points, 2, axis=0), np.roll(points, 1, axis=0)
+    starts = _grouped(arrival_poses, before, previous, np.roll(phases, 1))
+    return _grouped(lambda x, p, c: move_maps(x, p, c)[0], starts, points, phases)
 
 
 def perturbed_cycle_maps(points: np.ndarray,
@@ -416,24 +425,27 @@ def perturbed_cycle_maps(points: np.ndarray,
 
     The pose at a point does not depend on the heading before the move into it (the protocol
     turns towards the target first), so the map of the move into point k depends on points
-    k-2, k-1 and k only: a perturbation costs three move maps, not a whole cycle.
+    k-2, k-1 and k only: a perturbation costs three move maps, not a whole cycle (all of
+    them computed in one batch per distinct conditions).
     """
     m = len(points)
     phases = _per_move(conditions, m)
-    poses = [arrival_pose(np.array([*points[k - 1], 0.0]), points[k], phases[k])
-             for k in range(m)]
-    maps = np.array([move_map(poses[k - 1], points[k], phases[k])[0] for k in range(m)])
+    before, previous = np.roll(points, 2, axis=0), np.roll(points, 1, axis=0)
+    starts = _grouped(arrival_poses, before, previous, np.roll(phases, 1))
+    maps = _grouped(lambda x, p, c: move_maps(x, p, c)[0], starts, points, phases)
     batch_maps = np.repeat(maps[None], 2 * m + 1, axis=0)
     batch_points = np.repeat(points[None], 2 * m + 1, axis=0)
-    for i, step in enumerate(steps):
-        j, moved = i // 2, batch_points[i + 1]
-        moved[j, i % 2] += step
-        after, later = (j + 1) % m, (j + 2) % m
-        pose_j = arrival_pose(np.array([*moved[j - 1], 0.0]), moved[j], phases[j])
-        pose_after = arrival_pose(np.array([*moved[j], 0.0]), moved[after], phases[after])
-        batch_maps[i + 1, j] = move_map(poses[j - 1], moved[j], phases[j])[0]
-        batch_maps[i + 1, after] = move_map(pose_j, moved[after], phases[after])[0]
-        batch_maps[i + 1, later] = move_map(pose_after, moved[later], phases[later])[0]
+    rows = np.arange(1, 2 * m + 1)
+    j = np.arange(2 * m) // 2
+    after, later = (j + 1) % m, (j + 2) % m
+    batch_points[rows, j, np.arange(2 * m) % 2] += steps
+    moved, next_point = batch_points[rows, j], batch_points[rows, after]
+    into = partial(_grouped, lambda x, p, c: move_maps(x, p, c)[0])
+    batch_maps[rows, j] = into(starts[j], moved, phases[j])
+    pose_j = _grouped(arrival_poses, batch_points[rows, j - 1], moved, phases[j])
+    batch_maps[rows, after] = into(pose_j, next_point, phases[after])
+    pose_after = _grouped(arrival_poses, moved, next_point, phases[after])
+    batch_maps[rows, later] = into(pose_after, batch_points[rows, later], phases[later])
     return batch_maps, batch_points
 
 
@@ -448,9 +460,29 @@ def forward_difference(costs: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _per_move(conditions: SteadyConditions | Sequence[SteadyConditions],
-              m: int) -> Sequence[SteadyConditions]:
-    """The conditions of each of m moves."""
-    return (conditions,) * m if isinstance(conditions, SteadyConditions) else conditions
+              m: int) -> np.ndarray:
+    """The conditions of each of m moves, an object array (m,)."""
+    out = np.empty(m, dtype=object)
+    out[:] = [conditions] * m if isinstance(conditions, SteadyConditions) else list(conditions)
+    return out
+
+
+def _grouped(function: Callable[[np.ndarray, np.ndarray, SteadyConditions], np.ndarray],
+             x: np.ndarray, targets: np.ndarray, phases: np.ndarray) -> np.ndarray:
+    """function(x, targets, conditions) on batches (B, ...) whose rows have their own
+    conditions phases (B,): one call per distinct conditions."""
+    first = phases[0]
+    if all(phase is first for phase in phases):
+        return function(x, targets, first)
+    out: np.ndarray | None = None
+    for phase in dict.fromkeys(phases):
+        rows = np.flatnonzero([p == phase for p in phases])
+        result = function(x[rows], targets[rows], phase)
+        if out is None:
+            out = np.empty((len(phases),) + result.shape[1:])
+        out[rows] = result
+    assert out is not None
+    return out
 
 
 def evaluate_cycles(maps: np.ndarray, points: np.ndarray, conditions: SteadyConditions
@@ -501,12 +533,10 @@ def pair_grid(conditions: SteadyConditions, step_deg: float = GRID_STEP_DEG
     angles = np.radians(np.arange(0.0, 360.0, step_deg))
     points = conditions.boundary_points(angles)
     count = len(angles)
+    i, j = np.nonzero(~np.eye(count, dtype=bool))
     maps = np.empty((count, count, 6, 6))          # [i, j]: from i (arrived from j) to j
-    for i in range(count):
-        for j in range(count):
-            if i != j:
-                pose = arrival_pose(np.array([*points[j], 0.0]), points[i], conditions)
-                maps[i, j] = move_map(pose, points[j], conditions)[0]
+    maps[i, j] = move_maps(arrival_poses(points[j], points[i], conditions), points[j],
+                           conditions)[0]
     first, second = np.triu_indices(count, 1)
     cycle = np.stack([maps[second, first], maps[first, second]], axis=1)   # into a, into b
     costs = evaluate_cycles(cycle, np.stack([points[first], points[second]], axis=1),
@@ -606,16 +636,17 @@ def fits_reach(points: np.ndarray, conditions: SteadyConditions,
         return False
     if not c.limited:
         return True
-    return bool(np.all(reach_margins(points.ravel(), c)[:len(points)]
+    return bool(np.all(cycle_margins(points.ravel(), c)[:len(points)]
                        >= -rtol * c.reach * c.reach))
 
 
+@functools.lru_cache(maxsize=1024)
 def reach_map(conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
     """The reach centre of a step as an affine map of the position p (2,) it starts from,
     centre = offset + linear @ p (offset (2,) m, linear (2, 2)): a follower standing still
     is carried by the leader's motion, a translation behind a straight leader, a rotation
     about the leader and a translation on an arc (for the exact and the Euler kinematics,
-    which are both affine in p; its heading does not enter)."""
+    which are both affine in p; its heading does not enter). Cached: do not modify."""
     c = conditions
     offset = np.array(reach_centre(np.zeros(3), c.leader, c.dt, c.kinematics))
     columns = [np.array(reach_centre(np.array([*unit, 0.0]), c.leader, c.dt, c.kinematics))
@@ -623,21 +654,67 @@ def reach_map(conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
     return offset, np.stack(columns, axis=1)
 
 
-def reach_margins(z: np.ndarray, conditions: SteadyConditions) -> np.ndarray:
+def _moves(points: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each move's offset from its reach centre (m, 2), m (move k: from point k-1 into point
+    k, with the leader motion of phases[k]), and the linear parts (m, 2, 2) of the maps."""
+    maps = [reach_map(phase) for phase in phases]
+    offsets = np.array([offset for offset, _ in maps])
+    linear = np.array([matrix for _, matrix in maps])
+    centres = np.einsum('kij,kj->ki', linear, np.roll(points, 1, axis=0)) + offsets
+    return points - centres, linear
+
+
+def cycle_margins(z: np.ndarray, conditions: SteadyConditions | Sequence[SteadyConditions],
+                  radii2: float | np.ndarray | None = None) -> np.ndarray:
     """Margins (m^2) of a cycle's flattened points z (2m,) in the constraints of a design
-    within reach, >= 0 when met: each move inside the reach disc (reach^2 - |move off its
-    centre|^2), each point in the slot's disc (r^2 - |p - p_o|^2) and outside the safety
-    circle (|p|^2 - safety^2)."""
-    c = conditions
+    within reach, >= 0 when met: each move inside its reach disc (reach^2 - |move off its
+    centre|^2, under a speed limit), each point within its radius of the slot (radii2 (m,)
+    m^2, default r^2: r^2 - |p - p_o|^2) and outside the safety circle (|p|^2 - safety^2,
+    with a safety distance). ``conditions``: one, or those of each move."""
     points = z.reshape(-1, 2)
-    margins = [c.r * c.r - np.sum((points - c.slot) ** 2, axis=1)]
+    phases = _per_move(conditions, len(points))
+    c = phases[0]
+    margins = [(c.r * c.r if radii2 is None else radii2)
+               - np.sum((points - c.slot) ** 2, axis=1)]
     if c.limited:
-        offset, linear = reach_map(c)
-        moves = np.roll(points, -1, axis=0) - (points @ linear.T + offset)
-        margins.insert(0, c.reach * c.reach - np.sum(moves ** 2, axis=1))
+        margins.insert(0, c.reach * c.reach - np.sum(_moves(points, phases)[0] ** 2, axis=1))
     if c.safety > 0.0:
         margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
     return np.concatenate(margins)
+
+
+def cycle_margins_jacobian(z: np.ndarray,
+                           conditions: SteadyConditions | Sequence[SteadyConditions],
+                           radii2: float | np.ndarray | None = None) -> np.ndarray:
+    """d :func:`cycle_margins` / d z, (margins, 2m), m: each margin is quadratic in the one
+    or two points it involves."""
+    points = z.reshape(-1, 2)
+    m = len(points)
+    phases = _per_move(conditions, m)
+    c, k = phases[0], np.arange(m)
+    blocks = []
+
+    def block(rows: np.ndarray, columns: np.ndarray, values: np.ndarray) -> np.ndarray:
+        out = np.zeros((m, m, 2))
+        np.add.at(out, (rows, columns), values)
+        return out.reshape(m, 2 * m)
+
+    if c.limited:
+        moves, linear = _moves(points, phases)
+        blocks.append(block(k, k, -2.0 * moves)
+                      + block(k, (k - 1) % m, 2.0 * np.einsum('kji,kj->ki', linear, moves)))
+    blocks.append(block(k, k, -2.0 * (points - c.slot)))
+    if c.safety > 0.0:
+        blocks.append(block(k, k, 2.0 * points))
+    return np.concatenate(blocks)
+
+
+def cycle_constraints(conditions: SteadyConditions | Sequence[SteadyConditions],
+                      radii2: float | np.ndarray | None = None) -> dict[str, Any]:
+    """SLSQP's inequality constraint of a design within reach (:func:`cycle_margins` with its
+    Jacobian)."""
+    return {'type': 'ineq', 'fun': cycle_margins, 'jac': cycle_margins_jacobian,
+            'args': (conditions, radii2)}
 
 
 def greedy_loop(conditions: SteadyConditions) -> tuple[float, np.ndarray]:
@@ -694,13 +771,13 @@ class CycleObjective:
 
 
 def refine_cycle(start: np.ndarray, objective: CycleObjective) -> tuple[float, np.ndarray]:
-    """SLSQP from a cycle's points (m, 2) on ``objective`` under :func:`reach_margins`: (its
+    """SLSQP from a cycle's points (m, 2) on ``objective`` under :func:`cycle_margins`: (its
     mean steady tr(W P W) m^2, inf when it has none or ends outside the reachable set; the
     refined points (m, 2), m)."""
     from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
     c = objective.conditions
     result = minimize(objective, start.ravel(), jac=objective.gradient, method='SLSQP',
-                      constraints=[{'type': 'ineq', 'fun': partial(reach_margins, conditions=c)}],
+                      constraints=[cycle_constraints(c)],
                       options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL})
     points = result.x.reshape(-1, 2)
     value = objective(result.x)
@@ -716,7 +793,7 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     REACH_LONGEST_LOOP), REACH_SAMPLED points sampled along it and a slower lap of
     REACH_STRETCH K points sampled along it are refined by SLSQP on the exact periodic steady
     state (:func:`evaluate_cycles`, its gradient by :class:`CycleObjective`) under the margins
-    of :func:`reach_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
+    of :func:`cycle_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
     "PERIODIC within reach"), it does not prove the best cycle.
     """
     start_time = time.perf_counter()

@@ -32,8 +32,8 @@ from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.reach import Region
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, cycle_maps, forward_difference, greedy_target, lft, noise_free_step,
-    perturbed_cycle_maps, reach_map)
+    SteadyConditions, cycle_constraints, cycle_maps, forward_difference, greedy_target, lft,
+    noise_free_step, perturbed_cycle_maps, reach_map)
 
 if TYPE_CHECKING:
     from formopt_ros.core.scenario import LeaderPath, Scenario
@@ -147,20 +147,6 @@ class _PeriodCost:
         return forward_difference(self.settle(maps), points)
 
 
-def _margins(z: np.ndarray, phases: list[SteadyConditions], radii2: np.ndarray) -> np.ndarray:
-    """Constraint margins (m^2, >= 0 when met): moves in their reach discs, points within
-    radii2 of the slot and outside the safety circle."""
-    points, c = z.reshape(-1, 2), phases[0]
-    margins = [radii2 - np.sum((points - c.slot) ** 2, axis=1)]
-    if c.limited:
-        moves = np.array([points[k] - (linear @ points[k - 1] + offset) for k, (offset, linear)
-                          in enumerate(reach_map(phase) for phase in phases)])
-        margins.append(c.reach * c.reach - np.sum(moves ** 2, axis=1))
-    if c.safety > 0.0:
-        margins.append(np.sum(points ** 2, axis=1) - c.safety * c.safety)
-    return np.concatenate(margins)
-
-
 def _into_regions(points: np.ndarray, phases: list[SteadyConditions],
                   radii: np.ndarray) -> np.ndarray:
     """The cycle (N, 2) with each point in turn moved to the nearest point of its step's
@@ -208,8 +194,7 @@ def design_phase_locked(scenario: Scenario) -> PhaseLockedDesign | None:
     radii2 = np.maximum(scenario.r ** 2, np.sum((targets - slot) ** 2, axis=1))
     objective = _PeriodCost(phases, P)
     result = minimize(objective, targets.ravel(), jac=objective.gradient, method='SLSQP',
-                      constraints=[{'type': 'ineq', 'fun': _margins,
-                                    'args': (phases, radii2)}],
+                      constraints=[cycle_constraints(phases, radii2)],
                       options={'maxiter': ITERATIONS, 'ftol': FTOL})
     points = _into_regions(result.x.reshape(-1, 2), phases, np.sqrt(radii2))
     cost = objective(points.ravel())
