@@ -5,7 +5,7 @@ the reachable set) runs on the noise-free recursion and settles into a loop that
 the disc (``periodic_design.greedy_loop``, period K). That loop, and cycles of the given
 lengths sampled from it (a length above K repeats points of the loop), are refined by SLSQP
 on the cycle's exact mean steady tr(W P W) with its gradient (``CycleObjective``) under the
-constraints of a design within reach (``reach_margins``): PERIODIC's own search, with the
+constraints of a design within reach (``cycle_margins``): PERIODIC's own search, with the
 lengths free. Prints greedy's steady cost and each refined cycle's ratio to it.
 
 A local method from greedy's own loop: the ratios are what such a cycle reaches, not a bound.
