@@ -57,7 +57,7 @@ GREEDY_LAPS = 20
 SETTLED = 1e-12
 MAX_PERIODS = 500
 #: SLSQP's iterations at most and its tolerance on the cost.
-ITERATIONS = 60
+ITERATIONS = 120
 FTOL = 1e-12
 #: A design is kept when its steady state is at least this fraction below greedy's.
 MIN_GAIN = 0.01
