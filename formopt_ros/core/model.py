@@ -271,23 +271,17 @@ def transition_matrices(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: f
                         omega_l: float, sigma_v: float, sigma_omega: float,
                         sigma_v_l: float = 0.0, sigma_omega_l: float = 0.0,
                         kinematics: str = EXACT) -> tuple[np.ndarray, np.ndarray]:
-    """The matrices of one propagation step: (Phi, G Q G'), each (3, 3) for one pose (3,), or
-    (T, 3, 3) for poses (T, 3) with velocities given as floats or arrays (T,).
+    """(Phi, G Q G') of one propagation step: (3, 3) for a pose (3,), (T, 3, 3) for poses (T, 3).
 
     :func:`propagate` applies them written out (P_next = Phi P Phi' + G Q G'); multi-step
-    planners compose them. Args as in :func:`propagate`.
+    planners compose them. Args as in :func:`propagate` (G Q G' (3, 3) when it is one for all).
     """
     _, b0, b1, ca, sa, columns, scale = _transition(x, v_f, omega_f, dt, v_l, omega_l,
                                                     kinematics, True)
     GQG = symmetric3(_noise_covariance(
         columns, _variances(scale, sigma_v, sigma_omega, sigma_v_l, sigma_omega_l)))
-    if x.ndim == 1:
-        return np.array([[ca, sa, b0], [-sa, ca, b1], [0.0, 0.0, 1.0]], dtype=float), GQG
-    Phi = np.zeros(x.shape[:-1] + (3, 3))
-    Phi[..., 0, 0], Phi[..., 0, 1], Phi[..., 0, 2] = ca, sa, b0
-    Phi[..., 1, 0], Phi[..., 1, 1], Phi[..., 1, 2] = -sa, ca, b1
-    Phi[..., 2, 2] = 1.0
-    return Phi, np.broadcast_to(GQG, Phi.shape)
+    entries = np.broadcast_arrays(ca, sa, b0, -sa, ca, b1, 0.0, 0.0, 1.0)
+    return np.stack(entries, axis=-1).reshape(entries[0].shape + (3, 3)), GQG
 
 
 def symmetric3(entries: tuple[Any, Any, Any, Any, Any, Any]) -> np.ndarray:
