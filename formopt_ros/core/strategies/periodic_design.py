@@ -36,7 +36,6 @@ import functools
 import math
 import time
 from dataclasses import dataclass
-from functools import partial
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
@@ -410,10 +409,7 @@ def cycle_maps(points: np.ndarray, conditions: SteadyConditions | Sequence[Stead
     """Symplectic maps (m, 6, 6) of the moves into each of the cycle's points (m, 2), with
     the cycle's headings (the heading at a point is that of the move into it). ``conditions``:
     one for every move, or those of each move (a cycle locked to a leader path's phase)."""
-    phases = _per_move(conditions, len(points))
-    before, previous = np.roll(points, 2, axis=0), np.roll(points, 1, axis=0)
-    starts = _grouped(arrival_poses, before, previous, np.roll(phases, 1))
-    return _grouped(lambda x, p, c: move_maps(x, p, c)[0], starts, points, phases)
+    return _cycle_moves(points, _per_move(conditions, len(points)))[1]
 
 
 def perturbed_cycle_maps(points: np.ndarray,
@@ -430,9 +426,7 @@ def perturbed_cycle_maps(points: np.ndarray,
     """
     m = len(points)
     phases = _per_move(conditions, m)
-    before, previous = np.roll(points, 2, axis=0), np.roll(points, 1, axis=0)
-    starts = _grouped(arrival_poses, before, previous, np.roll(phases, 1))
-    maps = _grouped(lambda x, p, c: move_maps(x, p, c)[0], starts, points, phases)
+    starts, maps = _cycle_moves(points, phases)
     batch_maps = np.repeat(maps[None], 2 * m + 1, axis=0)
     batch_points = np.repeat(points[None], 2 * m + 1, axis=0)
     rows = np.arange(1, 2 * m + 1)
@@ -440,13 +434,26 @@ def perturbed_cycle_maps(points: np.ndarray,
     after, later = (j + 1) % m, (j + 2) % m
     batch_points[rows, j, np.arange(2 * m) % 2] += steps
     moved, next_point = batch_points[rows, j], batch_points[rows, after]
-    into = partial(_grouped, lambda x, p, c: move_maps(x, p, c)[0])
-    batch_maps[rows, j] = into(starts[j], moved, phases[j])
+    batch_maps[rows, j] = _maps_into(starts[j], moved, phases[j])
     pose_j = _grouped(arrival_poses, batch_points[rows, j - 1], moved, phases[j])
-    batch_maps[rows, after] = into(pose_j, next_point, phases[after])
+    batch_maps[rows, after] = _maps_into(pose_j, next_point, phases[after])
     pose_after = _grouped(arrival_poses, moved, next_point, phases[after])
-    batch_maps[rows, later] = into(pose_after, batch_points[rows, later], phases[later])
+    batch_maps[rows, later] = _maps_into(pose_after, batch_points[rows, later], phases[later])
     return batch_maps, batch_points
+
+
+def _cycle_moves(points: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each point k of a cycle (m, 2): the pose (m, 3) at point k - 1 where the move into
+    k starts, and the map (m, 6, 6) of that move, with the conditions phases[k] (m,)."""
+    starts = _grouped(arrival_poses, np.roll(points, 2, axis=0), np.roll(points, 1, axis=0),
+                      np.roll(phases, 1))
+    return starts, _maps_into(starts, points, phases)
+
+
+def _maps_into(x: np.ndarray, targets: np.ndarray, phases: np.ndarray) -> np.ndarray:
+    """The maps (B, 6, 6) of moves from poses x (B, 3) into targets (B, 2), each with the
+    conditions of its row of phases (B,)."""
+    return _grouped(lambda poses, points, c: move_maps(poses, points, c)[0], x, targets, phases)
 
 
 def forward_difference(costs: np.ndarray, points: np.ndarray) -> np.ndarray:
