@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from formopt_ros.core.checks import as_real
 from formopt_ros.core.model import wrap_angle
 
 
@@ -28,10 +29,8 @@ class Limits:
 
     def __post_init__(self) -> None:
         for name in ('speed', 'yaw_rate', 'acceleration', 'yaw_acceleration'):
-            value = float(getattr(self, name))
-            if not (value > 0.0 and math.isfinite(value)):
-                raise ValueError(f'limit {name} must be a finite number > 0, got {value!r}')
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, as_real(name, getattr(self, name), 0.0,
+                                                   low_open=True))
 
 
 def twist_toward(x: np.ndarray, target: np.ndarray, leader: tuple[float, float],

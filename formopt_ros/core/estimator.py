@@ -30,6 +30,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from formopt_ros.core.checks import as_real
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import (
@@ -206,10 +207,7 @@ class RealNoise:
 
     def __post_init__(self) -> None:
         for name in ('bias_sigma', 'bias_walk', 'huber', 'gate'):
-            value = float(getattr(self, name))
-            if not value >= 0.0 or not np.isfinite(value):
-                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, as_real(name, getattr(self, name), 0.0))
         for name in ('huber', 'gate'):
             if getattr(self, name) and getattr(self, name) < 1.0:
                 raise ValueError(f'{name} must be 0 (off) or >= 1 standard deviation, got '

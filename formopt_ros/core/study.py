@@ -11,18 +11,18 @@ process pool here; ``formopt-montecarlo`` passes a Dask executor).
 from __future__ import annotations
 
 import multiprocessing
-import numbers
 import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from scipy.special import gammaincinv
 
 from formopt_ros.core.batched import run_lanes
+from formopt_ros.core.checks import InvalidInput, as_integer
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.simulation import TrialResult, leader_poses, run_trial
@@ -70,38 +70,30 @@ class StudyConfig:
     scenario: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for name in ('trials', 'steps', 'seed'):
-            value = getattr(self, name)
-            if not isinstance(value, numbers.Integral) or isinstance(value, bool):
-                raise ValueError(f'{name} must be an integer, got {value!r}')
-            object.__setattr__(self, name, int(value))
-        if self.trials < 1 or self.steps < 1:
-            raise ValueError(f'trials and steps must be >= 1, got {self.trials}, {self.steps}')
-        if self.seed < 0:
-            raise ValueError(f'seed must be >= 0, got {self.seed}')
+        for name, low in (('trials', 1), ('steps', 1), ('seed', 0)):
+            object.__setattr__(self, name, as_integer(name, getattr(self, name), low))
         given = self.strategies
-        names = () if isinstance(given, (str, set, frozenset, dict)) or not isinstance(
-            given, Iterable) or np.ndim(given) != 1 else tuple(given)   # a generator, once
-        if not names:
-            raise ValueError(f'strategies must be a non-empty sequence of names among '
-                             f'{tuple(STRATEGIES)} (ordered: a set has none), got {given!r}')
-        object.__setattr__(self, 'strategies', tuple(map(str, names)))
+        if not isinstance(given, (list, tuple, np.ndarray)) or np.ndim(given) != 1 or \
+                not len(given):
+            raise InvalidInput('strategies', 'must be a non-empty list of names among '
+                               f'{tuple(STRATEGIES)}, got {given!r}')
+        object.__setattr__(self, 'strategies', tuple(map(str, given)))
         unknown = [s for s in self.strategies if s not in STRATEGIES]
         if unknown:
-            raise ValueError(f'strategies must be among {tuple(STRATEGIES)}, got unknown '
-                             f'{unknown}')
+            raise InvalidInput('strategies',
+                               f'must be among {tuple(STRATEGIES)}, got unknown {unknown}')
         repeated = [s for i, s in enumerate(self.strategies) if s in self.strategies[:i]]
         if repeated:
-            raise ValueError(f'strategies must be named once each, got {repeated} twice')
+            raise InvalidInput('strategies', f'must be named once each, got {repeated} twice')
         if not isinstance(self.options, dict) or not all(
                 isinstance(values, dict) and all(isinstance(key, str) for key in values)
                 for values in self.options.values()):
-            raise ValueError(f'options must map strategy names to dicts of options, e.g. '
-                             f"{{'gbs': {{'cell': 0.01}}}}, got {self.options!r}")
+            raise InvalidInput('options', 'must map strategy names to dicts of options, e.g. '
+                               f"{{'gbs': {{'cell': 0.01}}}}, got {self.options!r}")
         stray = [name for name in self.options if name not in STRATEGIES]
         if stray:
-            raise ValueError(f'options are keyed by strategy names among {tuple(STRATEGIES)}, '
-                             f'got unknown {stray}')
+            raise InvalidInput('options', f'are keyed by strategy names among '
+                               f'{tuple(STRATEGIES)}, got unknown {stray}')
         named = (*METHODS, *(s for s in (*self.strategies, *self.options) if s not in METHODS))
         merged = {name: dict(STUDY_OPTIONS.get(name, {}), **self.options.get(name, {}))
                   for name in dict.fromkeys(named)}
@@ -111,8 +103,8 @@ class StudyConfig:
         known = sorted(field.name for field in fields(Scenario) if field.name != 'measurement')
         if not isinstance(self.scenario, dict) or any(
                 not isinstance(key, str) or key not in known for key in self.scenario):
-            raise ValueError(f'scenario must map overrides among {known} to values, got '
-                             f'{self.scenario!r}')
+            raise InvalidInput('scenario', f'must map overrides among {known} to values, got '
+                               f'{self.scenario!r}')
         self.make_scenario()                        # ValueError naming a bad override
 
     def make_scenario(self) -> Scenario:

@@ -13,11 +13,11 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from formopt_ros.core.checks import as_choice, as_real
 from formopt_ros.core.model import KINEMATICS, MEASUREMENT_KINDS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
@@ -57,22 +57,14 @@ Point = dict[str, Any]
 
 
 def check_point(point: Point) -> Point:
-    """Every axis of ``point`` (defaults filled in), checked; ValueError naming the axis."""
+    """Every axis of ``point`` (defaults filled in), checked; InvalidInput naming the axis."""
     unknown = sorted(set(point) - set(AXES))
     if unknown:
         raise ValueError(f'unknown sweep axes {unknown} (the axes: {", ".join(AXES)})')
     full = {**DEFAULTS, **point}
     for axis in AXES:
-        value = full[axis]
-        if axis in NAMED_AXES:
-            if value not in NAMED_AXES[axis]:
-                raise ValueError(f'{axis} must be one of {", ".join(NAMED_AXES[axis])}, got '
-                                 f'{value!r}')
-        elif isinstance(value, bool) or not isinstance(value, (int, float)) or \
-                not math.isfinite(value):
-            raise ValueError(f'{axis} must be a finite number, got {value!r}')
-        else:
-            full[axis] = float(value)
+        full[axis] = as_choice(axis, full[axis], NAMED_AXES[axis]) if axis in NAMED_AXES \
+            else as_real(axis, full[axis])
     scenario_of(full)                                   # ValueError naming a bad value
     return full
 
