@@ -31,8 +31,7 @@ import numpy as np
 RANGE = 'range'
 BEARING = 'bearing'
 MEASUREMENT_KINDS = (RANGE, BEARING)
-#: Range and bearing at the same step: z = [d (m), beta (rad)], R = diag(sigma_d^2, sigma_beta^2)
-#: (a scenario and planner kind; the scalar kinds above stay the Problem kinds of RQ and RAM).
+#: Range and bearing at one step: z = [d m, beta rad], R = diag(sigma_d^2, sigma_beta^2).
 RANGE_BEARING = 'range-bearing'
 SENSOR_KINDS = (RANGE, BEARING, RANGE_BEARING)
 #: Motion models: 'exact' (arcs of constant velocities, SE(2)) or 'euler' (the paper's eq. 9,
@@ -131,7 +130,7 @@ def chord(v: Any, omega: Any, dt: float) -> tuple[Any, ...]:
 
 
 def propagate_state(x: np.ndarray, v_f: Any, omega_f: Any, dt: float,
-                    v_l: float, omega_l: float = 0.0, kinematics: str = EXACT) -> np.ndarray:
+                    v_l: Any, omega_l: Any = 0.0, kinematics: str = EXACT) -> np.ndarray:
     """Exact step of the relative kinematics for velocities held constant over ``dt``.
 
     Both robots drive on circular arcs (SE(2) composition, module docstring); with omega_F = 0
@@ -142,7 +141,7 @@ def propagate_state(x: np.ndarray, v_f: Any, omega_f: Any, dt: float,
         v_f, omega_f: follower forward speed (m/s) and yaw rate (rad/s) during the step
             (floats, or arrays (T,) for a batch of poses).
         dt: step length (s).
-        v_l, omega_l: leader forward speed (m/s) and yaw rate (rad/s).
+        v_l, omega_l: leader forward speed (m/s) and yaw rate (rad/s) (floats, or arrays (T,)).
         kinematics: 'exact', or 'euler' for the paper's eq. (9) itself.
 
     Returns:
@@ -170,7 +169,7 @@ def integrate_unicycle(pose: tuple[float, float, float], v: float, omega: float,
     return x + c * dx - s * dy, y + s * dx + c * dy, yaw + omega * dt
 
 
-def _transition(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: float, omega_l: float,
+def _transition(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: Any, omega_l: Any,
                 kinematics: str, jacobians: bool) -> tuple[Any, ...]:
     """The pose after one step (module docstring) and, with ``jacobians``, the entries of its
     Jacobians: (pose, b0, b1, ca, sa, (a, b, e, f), scale), where Phi = [[ca, sa, b0], [-sa, ca,
@@ -189,8 +188,9 @@ def _transition(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: float, om
     fx, fy, fxv, fyv, fxw, fyw = chord(v_f, omega_f, dt)
     lx, ly, lxv, lyv, lxw, lyw = chord(v_l, omega_l, dt)
     qx, qy = px + (cf * fx - sf * fy) - lx, py + (sf * fx + cf * fy) - ly
-    ca, sa = math.cos(omega_l * dt), math.sin(omega_l * dt)
-    nx, ny = (qx, qy) if omega_l == 0.0 else (ca * qx + sa * qy, -sa * qx + ca * qy)
+    ca, sa = elementwise(math.cos, omega_l * dt), elementwise(math.sin, omega_l * dt)
+    nx, ny = (qx, qy) if not isinstance(omega_l, np.ndarray) and omega_l == 0.0 else \
+        (ca * qx + sa * qy, -sa * qx + ca * qy)
     pose = stack_vector(nx, ny, wrap_angle(phi + (omega_f - omega_l) * dt))
     if not jacobians:
         return (pose,)
@@ -267,14 +267,14 @@ def propagate(x: np.ndarray, P: np.ndarray, v_f: Any, omega_f: Any, dt: float,
     return pose, symmetric3((n00, n01, r02 + q02, n11, r12 + q12, p22 + q22))
 
 
-def transition_matrices(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: float,
-                        omega_l: float, sigma_v: float, sigma_omega: float,
+def transition_matrices(x: np.ndarray, v_f: Any, omega_f: Any, dt: float, v_l: Any,
+                        omega_l: Any, sigma_v: float, sigma_omega: float,
                         sigma_v_l: float = 0.0, sigma_omega_l: float = 0.0,
                         kinematics: str = EXACT) -> tuple[np.ndarray, np.ndarray]:
     """(Phi, G Q G') of one propagation step: (3, 3) for a pose (3,), (T, 3, 3) for poses (T, 3).
 
     :func:`propagate` applies them written out (P_next = Phi P Phi' + G Q G'); multi-step
-    planners compose them. Args as in :func:`propagate` (G Q G' (3, 3) when it is one for all).
+    planners compose them. Args as in :func:`propagate` (v_l, omega_l also arrays (T,)).
     """
     _, b0, b1, ca, sa, columns, scale = _transition(x, v_f, omega_f, dt, v_l, omega_l,
                                                     kinematics, True)

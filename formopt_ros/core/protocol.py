@@ -87,10 +87,11 @@ class MotionCommand:
     angular: tuple[Any, ...]
 
 
-def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
-                       omega_l: float, kinematics: str = EXACT) -> tuple[Any, Any]:
+def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: Any,
+                       omega_l: Any, kinematics: str = EXACT) -> tuple[Any, Any]:
     """(translation speed m/s, rotation yaw rate rad/s) of :func:`motion_commands`, for one pose
-    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,).
+    x (3,) and target (2,), or a batch of poses (T, 3) and targets (T, 2) or (2,) (and the
+    leader's velocities floats or arrays (T,)).
 
     After the rotation (v = 0: the position moves only with the leader, to p1) the translation
     at omega_F = omega_L must satisfy C(phi1) f(v, omega_L) = C(omega_L dt) target +
@@ -105,16 +106,17 @@ def command_velocities(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
         turn = wrap_angle(elementwise(math.atan2, dy, dx) - x[..., 2])
         return elementwise(math.hypot, dx, dy) / dt, turn / dt + omega_l
     lx, ly, unit_x, unit_y = chord(v_l, omega_l, dt)[:4]        # unit_*: chord per m/s of v_F
-    ca, sa = math.cos(omega_l * dt), math.sin(omega_l * dt)
+    ca, sa = elementwise(math.cos, omega_l * dt), elementwise(math.sin, omega_l * dt)
     tx, ty = target[..., 0], target[..., 1]
     dx = ca * tx - sa * ty + lx - x1[..., 0]
     dy = sa * tx + ca * ty + ly - x1[..., 1]
     turn = wrap_angle(elementwise(math.atan2, dy, dx) - 0.5 * omega_l * dt - x[..., 2])
-    return elementwise(math.hypot, dx, dy) / math.hypot(unit_x, unit_y), turn / dt + omega_l
+    return (elementwise(math.hypot, dx, dy) / elementwise(math.hypot, unit_x, unit_y),
+            turn / dt + omega_l)
 
 
-def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: float,
-                    omega_l: float, kinematics: str = EXACT) -> MotionCommand:
+def motion_commands(x: np.ndarray, target: np.ndarray, dt: float, v_l: Any,
+                    omega_l: Any, kinematics: str = EXACT) -> MotionCommand:
     """Commands that move the pose x = [x, y, phi] (leader frame) to position ``target`` (m);
     for poses (T, 3) the velocities of each sub-step are arrays (T,) where they differ.
 

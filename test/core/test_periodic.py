@@ -17,8 +17,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, cached_design, clear_cache, design_within_reach, greedy_loop, greedy_target,
-    lft, move_map, noise_free_step, pair_grid, reach_map, solve_rows)
+    SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps, design_within_reach,
+    greedy_loop, greedy_target, lft, move_map, noise_free_step, pair_grid, reach_map, solve_rows)
 from formopt_ros.core.strategies.rq import rq_optimum
 from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS
 from formopt_ros.core.strategies.phase_locked import (
@@ -63,6 +63,22 @@ def test_move_map_is_one_ekf_step(kind: str, omega_l: float) -> None:
         np.testing.assert_allclose(pose, x_next, rtol=0, atol=1e-12)
         # 1e-9 relative: a 3x3 solve against the Joseph form of the update.
         np.testing.assert_allclose(lft(M, P), P_next, rtol=0, atol=1e-9 * np.abs(P_next).max())
+
+
+def test_maps_of_a_locked_cycle_equal_each_move_alone() -> None:
+    """Along an S-curve each move of a cycle has its own leader velocity; the cycle's maps,
+    computed in one batch with a velocity per move, equal each move's map computed alone with
+    its own conditions (1e-14 relative: the same operations, element by element)."""
+    s_curve = Scenario.paper('range', max_speed=2.0,
+                             leader=LeaderPath('s-curve', 1.0, amplitude=0.5, period=2.0))
+    phases = phase_conditions(s_curve, 10)
+    rng = np.random.default_rng(SEED)
+    points = phases[0].slot + 0.1 * rng.normal(size=(10, 2))
+    maps = cycle_maps(points, phases)
+    for k in range(10):
+        start = arrival_poses(points[k - 2][None], points[k - 1][None], phases[k - 1])[0]
+        alone = move_map(start, points[k], phases[k])[0]
+        np.testing.assert_allclose(maps[k], alone, rtol=0, atol=1e-14 * np.abs(alone).max())
 
 
 def test_steady_state_is_the_limit_of_the_recursion(paper_design) -> None:

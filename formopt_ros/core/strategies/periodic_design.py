@@ -35,7 +35,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
@@ -230,19 +230,21 @@ def lft(M: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.swapaxes(np.linalg.solve(np.swapaxes(Y, -1, -2), np.swapaxes(X, -1, -2)), -1, -2)
 
 
-def move_maps(x: np.ndarray, targets: np.ndarray,
-              conditions: SteadyConditions) -> tuple[np.ndarray, np.ndarray]:
+def move_maps(x: np.ndarray, targets: np.ndarray, conditions: SteadyConditions,
+              leader: tuple[Any, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The 6 x 6 symplectic maps (B, 6, 6) of B steps (drive from poses x (B, 3) to targets
     (B, 2), measure there) and the poses (B, 3) at the targets; see the module docstring. The
-    protocol's commands (:func:`.protocol.motion_commands`), batched."""
+    protocol's commands (:func:`.protocol.motion_commands`), batched. ``leader``: the leader's
+    (v m/s, omega rad/s) of each step, arrays (B,), in place of the conditions' own."""
     c = conditions
-    command = motion_commands(x, targets, c.dt, c.v_l, c.omega_l, c.kinematics)
+    v_l, omega_l = (c.v_l, c.omega_l) if leader is None else leader
+    command = motion_commands(x, targets, c.dt, v_l, omega_l, c.kinematics)
     Phi, GQG = np.eye(3), np.zeros((3, 3))       # the sub-steps composed: P -> Phi P Phi' + GQG
     for v_f, omega_f in zip(command.linear, command.angular):
-        Phi_j, GQG_j = transition_matrices(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.sigma_v,
+        Phi_j, GQG_j = transition_matrices(x, v_f, omega_f, c.dt, v_l, omega_l, c.sigma_v,
                                            c.sigma_omega, kinematics=c.kinematics)
         Phi, GQG = Phi_j @ Phi, Phi_j @ GQG @ np.swapaxes(Phi_j, 1, 2) + GQG_j
-        x = propagate_state(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.kinematics)
+        x = propagate_state(x, v_f, omega_f, c.dt, v_l, omega_l, c.kinematics)
     Phi_inv_t = np.swapaxes(np.linalg.inv(Phi), 1, 2)
     M = np.zeros((len(x), 6, 6))
     M[:, :3, :3], M[:, :3, 3:], M[:, 3:, 3:] = Phi, GQG @ Phi_inv_t, Phi_inv_t
@@ -250,15 +252,17 @@ def move_maps(x: np.ndarray, targets: np.ndarray,
     return M, x
 
 
-def arrival_poses(starts: np.ndarray, targets: np.ndarray,
-                  conditions: SteadyConditions) -> np.ndarray:
+def arrival_poses(starts: np.ndarray, targets: np.ndarray, conditions: SteadyConditions,
+                  leader: tuple[Any, Any] | None = None) -> np.ndarray:
     """The poses (B, 3) at targets (B, 2) after the protocol's moves from positions starts
-    (B, 2) (the heading there does not matter: the protocol turns towards the target first)."""
+    (B, 2) (the heading there does not matter: the protocol turns towards the target first);
+    ``leader`` as in :func:`move_maps`."""
     c = conditions
+    v_l, omega_l = (c.v_l, c.omega_l) if leader is None else leader
     x = np.concatenate([starts, np.zeros((len(starts), 1))], axis=1)
-    command = motion_commands(x, targets, c.dt, c.v_l, c.omega_l, c.kinematics)
+    command = motion_commands(x, targets, c.dt, v_l, omega_l, c.kinematics)
     for v_f, omega_f in zip(command.linear, command.angular):
-        x = propagate_state(x, v_f, omega_f, c.dt, c.v_l, c.omega_l, c.kinematics)
+        x = propagate_state(x, v_f, omega_f, c.dt, v_l, omega_l, c.kinematics)
     return x
 
 
@@ -453,7 +457,7 @@ def _cycle_moves(points: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, np
 def _maps_into(x: np.ndarray, targets: np.ndarray, phases: np.ndarray) -> np.ndarray:
     """The maps (B, 6, 6) of moves from poses x (B, 3) into targets (B, 2), each with the
     conditions of its row of phases (B,)."""
-    return _grouped(lambda poses, points, c: move_maps(poses, points, c)[0], x, targets, phases)
+    return _grouped(lambda *args: move_maps(*args)[0], x, targets, phases)
 
 
 def forward_difference(costs: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -474,17 +478,27 @@ def _per_move(conditions: SteadyConditions | Sequence[SteadyConditions],
     return out
 
 
-def _grouped(function: Callable[[np.ndarray, np.ndarray, SteadyConditions], np.ndarray],
-             x: np.ndarray, targets: np.ndarray, phases: np.ndarray) -> np.ndarray:
-    """function(x, targets, conditions) on batches (B, ...) whose rows have their own
-    conditions phases (B,): one call per distinct conditions."""
+def _grouped(function: Callable[..., np.ndarray], x: np.ndarray, targets: np.ndarray,
+             phases: np.ndarray) -> np.ndarray:
+    """function(x, targets, conditions, leader) on batches (B, ...) whose rows have their own
+    conditions phases (B,): one call for all rows whose conditions differ at most in the
+    leader's velocity, passed per row as ``leader`` = (v_l (n,), omega_l (n,))."""
     first = phases[0]
     if all(phase is first for phase in phases):
-        return function(x, targets, first)
+        return function(x, targets, first, None)
+    groups: dict[SteadyConditions, int] = {}
+    code_of: dict[int, int] = {}
+    for phase in phases:
+        if id(phase) not in code_of:
+            shared = replace(phase, v_l=0.0, omega_l=0.0)
+            code_of[id(phase)] = groups.setdefault(shared, len(groups))
+    codes = np.array([code_of[id(phase)] for phase in phases])
+    velocities = np.array([(phase.v_l, phase.omega_l) for phase in phases])
     out: np.ndarray | None = None
-    for phase in dict.fromkeys(phases):
-        rows = np.flatnonzero([p == phase for p in phases])
-        result = function(x[rows], targets[rows], phase)
+    for shared, code in groups.items():
+        rows = np.flatnonzero(codes == code)
+        result = function(x[rows], targets[rows], shared,
+                          (velocities[rows, 0], velocities[rows, 1]))
         if out is None:
             out = np.empty((len(phases),) + result.shape[1:])
         out[rows] = result
