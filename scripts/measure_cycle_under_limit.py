@@ -8,12 +8,19 @@ on the cycle's exact mean steady tr(W P W) with its gradient (``CycleObjective``
 constraints of a design within reach (``cycle_margins``): PERIODIC's own search, with the
 lengths free. Prints greedy's steady cost and each refined cycle's ratio to it.
 
-A local method from greedy's own loop: the ratios are what such a cycle reaches, not a bound.
+With ``--hops N`` a basin-hopping search goes on from the best of those cycles: N times, the
+current best is perturbed (every point moved by N(0, 1 cm^2) per axis, one point deleted, or
+one inserted midway between two neighbours; each a third of the time, seeded), refined again,
+and kept when it is better.
+
+Local methods from greedy's own loop: the ratios are what such cycles reach, not a bound.
 
 Usage: .venv/bin/python scripts/measure_cycle_under_limit.py range|bearing MAX_SPEED [K ...]
+[--hops N] [--seed S]
 """
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import time
@@ -24,32 +31,61 @@ from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies.periodic_design import (
     CycleObjective, SteadyConditions, greedy_loop, loop_length, refine_cycle)
 
+#: Standard deviation of a hop's move of every point, m.
+HOP_SIGMA = 0.01
+
+
+def hop(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A perturbed copy of the cycle ``points`` (m, 2): all points moved, one deleted or one
+    inserted (module docstring)."""
+    kind, k = int(rng.integers(3)), int(rng.integers(len(points)))
+    if kind == 0:
+        return points + rng.normal(0.0, HOP_SIGMA, points.shape)
+    if kind == 1 and len(points) > 3:
+        return np.delete(points, k, axis=0)
+    return np.insert(points, k + 1, 0.5 * (points[k] + points[(k + 1) % len(points)]), axis=0)
+
 
 def main(argv: list[str]) -> int:
     """Print the table for one sensor, one speed limit and the given cycle lengths."""
-    kind, max_speed = argv[0], float(argv[1])
-    lengths = [int(a) for a in argv[2:]]
-    conditions = SteadyConditions.from_scenario(Scenario.paper(kind, max_speed=max_speed))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('kind', choices=('range', 'bearing'))
+    parser.add_argument('max_speed', type=float, help='the follower speed limit, m/s')
+    parser.add_argument('lengths', type=int, nargs='*', help='cycle lengths to sample')
+    parser.add_argument('--hops', type=int, default=0, help='basin-hopping rounds (0: none)')
+    parser.add_argument('--seed', type=int, default=0, help='seed of the hops')
+    args = parser.parse_args(argv)
+    conditions = SteadyConditions.from_scenario(Scenario.paper(args.kind,
+                                                               max_speed=args.max_speed))
     assert conditions is not None
     greedy, targets = greedy_loop(conditions)
     period = loop_length(targets, 60, 1e-6 * (math.hypot(*conditions.p_o) + conditions.r))
     if period is None:
         raise SystemExit('greedy did not settle into a loop of at most 60 steps')
-    print(f'{kind}, max_speed {max_speed:g} m/s: greedy steady tr(W P W) {greedy:.6g} m^2, '
-          f'a loop of {period} steps')
+    print(f'{args.kind}, max_speed {args.max_speed:g} m/s: greedy steady tr(W P W) '
+          f'{greedy:.6g} m^2, a loop of {period} steps')
     print('| cycle | points | start / greedy | refined / greedy | SLSQP s |')
     print('|---|---|---|---|---|')
     loop = targets[-period:]
-    for length in [period] + lengths:
+    objective = CycleObjective(conditions)
+    best = (math.inf, loop)
+    for length in [period] + args.lengths:
         start = loop if length == period else \
             loop[np.linspace(0, period, length, endpoint=False).astype(int)]
         begin = time.perf_counter()
-        refined = refine_cycle(start, CycleObjective(conditions))[0]
+        refined = refine_cycle(start, objective)
         seconds = time.perf_counter() - begin
-        first = CycleObjective(conditions)(start.ravel())
+        best = min(best, refined, key=lambda found: found[0])
         name = "greedy's loop" if length == period else 'sampled from it'
-        print(f'| {name} | {length} | {first / greedy:.4f} | {refined / greedy:.4f} | '
-              f'{seconds:.1f} |')
+        print(f'| {name} | {length} | {objective(start.ravel()) / greedy:.4f} | '
+              f'{refined[0] / greedy:.4f} | {seconds:.1f} |')
+    rng = np.random.default_rng(args.seed)
+    begin = time.perf_counter()
+    for _ in range(args.hops):
+        best = min(best, refine_cycle(hop(best[1], rng), objective), key=lambda found: found[0])
+    if args.hops:
+        print(f'| after {args.hops} hops (seed {args.seed}) | {len(best[1])} | | '
+              f'{best[0] / greedy:.4f} | {time.perf_counter() - begin:.1f} |')
     return 0
 
 
