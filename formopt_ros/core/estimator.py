@@ -30,7 +30,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from formopt_ros.core.checks import as_real
+from formopt_ros.core.checks import InvalidInput, as_real
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import (
@@ -210,8 +210,8 @@ class RealNoise:
             object.__setattr__(self, name, as_real(name, getattr(self, name), 0.0))
         for name in ('huber', 'gate'):
             if getattr(self, name) and getattr(self, name) < 1.0:
-                raise ValueError(f'{name} must be 0 (off) or >= 1 standard deviation, got '
-                                 f'{getattr(self, name)!r}')
+                raise InvalidInput(name, f'must be 0 (off) or >= 1 standard deviation, got '
+                                         f'{getattr(self, name)!r}')
 
     @property
     def gate_nis(self) -> float:
