@@ -13,10 +13,15 @@ current best is perturbed (every point moved by N(0, 1 cm^2) per axis, one point
 one inserted midway between two neighbours; each a third of the time, seeded), refined again,
 and kept when it is better.
 
+With ``--trials N`` PERIODIC (its own design) and RQ are played for N trials of 400 steps
+(seed 0): their steady tr(W P W) (the last 133 steps) relative to greedy's noise-free steady
+state, and the share of PERIODIC's steady waypoints that are not points of its cycle
+(projected onto the reachable set: the estimated pose could not reach the cycle's point).
+
 Local methods from greedy's own loop: the ratios are what such cycles reach, not a bound.
 
 Usage: .venv/bin/python scripts/measure_cycle_under_limit.py range|bearing MAX_SPEED [K ...]
-[--hops N] [--seed S]
+[--hops N] [--seed S] [--trials N]
 """
 from __future__ import annotations
 
@@ -28,8 +33,9 @@ import time
 import numpy as np
 
 from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.strategies.periodic_design import (
-    CycleObjective, SteadyConditions, greedy_loop, loop_length, refine_cycle)
+    CycleObjective, SteadyConditions, cached_design, greedy_loop, loop_length, refine_cycle)
 
 #: Standard deviation of a hop's move of every point, m.
 HOP_SIGMA = 0.01
@@ -54,9 +60,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument('lengths', type=int, nargs='*', help='cycle lengths to sample')
     parser.add_argument('--hops', type=int, default=0, help='basin-hopping rounds (0: none)')
     parser.add_argument('--seed', type=int, default=0, help='seed of the hops')
+    parser.add_argument('--trials', type=int, default=0, help='trials to play (0: none)')
     args = parser.parse_args(argv)
-    conditions = SteadyConditions.from_scenario(Scenario.paper(args.kind,
-                                                               max_speed=args.max_speed))
+    scenario = Scenario.paper(args.kind, max_speed=args.max_speed)
+    conditions = SteadyConditions.from_scenario(scenario)
     assert conditions is not None
     greedy, targets = greedy_loop(conditions)
     period = loop_length(targets, 60, 1e-6 * (math.hypot(*conditions.p_o) + conditions.r))
@@ -86,7 +93,30 @@ def main(argv: list[str]) -> int:
     if args.hops:
         print(f'| after {args.hops} hops (seed {args.seed}) | {len(best[1])} | | '
               f'{best[0] / greedy:.4f} | {time.perf_counter() - begin:.1f} |')
+    if args.trials:
+        play(scenario, conditions, greedy, args.trials)
     return 0
+
+
+def play(scenario: Scenario, conditions: SteadyConditions, greedy: float, trials: int) -> None:
+    """Print PERIODIC's and RQ's steady tr(W P W) in ``trials`` runs against greedy's
+    noise-free steady state, and the share of PERIODIC's steady waypoints off its cycle."""
+    design = cached_design(conditions, 4)[0]
+    assert design is not None
+    steady: dict[str, list[float]] = {'periodic': [], 'rq': []}
+    off: list[np.ndarray] = []
+    for trial in range(trials):
+        for name in steady:
+            result = run_trial(scenario, name, 0, trial, 400)
+            steady[name].append(result.weighted_trace[267:].mean())
+            if name == 'periodic':
+                waypoints = result.waypoints[267:]
+                gap = np.linalg.norm(waypoints[:, None] - design.points[None], axis=2).min(axis=1)
+                off.append(gap > 1e-3)
+    periodic, rq = (float(np.mean(steady[name])) / greedy for name in ('periodic', 'rq'))
+    print(f'played, {trials} x 400 steps: design {design.steady_cost / greedy:.4f}, PERIODIC '
+          f'{periodic:.4f}, RQ {rq:.4f} of greedy noise-free (PERIODIC / RQ '
+          f'{periodic / rq:.4f}); steady waypoints off the cycle {np.mean(off):.1%}')
 
 
 if __name__ == '__main__':
