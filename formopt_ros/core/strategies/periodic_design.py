@@ -426,7 +426,7 @@ def perturbed_cycle_maps(points: np.ndarray,
     The pose at a point does not depend on the heading before the move into it (the protocol
     turns towards the target first), so the map of the move into point k depends on points
     k-2, k-1 and k only: a perturbation costs three move maps, not a whole cycle (all of
-    them computed in one batch per distinct conditions).
+    them computed in one batch: the leader's velocity is given per move).
     """
     m = len(points)
     phases = _per_move(conditions, m)
