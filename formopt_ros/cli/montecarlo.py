@@ -18,6 +18,7 @@ import numpy as np
 
 from formopt_ros.cli.common import (
     ArgumentParser, command, ctrl_c_deferred, fail, integer, name_list, new_folder, number)
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
@@ -334,21 +335,33 @@ def add_scenario_options(parser: ArgumentParser) -> None:
                        '(--leader-amplitude, --leader-period)')
     paths.add_argument('--leader-speed', type=number(-100.0, 100.0), default=1.0,
                        help='leader speed, m/s (default 1)')
-    paths.add_argument('--leader-yaw-rate', type=number(-100.0, 100.0), default=0.5,
+    paths.add_argument('--leader-yaw-rate', type=number(-100.0, 100.0), default=None,
                        help='arc: yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--leader-amplitude', type=number(-100.0, 100.0), default=0.5,
+    paths.add_argument('--leader-amplitude', type=number(-100.0, 100.0), default=None,
                        help='s-curve: peak yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--leader-period', type=number(1e-3, 1e6), default=10.0,
+    paths.add_argument('--leader-period', type=number(1e-3, 1e6), default=None,
                        help='s-curve: period, s (default 10)')
 
 
+#: The flags of each leader path kind, with their defaults.
+PATH_FLAGS = {'straight': {}, 'arc': {'leader_yaw_rate': 0.5},
+              's-curve': {'leader_amplitude': 0.5, 'leader_period': 10.0}}
+
+
 def leader_path(args: argparse.Namespace) -> LeaderPath:
-    """The leader path of the command line."""
+    """The leader path of the command line; a flag of another kind of path is refused."""
+    used = PATH_FLAGS[args.leader_path]
+    for name in ('leader_yaw_rate', 'leader_amplitude', 'leader_period'):
+        if name not in used and getattr(args, name) is not None:
+            flag = '--' + name.replace('_', '-')
+            raise InvalidInput(flag, f'is not used with --leader-path {args.leader_path}')
+    value = {name: default if getattr(args, name) is None else getattr(args, name)
+             for name, default in used.items()}
     if args.leader_path == 'arc':
-        return LeaderPath('arc', args.leader_speed, args.leader_yaw_rate)
+        return LeaderPath('arc', args.leader_speed, value['leader_yaw_rate'])
     if args.leader_path == 's-curve':
-        return LeaderPath('s-curve', args.leader_speed, amplitude=args.leader_amplitude,
-                          period=args.leader_period)
+        return LeaderPath('s-curve', args.leader_speed, amplitude=value['leader_amplitude'],
+                          period=value['leader_period'])
     return LeaderPath('straight', args.leader_speed)
 
 
@@ -499,6 +512,9 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {'both': MEASUREMENT_KINDS, 'all': SENSOR_KINDS}.get(
         args.measurement, (args.measurement,))
     start = time.perf_counter()
+    if args.bearing_every != 1 and RANGE_BEARING not in kinds:
+        fail(parser.prog, f'argument --bearing-every: for --measurement range-bearing or all, '
+                          f'got {args.bearing_every} with --measurement {args.measurement}')
     try:
         options = strategy_options(args.option, {'gbs': {'cell': args.gbs_cell}})
         configs = [StudyConfig(kind, args.trials, args.steps, args.seed,

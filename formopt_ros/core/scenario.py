@@ -88,6 +88,14 @@ class Segment:
                    data.get('yaw_rate', 0.0))
 
 
+#: Euler kinematics: the largest leader turn per sub-step dt, rad (the relative position grows
+#: by 12 % per sub-step there; the paper's turning examples stay below 0.05 rad).
+EULER_TURN_BOUND = 0.5
+#: The fields of :class:`LeaderPath` each kind of path uses (the others keep their defaults).
+PATH_FIELDS = {'straight': ('speed',), 'arc': ('speed', 'yaw_rate'),
+               's-curve': ('speed', 'amplitude', 'period'), 'segments': ('segments', 'repeat')}
+
+
 @dataclass(frozen=True)
 class LeaderPath:
     """The leader's velocities over time, piecewise constant per sub-step.
@@ -123,6 +131,17 @@ class LeaderPath:
         if self.kind == 'straight' and self.yaw_rate != 0.0:
             raise InvalidInput('leader yaw_rate', f'of a straight path is 0, got '
                                                   f"{self.yaw_rate!r}; use kind 'arc'")
+        for name in ('speed', 'yaw_rate', 'amplitude', 'period', 'segments', 'repeat'):
+            value, default = getattr(self, name), _PATH_DEFAULTS[name]
+            changed = bool(value) if name == 'segments' else value != default
+            if name not in PATH_FIELDS[self.kind] and changed:
+                owners = [kind for kind, used in PATH_FIELDS.items() if name in used]
+                raise InvalidInput(f'leader {name}', f'is not used by a path of kind '
+                                   f'{self.kind!r} (only by {owners}), got {value!r}')
+        turn = {'arc': 'yaw_rate', 's-curve': 'amplitude'}.get(self.kind)
+        if turn is not None and getattr(self, turn) == 0.0:
+            raise InvalidInput(f'leader {turn}', f"of a path of kind {self.kind!r} must not be 0 "
+                                                 "(a leader that never turns is kind 'straight')")
         if not isinstance(self.segments, (list, tuple)):
             raise InvalidInput('leader segments', f'must be a list, got {self.segments!r}')
         if self.kind == 'segments' and not self.segments:
@@ -171,6 +190,9 @@ class LeaderPath:
         """Inverse of :meth:`to_dict`; unknown keys raise InvalidInput naming them."""
         check_keys('leader path', data, {f.name for f in fields(cls)})
         return cls(**data)
+
+
+_PATH_DEFAULTS = {f.name: f.default for f in fields(LeaderPath)}
 
 
 def check_keys(what: str, data: object, known: set[str]) -> None:
@@ -339,17 +361,11 @@ def slowest_speed_in_disc(p_o: tuple[float, float], r: float, speed: float,
 
 
 def check_limits(scenario: 'Scenario') -> None:
-    """Refuse limits no follower can meet, naming the field: a safety distance that leaves no
-    point of the slot's disc, a speed limit below the least speed at which any point of the
-    disc keeps pace with the leader (for the leader's extreme motions)."""
+    """Refuse limits no follower can meet, naming the field: a leader turning faster than the
+    Euler kinematics can describe, a safety distance that leaves no point of the slot's disc,
+    a speed limit below the least speed at which any point of the disc keeps pace with the
+    leader (for the leader's extreme motions)."""
     s = scenario
-    d_o = math.hypot(*s.p_o)
-    if s.safety_distance >= d_o + s.r:
-        raise InvalidInput('safety_distance', f'{s.safety_distance:g} m leaves no point of the '
-                           f"slot's disc (it reaches {d_o + s.r:.6g} m from the leader): use "
-                           f'less than {d_o + s.r:.6g} m')
-    if s.max_speed is None:
-        return
     path = s.leader
     if path.kind == 'segments':
         motions = [(g.speed, g.yaw_rate) for g in path.segments]
@@ -357,6 +373,21 @@ def check_limits(scenario: 'Scenario') -> None:
         motions = [(path.speed, path.amplitude), (path.speed, -path.amplitude)]
     else:
         motions = [(path.speed, path.yaw_rate)]
+    turn = max(abs(w) for _, w in motions)
+    if s.kinematics == EULER and turn * s.dt > EULER_TURN_BOUND:
+        name = {'arc': 'yaw_rate', 's-curve': 'amplitude'}.get(path.kind, 'segments')
+        raise InvalidInput(f'leader {name}', f'{turn:g} rad/s turns {turn * s.dt:.3g} rad per dt '
+                           f"= {s.dt:g} s: the paper's Euler kinematics (eq. 9) is no model of "
+                           'that (it scales the relative position by sqrt(1 + (omega dt)^2) '
+                           f'= {math.hypot(1.0, turn * s.dt):.3g} per dt); use exact kinematics '
+                           f'or at most {EULER_TURN_BOUND / s.dt:.3g} rad/s (rad/s, not deg/s)')
+    d_o = math.hypot(*s.p_o)
+    if s.safety_distance >= d_o + s.r:
+        raise InvalidInput('safety_distance', f'{s.safety_distance:g} m leaves no point of the '
+                           f"slot's disc (it reaches {d_o + s.r:.6g} m from the leader): use "
+                           f'less than {d_o + s.r:.6g} m')
+    if s.max_speed is None:
+        return
     need = max(slowest_speed_in_disc(s.p_o, s.r, v, w) for v, w in motions)
     if s.max_speed < need:
         raise InvalidInput('max_speed', f'{s.max_speed:g} m/s is below {need:.6g} m/s, the '

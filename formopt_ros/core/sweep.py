@@ -17,7 +17,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from formopt_ros.core.checks import as_choice, as_real
+from formopt_ros.core.checks import InvalidInput, as_choice, as_real
 from formopt_ros.core.model import KINEMATICS, MEASUREMENT_KINDS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
@@ -36,6 +36,9 @@ DEFAULTS: dict[str, Any] = {
     'dt': 0.05,                   # sub-step length, s
     'kinematics': 'euler',        # the paper's eq. (9), as the study
 }
+#: The leader axes each leader path uses (besides leader_speed).
+PATH_AXES = {'straight': (), 'arc': ('leader_yaw_rate',),
+             's-curve': ('leader_yaw_rate', 'leader_period')}
 #: The axes of a sweep, in the order of the table's columns.
 AXES = tuple(DEFAULTS)
 #: Axes whose values are names (the others are numbers).
@@ -65,6 +68,13 @@ def check_point(point: Point) -> Point:
     for axis in AXES:
         full[axis] = as_choice(axis, full[axis], NAMED_AXES[axis]) if axis in NAMED_AXES \
             else as_real(axis, full[axis])
+    used = PATH_AXES[full['leader_path']]
+    stray = [axis for axis in ('leader_yaw_rate', 'leader_period')
+             if axis not in used and full[axis] != DEFAULTS[axis]]
+    if stray:
+        raise InvalidInput(stray[0], f"is not used by leader_path {full['leader_path']!r} "
+                                     '(arc: leader_yaw_rate; s-curve: leader_yaw_rate, '
+                                     'leader_period)')
     scenario_of(full)                                   # ValueError naming a bad value
     return full
 

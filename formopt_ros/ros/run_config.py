@@ -8,6 +8,7 @@ from typing import Any
 
 from rclpy.node import Node
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS, RANGE_BEARING
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
@@ -130,9 +131,21 @@ def strategy_options(name: str, values: dict[str, Any]) -> dict[str, Any]:
     return {option: values[f'{name}_{option}'] for option in STRATEGIES[name].OPTIONS}
 
 
+#: The path parameters each path kind reads (straight reads omega_leader: not 0 makes an arc).
+PATH_PARAMETERS = {'straight': (V_LEADER, OMEGA_LEADER), 'arc': (V_LEADER, OMEGA_LEADER),
+                   's-curve': (V_LEADER, AMPLITUDE, PERIOD),
+                   'segments': (SEGMENT_DURATIONS, SEGMENT_SPEEDS, SEGMENT_YAW_RATES, REPEAT)}
+
+
 def leader_path_from(values: dict[str, Any]) -> LeaderPath:
-    """The leader path described by the path parameters."""
+    """The leader path described by the path parameters; a path parameter that the chosen
+    kind does not read, set away from its default, is refused (ParameterError naming it)."""
     kind = values['path']
+    used = [param.name for param in PATH_PARAMETERS[kind]]
+    for param in (p for params in PATH_PARAMETERS.values() for p in params):
+        if param.name not in used and values.get(param.name, param.default) != param.default:
+            raise ParameterError(f"parameter '{param.name}' is not read by path {kind!r} (it "
+                                 f'reads {used}), got {values[param.name]!r}')
     try:
         if kind in ('straight', 'arc'):
             return LeaderPath.constant(values['v_leader'], values['omega_leader']) \
@@ -149,8 +162,11 @@ def leader_path_from(values: dict[str, Any]) -> LeaderPath:
                                  f'{[len(v) for v in lists]}')
         return LeaderPath('segments', segments=tuple(Segment(*t) for t in zip(*lists)),
                           repeat=values['repeat_segments'])
-    except ValueError as error:
-        raise ParameterError(f'the leader path parameters are inconsistent: {error}') from None
+    except InvalidInput as error:
+        name = {'leader speed': 'v_leader', 'leader yaw_rate': 'omega_leader',
+                'leader amplitude': 'amplitude', 'leader period': 'period'}.get(error.name)
+        raise ParameterError('the leader path parameters are inconsistent: ' + (
+            f"parameter '{name}' {error.reason}" if name else str(error))) from None
 
 
 def scenario_from(values: dict[str, Any]) -> Scenario:
@@ -161,6 +177,9 @@ def scenario_from(values: dict[str, Any]) -> Scenario:
         raise ParameterError("parameter 'formation_slot' must be [x, y] in m or [0.0], got "
                              f'{slot!r}')
     p_o = Scenario.paper(kind).p_o if list(slot) == [0.0] else (float(slot[0]), float(slot[1]))
+    if kind != RANGE_BEARING and values.get('bearing_every', 1) != BEARING_EVERY.default:
+        raise ParameterError("parameter 'bearing_every' is for measurement range-bearing, got "
+                             f"{values['bearing_every']!r} with measurement {kind!r}")
     if len(values['initial_covariance']) != 3:
         raise ParameterError("parameter 'initial_covariance' must be [x, y, phi] variances, "
                              f"got {values['initial_covariance']!r}")

@@ -159,6 +159,8 @@ def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
     (['--strategies', 'ram,nope'], "unknown 'nope'"),
     (['--r-fraction', '0.1,x'], 'must be a comma list of numbers'),
     (['--leader-path', 'circle'], 'circle: the values are straight, arc, s-curve'),
+    (['--leader-path', 'straight', '--leader-yaw-rate', '0.3,0.5'],
+     "leader_yaw_rate is not used by leader_path 'straight'"),
     (['--r-fraction', '1.5'], 'r must lie in [1e-06, 0.999] |p_o|'),
     (['--option', 'crm.speed=1'], "method 'crm' accepts options"),
     (['--heatmap', 'r_fraction,colour'], 'heatmap must name two axes'),

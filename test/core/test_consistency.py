@@ -231,7 +231,7 @@ def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     with pytest.raises(ValueError, match='yaw rate'):
         from formopt_ros.core.scenario import LeaderPath
         check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 50.0),
-                                          dt=1.0))
+                                          dt=1.0, kinematics='exact'))
 
 
 def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None:

@@ -77,6 +77,34 @@ def test_leader_path_velocities() -> None:
         LeaderPath('straight', yaw_rate=0.1)
 
 
+@pytest.mark.parametrize('path, field', [
+    (dict(kind='s-curve', amplitude=0.5, yaw_rate=0.3), 'leader yaw_rate'),
+    (dict(kind='arc', yaw_rate=0.3, amplitude=0.5), 'leader amplitude'),
+    (dict(kind='straight', period=5.0), 'leader period'),
+    (dict(kind='straight', segments=[{'duration': 1.0, 'speed': 1.0}]), 'leader segments'),
+    (dict(kind='segments', speed=2.0, segments=[{'duration': 1.0, 'speed': 1.0}]),
+     'leader speed'),
+    (dict(kind='s-curve'), 'leader amplitude'), (dict(kind='arc'), 'leader yaw_rate')])
+def test_a_path_setting_its_kind_does_not_use_is_refused(path: dict, field: str) -> None:
+    """A leader path refuses a setting its kind ignores (an s-curve's yaw_rate, an arc's
+    amplitude) and a turning kind that never turns, naming the field."""
+    with pytest.raises(InvalidInput) as refused:
+        LeaderPath(**path)
+    assert refused.value.name == field
+
+
+def test_euler_kinematics_refuses_a_leader_turning_too_fast_for_it() -> None:
+    """The paper's Euler step scales |p| by sqrt(1 + (omega dt)^2) per sub-step: a leader
+    turning more than 0.5 rad per dt (a rate typed in deg/s) is refused naming the rate;
+    exact kinematics take it, and 0.5 rad per dt passes."""
+    fast = LeaderPath('s-curve', amplitude=28.6)
+    with pytest.raises(InvalidInput) as refused:
+        Scenario.paper('range', leader=fast)
+    assert refused.value.name == 'leader amplitude'
+    assert Scenario.paper('range', leader=fast, kinematics='exact').leader == fast
+    Scenario.paper('range', leader=LeaderPath('arc', yaw_rate=10.0))       # dt 0.05 s
+
+
 @pytest.mark.parametrize('value, rule', [
     ('a__b', "'__'"), ('f' * 65, 'at most 64 characters'), ('odom', 'reserved frame'),
     ('base_link', 'reserved frame'), ('world', 'reserved frame'), ('1a', 'letters, digits'),

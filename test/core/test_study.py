@@ -275,7 +275,10 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
     for argv in (['--strategies', 'ram,foo'], ['--trials', '0'], ['--jobs', '0'],
                  ['--gbs-cell', '2'], ['--gbs-cell', '1e-9'], ['--seed', '-1'],
                  ['--r-fraction', '1'], ['--r-fraction', '0'], ['--sigma-scale', '0'],
-                 ['--engine', 'fast'], ['--trials', '100000', '--steps', '10000000']):
+                 ['--engine', 'fast'], ['--trials', '100000', '--steps', '10000000'],
+                 ['--leader-path', 'straight', '--leader-yaw-rate', '0.3'],
+                 ['--leader-path', 's-curve', '--leader-amplitude', '28.6'],
+                 ['--measurement', 'range', '--bearing-every', '5']):
         with pytest.raises(SystemExit) as stop:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2

@@ -48,6 +48,10 @@ MISUSE = [
     ('follower_sim', ['-p', 'follower_id:=odom'], "'follower_id' must not be a reserved"),
     ('estimator_planner', ['-p', 'leader_id:=a__b'], "parameter 'leader_id' must not contain"),
     ('leader_sim', ['-p', 'segment_durations:=[]'], 'got a value without a type'),
+    ('leader_sim', ['-p', 'path:=s-curve'], "parameter 'amplitude' of a path of kind"),
+    ('estimator_planner', ['-p', 'path:=s-curve', '-p', 'amplitude:=0.5', '-p',
+                           'omega_leader:=0.3'], "parameter 'omega_leader' is not read by"),
+    ('estimator_planner', ['-p', 'bearing_every:=5'], "parameter 'bearing_every' is for"),
 ]
 
 
@@ -89,11 +93,10 @@ def test_an_integer_is_accepted_for_a_float_parameter(ros_init) -> None:
     from formopt_ros.ros.nodes.leader_sim import LeaderSim
     ros_init()
     node = LeaderSim(node_args('leader_sim', 'leader', {
-        'dt': 1, 'v_leader': 2, 'path': 'segments', 'segment_durations': [1, 2],
+        'dt': 1, 'path': 'segments', 'segment_durations': [1, 2],
         'segment_speeds': [1, 2], 'segment_yaw_rates': [0, 0]}))
     try:
         assert node.params['dt'] == 1.0 and isinstance(node.params['dt'], float)
-        assert node.get_parameter('v_leader').value == 2.0
         durations = node.params['segment_durations']
         assert durations == [1.0, 2.0] and all(isinstance(d, float) for d in durations)
     finally:
@@ -170,7 +173,7 @@ def test_scientific_notation_reaches_preflight_and_node_alike(ros_init) -> None:
     assert rcl_value(format_value(yaw_rates)) == [0.0, 0.1]
     ros_init()
     node = LeaderSim(node_args('leader_sim', 'leader', {}) + [
-        '-p', 'dt:=2E-2', '-p', 'repeat_segments:=y'])
+        '-p', 'dt:=2E-2', '-p', 'path:=segments', '-p', 'repeat_segments:=y'])
     try:
         assert node.params['dt'] == 0.02 and node.params['repeat_segments'] is True
     finally:
