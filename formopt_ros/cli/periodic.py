@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from formopt_ros.cli.common import ArgumentParser, command, integer, new_file
+from formopt_ros.cli.common import ArgumentParser, command, fail, integer, new_file
 from formopt_ros.cli.montecarlo import add_scenario_options, scenario_overrides
 from formopt_ros.core.model import MEASUREMENT_KINDS
 from formopt_ros.core.scenario import Scenario
@@ -17,6 +17,9 @@ from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.strategies.periodic import PeriodicPattern
 from formopt_ros.core.strategies.periodic_design import (
     SteadyConditions, cached_design, clear_cache)
+
+#: Figure formats --figure writes.
+FIGURE_SUFFIXES = ('.png', '.pdf', '.svg')
 
 
 def build_parser() -> ArgumentParser:
@@ -82,10 +85,17 @@ def report(scenario: Scenario, period: int, repeats: int, trials: int, steps: in
 @command('formopt-periodic')
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     kinds = MEASUREMENT_KINDS if args.measurement == 'both' else (args.measurement,)
-    for kind in kinds:
-        scenario = Scenario.paper(kind, **scenario_overrides(kind, args))
+    if args.figure and Path(args.figure).suffix.lower() not in FIGURE_SUFFIXES:
+        fail(parser.prog, f'argument --figure: the file must end in one of {FIGURE_SUFFIXES}, '
+                          f'got {args.figure}')
+    try:
+        scenarios = [Scenario.paper(kind, **scenario_overrides(kind, args)) for kind in kinds]
+    except ValueError as error:
+        fail(parser.prog, str(error))
+    for scenario in scenarios:
         report(scenario, args.period, args.repeats, args.trials, args.steps)
     if args.figure:
         from formopt_ros.analysis.periodic import periodic_figure
