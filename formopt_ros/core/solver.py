@@ -103,14 +103,14 @@ def solve(P: np.ndarray, p_o: np.ndarray, r: float, sigma: float, *, measurement
             option value (:func:`~formopt_ros.core.cost.check_problem`, one cheap check), or
             a sigma_bearing missing for 'range-bearing', outside SIGMA_RANGE or given for
             another measurement, or a ``context.region`` built for another slot or r.
-        ValueError: for an rng that is not a numpy Generator, a context that is not a
+        InvalidInput: for an rng that is not a numpy Generator, a context that is not a
             PlanContext, or an unknown method or option.
     """
     if rng is not None and not isinstance(rng, np.random.Generator):
-        raise ValueError('rng must be a numpy.random.Generator (e.g. '
-                         f'numpy.random.default_rng(seed)), got {rng!r}')
+        raise InvalidInput('rng', 'must be a numpy.random.Generator (e.g. '
+                                  f'numpy.random.default_rng(seed)), got {rng!r}')
     if context is not None and not isinstance(context, PlanContext):
-        raise ValueError(f'context must be a PlanContext, got {context!r}')
+        raise InvalidInput('context', f'must be a PlanContext, got {context!r}')
     strategy = _SHARED.get(method) if not options and isinstance(method, str) else None
     if strategy is None:
         strategy = make_strategy(method, **options)

@@ -6,6 +6,7 @@ The names below are the stable Strategy API a plugin strategy builds on (docs/pl
 """
 from __future__ import annotations
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.strategies.base import (
     BatchContext, BatchPlan, EstimatorView, OptionSpec, PlanContext, Solution, StepRecord,
@@ -30,9 +31,9 @@ STRATEGIES = StrategyRegistry({cls.name: cls for cls in _BUILTIN_CLASSES})
 
 
 def make_strategy(name: str, **options: object) -> Strategy:
-    """A new strategy object; ValueError for an unknown name or option, or a bad value."""
+    """A new strategy object; InvalidInput for an unknown name or option, or a bad value."""
     if not isinstance(name, str) or name not in STRATEGIES:
-        raise ValueError(f'method must be one of {tuple(STRATEGIES)}, got {name!r}')
+        raise InvalidInput('method', f'must be one of {tuple(STRATEGIES)}, got {name!r}')
     return STRATEGIES[name](**options)
 
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from formopt_ros.core.checks import as_bool, as_integer, as_real
+from formopt_ros.core.checks import InvalidInput, as_bool, as_integer, as_real
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.model import EXACT
 from formopt_ros.core.reach import Region
@@ -243,8 +243,8 @@ class Strategy:
             return
         unknown = sorted(set(options) - set(self.OPTIONS))
         if unknown:
-            raise ValueError(f'method {self.name!r} accepts options {sorted(self.OPTIONS)}, '
-                             f'got unknown {unknown}')
+            raise InvalidInput(f'method {self.name!r}', f'accepts options '
+                               f'{sorted(self.OPTIONS)}, got unknown {unknown}')
         self.settings = {
             key: spec.check(self.name, key, options.get(key, spec.default))
             for key, spec in self.OPTIONS.items()}

@@ -70,6 +70,7 @@ from typing import Any
 
 import numpy as np
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.cost import Problem, ProblemBatch
 from formopt_ros.core.formulas import Entries
 from formopt_ros.core.strategies.base import (
@@ -681,9 +682,9 @@ class RelaxedAlgebraicMethod(Strategy):
     def plan(self, problem: Problem, context: PlanContext) -> Solution:
         """The analytic greedy optimum (scalar measurements only)."""
         if problem.measurement not in MEASUREMENT_KINDS:
-            raise ValueError(f'RAM is the paper\'s method for one scalar measurement (range or '
-                             f'bearing); it does not apply to a {problem.measurement!r} '
-                             f'measurement (use rq, which solves it with a certificate)')
+            raise InvalidInput('method', f"'ram' does not apply to a {problem.measurement!r} "
+                               "measurement: it is the paper's method for one scalar "
+                               'measurement (range or bearing); rq solves it with a certificate')
         return ram_optimum(problem, bool(self.settings['fallback']))
 
     def plan_batch(self, problems: ProblemBatch, context: BatchContext) -> BatchPlan:
