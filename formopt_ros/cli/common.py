@@ -132,9 +132,16 @@ def name_list(choices: Sequence[str], left_out: Mapping[str, str] | None = None
     return parse
 
 
+def _refuse_empty(text: str) -> None:
+    """An empty path names the current folder: refused."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError('an empty path; name the output')
+
+
 def new_file(text: str) -> Path:
     """argparse type: a file path that does not exist yet (not even as a dangling symbolic
     link, which writing would follow) and whose folder can be made."""
+    _refuse_empty(text)
     path = Path(text)
     _refuse_dangling(path, text)
     if os.path.lexists(path):
@@ -145,6 +152,7 @@ def new_file(text: str) -> Path:
 
 def new_folder(text: str) -> Path:
     """argparse type: an output folder that does not exist yet, or exists and is empty."""
+    _refuse_empty(text)
     path = Path(text)
     _refuse_dangling(path, text)
     if os.path.lexists(path) and (not path.is_dir() or any(path.iterdir())):

@@ -365,6 +365,10 @@ def leader_path(args: argparse.Namespace) -> LeaderPath:
     return LeaderPath('straight', args.leader_speed)
 
 
+#: The scenario fields the scale flags set.
+SCALE_FLAGS = {'r': '--r-fraction', 'sigma': '--sigma-scale', 'sigma_bearing': '--sigma-scale'}
+
+
 def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     """Overrides of the paper's scenario of ``kind`` from the options of
     :func:`add_scenario_options` (empty: the paper's)."""
@@ -387,6 +391,15 @@ def scenario_overrides(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         overrides['max_speed'] = args.max_speed
     if getattr(args, 'safety_distance', None):
         overrides['safety_distance'] = args.safety_distance
+    try:
+        Scenario.paper(kind, **overrides)
+    except InvalidInput as error:       # a scale flag: name the flag, not the field it sets
+        flag = SCALE_FLAGS.get(error.name)
+        if flag is None:
+            raise
+        raise InvalidInput(flag, f'{getattr(args, flag[2:].replace("-", "_")):g} is out of '
+                                 f"range: the {kind} scenario's {error.name} {error.reason}"
+                           ) from None
     return overrides
 
 

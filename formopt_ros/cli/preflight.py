@@ -23,8 +23,8 @@ def formation_of(args: Any) -> tuple[Formation, Path | None, dict[str, Any]]:
              is not None]
     if args.formation is not None:
         if flags or args.extra:
-            fail(PROG, f"--{(flags or ['p'])[0]} cannot be combined with --formation (set it "
-                       'in the formation file)')
+            fail(PROG, f"{('--' + flags[0]) if flags else '-p'} cannot be combined with "
+                       '--formation (set it in the formation file)')
         try:
             formation = load_formation(args.formation)
         except ValueError as error:

@@ -36,6 +36,9 @@ DEFAULTS: dict[str, Any] = {
     'dt': 0.05,                   # sub-step length, s
     'kinematics': 'euler',        # the paper's eq. (9), as the study
 }
+#: The scenario fields the scale axes set.
+SCALE_AXES = {'r': 'r_fraction', 'sigma': 'sigma_scale', 'sigma_v': 'odometry_scale',
+              'sigma_omega': 'odometry_scale'}
 #: The leader axes each leader path uses (besides leader_speed).
 PATH_AXES = {'straight': (), 'arc': ('leader_yaw_rate',),
              's-curve': ('leader_yaw_rate', 'leader_period')}
@@ -75,7 +78,14 @@ def check_point(point: Point) -> Point:
         raise InvalidInput(stray[0], f"is not used by leader_path {full['leader_path']!r} "
                                      '(arc: leader_yaw_rate; s-curve: leader_yaw_rate, '
                                      'leader_period)')
-    scenario_of(full)                                   # ValueError naming a bad value
+    try:
+        scenario_of(full)
+    except InvalidInput as error:       # a scale axis: name the axis, not the field it sets
+        axis = SCALE_AXES.get(error.name)
+        if axis is None:
+            raise
+        raise InvalidInput(axis, f"{full[axis]:g} is out of range: the scenario's "
+                                 f'{error.name} {error.reason}') from None
     return full
 
 

@@ -162,6 +162,7 @@ def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
     (['--leader-path', 'straight', '--leader-yaw-rate', '0.3,0.5'],
      "leader_yaw_rate is not used by leader_path 'straight'"),
     (['--r-fraction', '1.5'], 'r must lie in [1e-06, 0.999] |p_o|'),
+    (['--sigma-scale', '-1'], 'sigma_scale -1 is out of range'),
     (['--option', 'crm.speed=1'], "method 'crm' accepts options"),
     (['--heatmap', 'r_fraction,colour'], 'heatmap must name two axes'),
     (['--measurement', 'bearing', '--r-fraction', '0.6'], '--allow-inconsistent runs it'),
