@@ -525,6 +525,10 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {'both': MEASUREMENT_KINDS, 'all': SENSOR_KINDS}.get(
         args.measurement, (args.measurement,))
     start = time.perf_counter()
+    stray = sorted({name for name, _, _ in args.option} - set(strategies))
+    if stray:
+        fail(parser.prog, f'argument --option: for strategies the study does not run: {stray} '
+                          f'(--strategies {",".join(strategies)})')
     if args.bearing_every != 1 and RANGE_BEARING not in kinds:
         fail(parser.prog, f'argument --bearing-every: for --measurement range-bearing or all, '
                           f'got {args.bearing_every} with --measurement {args.measurement}')

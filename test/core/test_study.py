@@ -278,7 +278,8 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
                  ['--engine', 'fast'], ['--trials', '100000', '--steps', '10000000'],
                  ['--leader-path', 'straight', '--leader-yaw-rate', '0.3'],
                  ['--leader-path', 's-curve', '--leader-amplitude', '28.6'],
-                 ['--measurement', 'range', '--bearing-every', '5'], ['--sigma-scale', '1e6']):
+                 ['--measurement', 'range', '--bearing-every', '5'], ['--sigma-scale', '1e6'],
+                 ['--strategies', 'rq', '--option', 'gbs.cell=0.01']):
         with pytest.raises(SystemExit) as stop:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2
