@@ -81,11 +81,11 @@ def check_point(point: Point) -> Point:
     try:
         scenario_of(full)
     except InvalidInput as error:       # a scale axis: name the axis, not the field it sets
-        axis = SCALE_AXES.get(error.name)
-        if axis is None:
+        scale = SCALE_AXES.get(error.name)
+        if scale is None:
             raise
-        raise InvalidInput(axis, f"{full[axis]:g} is out of range: the scenario's "
-                                 f'{error.name} {error.reason}') from None
+        raise InvalidInput(scale, f"{full[scale]:g} is out of range: the scenario's "
+                                  f'{error.name} {error.reason}') from None
     return full
 
 
