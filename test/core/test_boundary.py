@@ -98,8 +98,10 @@ def test_each_documented_bound_runs(kind: str) -> None:
                 cases.append({'r': bound * base.d_o})
             elif key == 'initial_covariance':
                 cases.append({key: (bound,) * 3})
-            elif key in PATH_NUMBERS:
-                cases.append({'leader': {'kind': 's-curve', 'amplitude': 0.5, key: bound}})
+            elif key in PATH_NUMBERS:       # exact kinematics: Euler's own turn bound is lower
+                path = {'kind': 'arc', key: bound} if key == 'yaw_rate' else \
+                    {'kind': 's-curve', 'amplitude': 0.5, key: bound}
+                cases.append({'leader': path, 'kinematics': 'exact'})
     for index, overrides in enumerate(cases):
         scenario = Scenario.paper(kind, **overrides)
         for strategy in STRATEGIES:
