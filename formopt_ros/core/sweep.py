@@ -63,7 +63,8 @@ Point = dict[str, Any]
 
 
 def check_point(point: Point) -> Point:
-    """Every axis of ``point`` (defaults filled in), checked; InvalidInput naming the axis."""
+    """Every axis of ``point`` (defaults filled in), checked: InvalidInput naming a bad axis
+    value, ValueError naming unknown axes."""
     unknown = sorted(set(point) - set(AXES))
     if unknown:
         raise ValueError(f'unknown sweep axes {unknown} (the axes: {", ".join(AXES)})')
