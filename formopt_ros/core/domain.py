@@ -33,11 +33,8 @@ SETTLING_SIGMAS = 3.0
 
 def leader_extremes(path: LeaderPath) -> tuple[float, float]:
     """The largest |speed| (m/s) and |yaw rate| (rad/s) the leader path ever commands."""
-    if path.kind == 'segments':
-        return (max(abs(s.speed) for s in path.segments),
-                max(abs(s.yaw_rate) for s in path.segments))
-    turn = {'straight': 0.0, 'arc': abs(path.yaw_rate), 's-curve': abs(path.amplitude)}
-    return abs(path.speed), turn[path.kind]
+    motions = path.extreme_motions()
+    return max(abs(v) for v, _ in motions), max(abs(w) for _, w in motions)
 
 
 def check_input_domain(scenario: Scenario, field: str = 'p_o') -> None:

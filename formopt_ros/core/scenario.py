@@ -173,6 +173,15 @@ class LeaderPath:
         last = self.segments[-1]
         return last.speed, last.yaw_rate
 
+    def extreme_motions(self) -> list[tuple[float, float]]:
+        """The (v m/s, omega rad/s) among which the path's speeds and yaw rates reach their
+        extremes: each segment, an S-curve's two peaks, or the one constant motion."""
+        if self.kind == 'segments':
+            return [(g.speed, g.yaw_rate) for g in self.segments]
+        if self.kind == 's-curve':
+            return [(self.speed, self.amplitude), (self.speed, -self.amplitude)]
+        return [(self.speed, self.yaw_rate)]
+
     def is_straight(self) -> bool:
         """True when the leader never turns (the unobservable case of the paper)."""
         if self.kind == 'segments':
@@ -367,12 +376,7 @@ def check_limits(scenario: 'Scenario') -> None:
     leader (for the leader's extreme motions)."""
     s = scenario
     path = s.leader
-    if path.kind == 'segments':
-        motions = [(g.speed, g.yaw_rate) for g in path.segments]
-    elif path.kind == 's-curve':
-        motions = [(path.speed, path.amplitude), (path.speed, -path.amplitude)]
-    else:
-        motions = [(path.speed, path.yaw_rate)]
+    motions = path.extreme_motions()
     turn = max(abs(w) for _, w in motions)
     if s.kinematics == EULER and turn * s.dt > EULER_TURN_BOUND:
         name = {'arc': 'yaw_rate', 's-curve': 'amplitude'}.get(path.kind, 'segments')
