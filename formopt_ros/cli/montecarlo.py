@@ -24,7 +24,7 @@ from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
     SENSOR_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
-from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.scenario import PATH_FIELDS, LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
 from formopt_ros.core.solver import OutsideTheDisc
 from formopt_ros.core.strategies import STRATEGIES
@@ -343,26 +343,23 @@ def add_scenario_options(parser: ArgumentParser) -> None:
                        help='s-curve: period, s (default 10)')
 
 
-#: The flags of each leader path kind, with their defaults.
-PATH_FLAGS = {'straight': {}, 'arc': {'leader_yaw_rate': 0.5},
-              's-curve': {'leader_amplitude': 0.5, 'leader_period': 10.0}}
+#: The LeaderPath field each leader flag sets, and the flag's default.
+PATH_FLAGS = {'leader_yaw_rate': ('yaw_rate', 0.5), 'leader_amplitude': ('amplitude', 0.5),
+              'leader_period': ('period', 10.0)}
 
 
 def leader_path(args: argparse.Namespace) -> LeaderPath:
     """The leader path of the command line; a flag of another kind of path is refused."""
-    used = PATH_FLAGS[args.leader_path]
-    for name in ('leader_yaw_rate', 'leader_amplitude', 'leader_period'):
-        if name not in used and getattr(args, name) is not None:
+    kind = args.leader_path
+    values: dict[str, Any] = {}
+    for name, (field, default) in PATH_FLAGS.items():
+        value = getattr(args, name)
+        if field in PATH_FIELDS[kind]:
+            values[field] = default if value is None else value
+        elif value is not None:
             flag = '--' + name.replace('_', '-')
-            raise InvalidInput(flag, f'is not used with --leader-path {args.leader_path}')
-    value = {name: default if getattr(args, name) is None else getattr(args, name)
-             for name, default in used.items()}
-    if args.leader_path == 'arc':
-        return LeaderPath('arc', args.leader_speed, value['leader_yaw_rate'])
-    if args.leader_path == 's-curve':
-        return LeaderPath('s-curve', args.leader_speed, amplitude=value['leader_amplitude'],
-                          period=value['leader_period'])
-    return LeaderPath('straight', args.leader_speed)
+            raise InvalidInput(flag, f'is not used with --leader-path {kind}')
+    return LeaderPath(kind, args.leader_speed, **values)
 
 
 #: The scenario fields the scale flags set.

@@ -19,7 +19,7 @@ from typing import Any
 
 from formopt_ros.core.checks import InvalidInput, as_choice, as_real
 from formopt_ros.core.model import KINEMATICS, MEASUREMENT_KINDS
-from formopt_ros.core.scenario import LeaderPath, Scenario
+from formopt_ros.core.scenario import PATH_FIELDS, LeaderPath, Scenario
 from formopt_ros.core.strategies import STRATEGIES, make_strategy
 from formopt_ros.core.study import StudyConfig, run_study, summarize
 
@@ -39,9 +39,9 @@ DEFAULTS: dict[str, Any] = {
 #: The scenario fields the scale axes set.
 SCALE_AXES = {'r': 'r_fraction', 'sigma': 'sigma_scale', 'sigma_v': 'odometry_scale',
               'sigma_omega': 'odometry_scale'}
-#: The leader axes each leader path uses (besides leader_speed).
-PATH_AXES = {'straight': (), 'arc': ('leader_yaw_rate',),
-             's-curve': ('leader_yaw_rate', 'leader_period')}
+#: The LeaderPath fields each leader axis sets (leader_yaw_rate: an arc's yaw rate or an
+#: s-curve's peak).
+PATH_AXES = {'leader_yaw_rate': ('yaw_rate', 'amplitude'), 'leader_period': ('period',)}
 #: The axes of a sweep, in the order of the table's columns.
 AXES = tuple(DEFAULTS)
 #: Axes whose values are names (the others are numbers).
@@ -72,9 +72,9 @@ def check_point(point: Point) -> Point:
     for axis in AXES:
         full[axis] = as_choice(axis, full[axis], NAMED_AXES[axis]) if axis in NAMED_AXES \
             else as_real(axis, full[axis])
-    used = PATH_AXES[full['leader_path']]
-    stray = [axis for axis in ('leader_yaw_rate', 'leader_period')
-             if axis not in used and full[axis] != DEFAULTS[axis]]
+    used = PATH_FIELDS[full['leader_path']]
+    stray = [axis for axis, fields in PATH_AXES.items()
+             if not set(fields) & set(used) and full[axis] != DEFAULTS[axis]]
     if stray:
         raise InvalidInput(stray[0], f"is not used by leader_path {full['leader_path']!r} "
                                      '(arc: leader_yaw_rate; s-curve: leader_yaw_rate, '

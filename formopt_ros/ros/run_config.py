@@ -13,7 +13,8 @@ from formopt_ros.core.domain import check_domain
 from formopt_ros.core.model import EXACT, MEASUREMENT_KINDS, RANGE_BEARING
 from formopt_ros.core.model import KINEMATICS as MOTION_MODELS
 from formopt_ros.core.formation import FollowerSpec, check_id
-from formopt_ros.core.scenario import PATH_KINDS, RANGES, LeaderPath, Scenario, Segment
+from formopt_ros.core.scenario import (
+    PATH_FIELDS, PATH_KINDS, RANGES, LeaderPath, Scenario, Segment)
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.ros.naming import robot_id
 from formopt_ros.ros.params import Param, ParameterError
@@ -131,19 +132,21 @@ def strategy_options(name: str, values: dict[str, Any]) -> dict[str, Any]:
     return {option: values[f'{name}_{option}'] for option in STRATEGIES[name].OPTIONS}
 
 
-#: The path parameters each path kind reads (straight reads omega_leader: not 0 makes an arc).
-PATH_PARAMETERS = {'straight': (V_LEADER, OMEGA_LEADER), 'arc': (V_LEADER, OMEGA_LEADER),
-                   's-curve': (V_LEADER, AMPLITUDE, PERIOD),
-                   'segments': (SEGMENT_DURATIONS, SEGMENT_SPEEDS, SEGMENT_YAW_RATES, REPEAT)}
+#: The LeaderPath field each path parameter sets.
+PATH_PARAMETERS = ((V_LEADER, 'speed'), (OMEGA_LEADER, 'yaw_rate'), (AMPLITUDE, 'amplitude'),
+                   (PERIOD, 'period'), (SEGMENT_DURATIONS, 'segments'),
+                   (SEGMENT_SPEEDS, 'segments'), (SEGMENT_YAW_RATES, 'segments'),
+                   (REPEAT, 'repeat'))
 
 
 def leader_path_from(values: dict[str, Any]) -> LeaderPath:
     """The leader path described by the path parameters; a path parameter that the chosen
     kind does not read, set away from its default, is refused (ParameterError naming it)."""
     kind = values['path']
-    used = [param.name for param in PATH_PARAMETERS[kind]]
-    for param in (p for params in PATH_PARAMETERS.values() for p in params):
-        if param.name not in used and values.get(param.name, param.default) != param.default:
+    fields = PATH_FIELDS['arc' if kind == 'straight' else kind]  # omega_leader != 0: an arc
+    used = [param.name for param, field in PATH_PARAMETERS if field in fields]
+    for param, field in PATH_PARAMETERS:
+        if field not in fields and values.get(param.name, param.default) != param.default:
             raise ParameterError(f"parameter '{param.name}' is not read by path {kind!r} (it "
                                  f'reads {used}), got {values[param.name]!r}')
     try:
