@@ -27,9 +27,11 @@ from formopt_ros.wire.messages import header_ns
 from formopt_ros.wire.messages import estimate_values
 
 LEADER_TOPIC = f'{PREFIX}/leader/odom'
-#: Settings for a UWB radio (docs/real_robots.md).
+#: Settings for a UWB radio (docs/real_robots.md). A stream counts as stale after 2 s, so that
+#: the end of a run (field_sim's last message, its exit, the estimator stopped 0.5 s later)
+#: stays inside it on a loaded machine; the outage test sets 1 s.
 ESTIMATOR = {'bias_sigma': 0.3, 'bias_walk': 0.002, 'huber': 2.5, 'strategy': 'rq',
-             'stale_timeout': 1.0}
+             'stale_timeout': 2.0}
 
 
 class Probe(Node):
@@ -180,7 +182,8 @@ def test_a_link_outage_is_an_error_and_the_estimate_recovers(
     again from both robots' odometry poses (counted) and is consistent (mean NEES below 10,
     RMS error below 0.4 m over the last 3 s)."""
     probe, summary = run_pair(tmp_path, {'leader_outage': [4.0, 9.0], 'path': 's-curve',
-                                         'amplitude': 0.6, 'period': 8.0}, 14.0, node_process)
+                                         'amplitude': 0.6, 'period': 8.0}, 14.0, node_process,
+                              {'stale_timeout': 1.0})
     assert summary['counters']['outage_resets'] == 1, summary['counters']
     start = min(probe.truth)
     outage = start + 4 * 10**9
