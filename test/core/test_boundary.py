@@ -1,5 +1,5 @@
 """The boundary holds: random and extreme values through Scenario, Formation and StudyConfig
-are refused there (InvalidInput naming the field) or run 5 steps with finite numbers."""
+are refused there (InvalidInput naming the field) or run 5-6 steps with finite numbers."""
 from __future__ import annotations
 
 import math
@@ -76,6 +76,83 @@ def test_scenarios_are_refused_at_the_boundary_or_run() -> None:
                           label)
         outcomes['ran'] += 1
     assert outcomes['refused'] > 40 and outcomes['ran'] > 40, outcomes
+
+
+def limited_values(rng: np.random.Generator) -> dict[str, Any]:
+    """Keyword overrides of Scenario.paper that a user of limits and paths might type: a slot
+    0.3-30 m away, a disc up to 0.99 of it, any leader path, either kinematics, often a speed
+    limit and a safety distance, sometimes another dt, noise or initial covariance."""
+    def spread(low: float, high: float) -> float:
+        return float(10.0 ** rng.uniform(math.log10(low), math.log10(high)))
+
+    distance, angle = spread(0.3, 30.0), rng.uniform(-math.pi, math.pi)
+    speed = float(rng.choice([0.0, 0.1, 0.5, 1.0, 2.0, 5.0]))
+    paths = [{'kind': 'straight', 'speed': speed},
+             {'kind': 'arc', 'speed': speed, 'yaw_rate': float(rng.choice([-1, 1])) *
+              spread(0.01, 3.0)},
+             {'kind': 's-curve', 'speed': speed, 'amplitude': spread(0.05, 2.0),
+              'period': spread(0.5, 40.0)},
+             {'kind': 'segments', 'repeat': bool(rng.random() < 0.5), 'segments': [
+                 {'duration': spread(0.05, 5.0), 'speed': float(rng.choice([0.0, 0.5, 2.0])),
+                  'yaw_rate': float(rng.uniform(-1.0, 1.0))} for _ in range(rng.integers(1, 4))]}]
+    overrides: dict[str, Any] = {
+        'p_o': (distance * math.cos(angle), distance * math.sin(angle)),
+        'r': distance * float(rng.choice([0.05, 0.3, 0.7, 0.9, 0.99])),
+        'leader': paths[rng.integers(len(paths))],
+        'kinematics': ('exact', 'euler')[rng.integers(2)]}
+    if rng.random() < 0.6:
+        overrides['max_speed'] = spread(0.2, 30.0)
+    if rng.random() < 0.4:
+        overrides['safety_distance'] = distance * rng.uniform(0.0, 1.1)
+    if rng.random() < 0.3:
+        overrides['dt'] = spread(0.005, 0.5)
+    if rng.random() < 0.3:
+        overrides['sigma'] = spread(1e-4, 0.5)
+    if rng.random() < 0.2:
+        overrides['initial_covariance'] = (spread(1e-6, 10.0), spread(1e-6, 10.0),
+                                           spread(1e-8, 1.0))
+    return overrides
+
+
+@pytest.mark.slow
+def test_limits_and_paths_are_refused_at_the_boundary_or_run() -> None:
+    """Scenario.paper for range, bearing and range-bearing with limits, safety distances and
+    leader paths of every kind: InvalidInput, or 6 finite steps of a strategy (every one, and
+    RAM only where it applies) without a RuntimeWarning."""
+    rng = np.random.default_rng(20243)
+    outcomes = {'refused': 0, 'ran': 0}
+    for case in range(90):
+        kind = ('range', 'bearing', 'range-bearing')[case % 3]
+        strategies = STRATEGIES + ('lookahead',) if kind != 'range-bearing' else \
+            tuple(s for s in STRATEGIES if s != 'ram') + ('lookahead',)
+        overrides = limited_values(rng)
+        try:
+            scenario = Scenario.paper(kind, **overrides)
+        except InvalidInput:
+            outcomes['refused'] += 1
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter('error', RuntimeWarning)
+            assert_finite(run_trial(scenario, strategies[case % len(strategies)], case, 0, 6),
+                          (kind, overrides))
+        outcomes['ran'] += 1
+    assert outcomes['refused'] > 10 and outcomes['ran'] > 50, outcomes
+
+
+def test_a_cycle_whose_recursion_blows_up_has_no_steady_state() -> None:
+    """PERIODIC's design under a speed limit behind a turning leader, a disc of 0.95 |p_o| and a
+    precise range: a candidate cycle whose covariance recursion overflows (a singular C P + D)
+    counts as having no steady state, and the design goes on."""
+    path = {'kind': 'segments', 'repeat': True, 'segments': [
+        {'duration': 2.737249075751988, 'speed': 0.5, 'yaw_rate': 0.8096243228140538},
+        {'duration': 0.8583549608083089, 'speed': 0.5, 'yaw_rate': 0.1750185746265165}]}
+    scenario = Scenario.paper(
+        'range-bearing', p_o=(3.62420019967808, 2.648526662944381), r=4.264380648574389,
+        leader=path, kinematics='euler', max_speed=1.8084085276852833,
+        safety_distance=3.1453057699906735, sigma=0.0025564280843583136)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        assert_finite(run_trial(scenario, 'periodic', 230, 0, 6), 'blown-up cycle')
 
 
 @pytest.mark.slow

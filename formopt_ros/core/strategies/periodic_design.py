@@ -224,10 +224,11 @@ def greedy_target(x: np.ndarray, P: np.ndarray, conditions: SteadyConditions) ->
 
 
 def lft(M: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """The linear fractional map of a 6 x 6 matrix: (A P + B)(C P + D)^-1, P (..., 3, 3)."""
-    X = M[..., :3, :3] @ P + M[..., :3, 3:]
-    Y = M[..., 3:, :3] @ P + M[..., 3:, 3:]
-    return np.swapaxes(np.linalg.solve(np.swapaxes(Y, -1, -2), np.swapaxes(X, -1, -2)), -1, -2)
+    """The linear fractional maps of 6 x 6 matrices M (n, 6, 6): (A P + B)(C P + D)^-1 for P
+    (n, 3, 3); NaN rows where C P + D is singular (a recursion that blew up)."""
+    X = M[:, :3, :3] @ P + M[:, :3, 3:]
+    Y = M[:, 3:, :3] @ P + M[:, 3:, 3:]
+    return np.swapaxes(solve_rows(np.swapaxes(Y, 1, 2), np.swapaxes(X, 1, 2)), 1, 2)
 
 
 def move_maps(x: np.ndarray, targets: np.ndarray, conditions: SteadyConditions,
@@ -587,9 +588,10 @@ class _Objective:
         value = math.inf
         for size in (step, 0.25 * step) if restart else (step,):
             simplex = np.vstack([best, best + size * np.eye(len(best))])
-            result = minimize(self, best, method='Nelder-Mead',
-                              options={'initial_simplex': simplex, 'xatol': 1e-3,
-                                       'fatol': 1e-7 * scale, 'maxfev': budget * len(best)})
+            with np.errstate(invalid='ignore'):     # a simplex of no steady state: inf - inf
+                result = minimize(self, best, method='Nelder-Mead',
+                                  options={'initial_simplex': simplex, 'xatol': 1e-3,
+                                           'fatol': 1e-7 * scale, 'maxfev': budget * len(best)})
             if result.fun <= value:
                 value, best = float(result.fun), np.asarray(result.x)
         return value, best
