@@ -23,6 +23,8 @@ PROG = 'run_formation.sh'
 SCRIPTS = Path(__file__).resolve().parents[2] / 'scripts'
 #: How long (s) an estimator may outlive a peer it needs before the run fails.
 ORPHAN_GRACE = 5.0
+#: How a stop ends processes: each signal, then how long (s) it waits for them to exit.
+STOP_WAITS = ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0))
 #: Exit code of a node refusing its configuration (not respawned: it would refuse again).
 CONFIGURATION_EXIT = 2
 #: prctl option that asks the kernel to signal a process when its parent dies (Linux).
@@ -191,10 +193,11 @@ class Launcher:
         """However the run ends (an error while starting, a signal), no process outlives it."""
         self.stop([p for p in self.processes if p.alive()])
 
-    def stop(self, processes: list[Process], grace: float = 10.0) -> None:
-        """SIGINT the process groups, SIGTERM after ``grace`` s, SIGKILL 5 s later (each with a
-        SIGCONT, so that a stopped process handles the signal at once)."""
-        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+    def stop(self, processes: list[Process]) -> None:
+        """SIGINT the process groups, SIGTERM 10 s later, SIGKILL 5 s after that
+        (:data:`STOP_WAITS`; each signal with a SIGCONT, so that a stopped process handles it
+        at once)."""
+        for sig, wait in STOP_WAITS:
             running = [p for p in processes if p.alive()]
             if not running:
                 break

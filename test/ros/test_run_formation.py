@@ -523,6 +523,8 @@ def test_a_node_hanging_after_its_part_is_named_not_failed(
         (wrappers / f'{node}.sh').write_text('#!/usr/bin/env bash\n' + body)
         (wrappers / f'{node}.sh').chmod(0o755)
     monkeypatch.setattr(supervisor, 'SCRIPTS', wrappers)
+    monkeypatch.setattr(supervisor, 'STOP_WAITS', ((signal.SIGINT, 3.0), (signal.SIGTERM, 1.0),
+                                                   (signal.SIGKILL, 5.0)))
     out = tmp_path / 'run'
     code = command.main(['--measurement', 'range', '--steps', '5', '--out', str(out),
                          '--domain-id', str(ros_domain)])
