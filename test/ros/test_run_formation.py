@@ -297,7 +297,7 @@ def test_respawned_nodes_resume_exactly(tmp_path: Path, ros_domain: int) -> None
     import os
     import signal
     import time
-    steps, out = 3000, tmp_path / 'respawn'
+    steps, out = 1200, tmp_path / 'respawn'
     process = subprocess.Popen([str(SCRIPT), '--measurement', 'bearing', '--strategy', 'rq',
                                 '--seed', '4', '--steps', str(steps), '--out', str(out),
                                 '--domain-id', str(ros_domain), '--respawn', '2',
