@@ -62,7 +62,8 @@ def test_move_map_is_one_ekf_step(kind: str, omega_l: float) -> None:
         # 1e-12 m: the same Euler steps.
         np.testing.assert_allclose(pose, x_next, rtol=0, atol=1e-12)
         # 1e-9 relative: a 3x3 solve against the Joseph form of the update.
-        np.testing.assert_allclose(lft(M, P), P_next, rtol=0, atol=1e-9 * np.abs(P_next).max())
+        np.testing.assert_allclose(lft(M[None], P[None])[0], P_next, rtol=0,
+                                   atol=1e-9 * np.abs(P_next).max())
 
 
 def test_maps_of_a_locked_cycle_equal_each_move_alone() -> None:
