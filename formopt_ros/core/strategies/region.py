@@ -33,13 +33,16 @@ gain's rounding bound); the multipliers are KKT's (non-negative least squares of
 pins them down), then, one constraint at a time, 0 and the critical points of det(S + mu G_i)
 (complete for one constraint). The test allows for the rounding of S's entries; when the
 margin is positive but below that bound, it is repeated in exact rational arithmetic on the
-exact data (the circles' forms as the floats they are). With one active constraint the
-S-lemma makes this complete; with two (a corner, or one arc while another circle also bounds
-the set) it is sufficient only: when it fails, the lines through the leader decide
+exact data (the circles' forms as the floats they are). The S-lemma is complete for one
+constraint: it proves an optimum that is also the optimum over one circle's side alone. Where
+another circle matters (a corner, or one arc while another circle keeps the optimum from a
+better point) it is sufficient only: when it fails, the lines through the leader decide
 (:mod:`~formopt_ros.core.strategies.polar`, as for range-bearing: a line's cost is a ratio of
 quadratics in 1/|p| for one row too), seeded with the best KKT point: certificate
-'polar-lines'. Only if they do not close is the answer the best of the enumerated KKT points,
-named 'all-critical-points', and the solution says so (``fallback`` 'enumeration').
+'polar-lines'. A bearing optimum on the slot's arc alone goes to the lines first (the S-lemma
+cannot prove it: the disc's own optimum lies outside F with a larger gain). Only if they do
+not close is the answer the best of the enumerated KKT points, named 'all-critical-points',
+and the solution says so (``fallback`` 'enumeration').
 """
 from __future__ import annotations
 
@@ -330,6 +333,13 @@ def _range_candidates(problem: Problem, region: Region,
     return out
 
 
+def _circles_through(region: Region, p: Sequence[float]) -> list[int]:
+    """The indices of the region's bounding circles (:meth:`Region.circles`) that p (2,) (m)
+    lies on, within ACTIVE_TOLERANCE of the region's scale."""
+    return [i for i, (cx, cy, rho, _) in enumerate(region.circles())
+            if abs(math.hypot(p[0] - cx, p[1] - cy) - rho) <= ACTIVE_TOLERANCE * region.scale]
+
+
 def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Solution:
     """The certified optimum of ``problem`` over ``region`` (module docstring).
 
@@ -370,6 +380,14 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     gains = [problem.gain_at(*p) for p in feasible]
     best = max(range(len(gains)), key=gains.__getitem__)
     p, g = feasible[best], gains[best]
+    # bearing, p on the slot's circle alone: the only certificate tight at p is that circle's,
+    # which would make p the disc's optimum; the disc's optimum lies outside the region and
+    # gains more, so the lines through the leader decide (tried first)
+    lines_first = problem.measurement != RANGE and _circles_through(region, p) == [0]
+    if lines_first:
+        lines = lines_plan(problem, method, region=region, seeds=(p,))
+        if lines.certificate in STACKED_CERTIFICATES:
+            return lines
     name, details = certify_in_region(problem, region, p, g, interval)
     details['region'] = 'restricted'
     on_boundary = not (problem.measurement != RANGE and best == 0 and points
@@ -377,9 +395,10 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     if name in PROVED:
         return make_solution(problem, p, method, on_boundary, len(points), certificate=name,
                              details=details, gain=g)
-    lines = lines_plan(problem, method, region=region, seeds=(p,))
-    if lines.certificate in STACKED_CERTIFICATES:
-        return lines
+    if not lines_first:
+        lines = lines_plan(problem, method, region=region, seeds=(p,))
+        if lines.certificate in STACKED_CERTIFICATES:
+            return lines
     details['reason'] = ('the S-lemma with several constraints found no multipliers: the '
                          f'best of {len(feasible)} enumerated KKT points and samples')
     return make_solution(problem, p, method, on_boundary, len(points), fallback=ENUMERATION,
