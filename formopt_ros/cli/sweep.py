@@ -18,7 +18,7 @@ from formopt_ros.core.domain import check_domain
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.sweep import AXES, NAMED_AXES, Cell, expand, scenario_of
 from formopt_ros.wire.formation import read_yaml
-from formopt_ros.wire.jsonfile import write_json
+from formopt_ros.wire.jsonfile import json_safe, write_json
 
 #: Keys of a sweep file (docs/sweeps.md).
 FILE_KEYS = ('grid', 'scenarios', 'base', 'strategies', 'options', 'trials', 'steps', 'seed',
@@ -60,6 +60,26 @@ def sweep_folder(text: str) -> Path:
         raise argparse.ArgumentTypeError(f'{text} exists and is neither empty nor a sweep\'s '
                                          f'folder (no {MARKER}); refusing to write into it')
     return path
+
+
+def refuse_another_sweep(prog: str, out: Path, spec: dict[str, Any]) -> None:
+    """Stop (exit 2) when ``out`` holds an earlier sweep of other settings than ``spec`` (the
+    heat-map axes aside): resuming writes over its table; only its own command resumes it."""
+    marker = out / MARKER
+    if not marker.is_file():
+        return
+    try:
+        earlier = json.loads(marker.read_text()).get('sweep') or {}
+    except (OSError, ValueError, AttributeError):
+        earlier = {}
+    now = json.loads(json.dumps(json_safe(spec)))
+    changed = sorted(key for key in set(earlier) | set(now)
+                     if key != 'heatmap' and earlier.get(key) != now.get(key))
+    if changed:
+        fail(prog, f'{out} holds another sweep ({marker}: its {", ".join(changed)} '
+                   f'differ{"s" * (len(changed) == 1)}): run its own command to resume it, or '
+                   f'choose another --out (with --cache {out / "cells"} to reuse its finished '
+                   'cells)')
 
 
 def build_parser() -> ArgumentParser:
@@ -110,8 +130,8 @@ def build_parser() -> ArgumentParser:
                         help='address of an existing Dask scheduler, e.g. tcp://host:8786 '
                              '(default: $DASK_SCHEDULER_ADDRESS, else a local cluster)')
     parser.add_argument('--out', type=sweep_folder, default=Path('runs/sweep'),
-                        help='output folder: new, empty, or an earlier sweep\'s (its cached '
-                             'cells are reused) (default: runs/sweep)')
+                        help='output folder: new, empty, or the same sweep\'s (a resume: its '
+                             'cached cells are reused) (default: runs/sweep)')
     parser.add_argument('--cache', type=Path, default=None,
                         help='folder of finished cells, may be shared by sweeps (default: '
                              'OUT/cells)')
@@ -210,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         CellCache, package_version, run_cells, scheduler_address, sweep_figures, table_rows,
         write_table)
     out: Path = args.out
+    refuse_another_sweep(parser.prog, out, spec)
     cache = CellCache(args.cache or out / 'cells')
     out.mkdir(parents=True, exist_ok=True)
     address = scheduler_address(args.scheduler)

@@ -133,7 +133,8 @@ def test_an_interrupted_sweep_resumes_without_recomputing(tmp_path: Path) -> Non
     assert results(resumed.rows) == results(whole.rows)
 
 
-def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
+def test_the_command_writes_table_figures_and_resumes(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = tmp_path / 'sweep.yaml'
     config.write_text('grid:\n  r_fraction: [0.05, 0.2]\n  leader_path: [straight, arc]\n'
                       'scenarios:\n  - {measurement: bearing, sigma_scale: 2}\n'
@@ -153,6 +154,11 @@ def test_the_command_writes_table_figures_and_resumes(tmp_path: Path) -> None:
     first = (out / 'sweep.csv').read_text()
     assert cli.main(args + ['--no-figures']) == 0              # every cell from the cache
     assert (out / 'sweep.csv').read_text() == first
+    with pytest.raises(SystemExit) as stop:             # another sweep: it would overwrite
+        cli.main(['--measurement', 'range', '--r-fraction', '0.1', '--strategies', 'mtf',
+                  '--trials', '2', '--steps', '20', '--out', str(out)])
+    assert stop.value.code == 2 and (out / 'sweep.csv').read_text() == first
+    assert 'holds another sweep' in capsys.readouterr().err
 
 
 @pytest.mark.parametrize('args, message', [
