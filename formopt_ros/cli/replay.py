@@ -2,6 +2,7 @@
 re-run a follower's estimator over the bag's inputs and compare with what it published."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from typing import Any
@@ -74,7 +75,7 @@ def build_parser() -> ArgumentParser:
                        help='seed of the run (default: from the run description)')
     flags.add_argument('--trial', type=integer(0, 2**31 - 1),
                        help='trial index (default: from the run description)')
-    flags.add_argument('--tolerance', type=number(0.0), default=1e-9,
+    flags.add_argument('--tolerance', type=number(0.0),
                        help='largest admissible difference (default 1e-9)')
     flags.add_argument('--json', type=new_file, help='also write the result here (a new file)')
     flags.add_argument('--topic-map', type=existing_file, metavar='MAP',
@@ -82,7 +83,7 @@ def build_parser() -> ArgumentParser:
                        'which input and the filter settings (YAML, see '
                        'formopt_ros/analysis/foreign.py); re-estimates it with the planner off '
                        'and reports NEES and RMS error against its ground truth')
-    flags.add_argument('--skip', type=integer(0, 10**9), default=30,
+    flags.add_argument('--skip', type=integer(0, 10**9),
                        help='--topic-map: ranges left out of the evaluation at the start '
                        '(default 30)')
     return out
@@ -194,15 +195,47 @@ def offline_main(args: Any) -> int:
     return 0 if ok else 1
 
 
+#: The flags of each mode: playback (ROS), a recorded formopt run offline, a bag of standard
+#: types offline (--topic-map).
+PLAYBACK_FLAGS = ('rate', 'fast', 'topics', 'wait_subscribers')
+RECORDED_FLAGS = ('follower', 'strategy', 'strategy_option', 'seed', 'trial', 'tolerance')
+TOPIC_MAP_FLAGS = ('topic_map', 'skip')
+
+
+def refuse_unused_flags(options: argparse.Namespace) -> None:
+    """Stop (exit 2) on a flag the chosen mode would not read, naming it and its mode."""
+    def given(names: tuple[str, ...]) -> list[str]:
+        return ['--' + n.replace('_', '-') for n in names
+                if getattr(options, n) not in (None, False, [])]
+
+    if not options.offline:
+        stray = given(RECORDED_FLAGS + TOPIC_MAP_FLAGS + ('json',))
+        if stray:
+            fail(PROG, f'{stray[0]} needs --offline (without it the bag is played back on ROS '
+                       'topics)')
+        return
+    stray = given(PLAYBACK_FLAGS)
+    if stray:
+        fail(PROG, f'{stray[0]} applies to playback on ROS topics, not to --offline')
+    stray = given(RECORDED_FLAGS) if options.topic_map else given(('skip',))
+    if stray:
+        fail(PROG, f'{stray[0]} applies to ' + (
+            'a recorded formopt_ros run, not to --topic-map' if options.topic_map
+            else '--topic-map (a bag of standard types) only'))
+
+
 @command(PROG)
 def main(args: list[str] | None = None) -> None:
     """Console entry point: ``replay BAG [--rate F | --fast] [--topics ...] [--offline]``."""
     argv = list(sys.argv[1:] if args is None else args)
     plain, ros = split_ros_args(argv)
     options = build_parser().parse_args(plain)
+    refuse_unused_flags(options)
     if options.offline:
         if options.bag is None:
             fail(PROG, '--offline needs BAG')
+        options.tolerance = 1e-9 if options.tolerance is None else options.tolerance
+        options.skip = 30 if options.skip is None else options.skip
         sys.exit(foreign_main(options) if options.topic_map else offline_main(options))
     from formopt_ros.ros.nodes.replay import PARAMS, SUMMARY, Replay, select_topics
     from formopt_ros.ros.runtime import node_main

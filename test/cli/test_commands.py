@@ -234,3 +234,23 @@ def test_ctrl_c_in_a_deferred_block_is_raised_where_it_is_polled(where: str) -> 
     expected = 'recorded True\n' + ('' if where == 'poll' else 'block ends\n')
     assert (result.stdout, result.returncode) == (expected, -signal.SIGINT)
     assert 'KeyboardInterrupt' in result.stderr
+
+
+@pytest.mark.parametrize('flags, message', [
+    (['--strategy', 'rq'], '--strategy needs --offline'),
+    (['--topic-map', __file__], '--topic-map needs --offline'),
+    (['--offline', '--rate', '2'], '--rate applies to playback on ROS topics, not to --offline'),
+    (['--offline', '--topic-map', __file__, '--tolerance', '1e-6'],
+     '--tolerance applies to a recorded formopt_ros run, not to --topic-map'),
+    (['--offline', '--skip', '5'], '--skip applies to --topic-map')])
+def test_replay_refuses_a_flag_its_mode_would_not_read(
+        flags: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
+    """replay BAG with a flag of another mode (an offline flag without --offline, a playback
+    flag with it, a recorded-run flag with --topic-map): exit 2, one line naming the flag,
+    before the bag is read (it used to play back or re-estimate and ignore the flag)."""
+    from formopt_ros.cli import replay
+    with pytest.raises(SystemExit) as stop:
+        replay.main([__file__, *flags])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
