@@ -27,8 +27,13 @@ EOF
 robot='' leader='leader' sim=0
 while [[ $# -gt 0 ]]; do
   case "$1" in
-    --robot) robot="${2:-}"; shift 2 ;;
-    --leader) leader="${2:-}"; shift 2 ;;
+    --robot|--leader)
+      if [[ $# -lt 2 ]]; then
+        echo "robot.sh: error: $1 needs a value (see --help)" >&2
+        exit 2
+      fi ;;&
+    --robot) robot="$2"; shift 2 ;;
+    --leader) leader="$2"; shift 2 ;;
     --sim) sim=1; shift ;;
     -h|--help) usage; exit 0 ;;
     --) shift; break ;;

@@ -254,3 +254,17 @@ def test_replay_refuses_a_flag_its_mode_would_not_read(
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--robot'], '--robot needs a value'),
+    (['--robot', 'f1', '--leader'], '--leader needs a value'),
+    (['--robot', '1x'], '--robot must be letters'), (['--robto', 'f1'], 'unknown argument')])
+def test_robot_sh_names_a_bad_argument(argv: list[str], message: str) -> None:
+    """scripts/robot.sh with a flag missing its value, a bad id or an unknown flag: exit 2 and
+    one line naming it, before any node starts (a missing value used to exit 1 silently)."""
+    script = Path(__file__).resolve().parents[2] / 'scripts' / 'robot.sh'
+    done = subprocess.run(['bash', str(script), *argv], capture_output=True, text=True,
+                          timeout=30)
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stdout == ''
