@@ -406,6 +406,10 @@ def kind_strategies(kind: str, strategies: tuple[str, ...]) -> tuple[str, ...]:
     if kind != RANGE_BEARING or 'ram' not in strategies:
         return strategies
     rest = tuple(s for s in strategies if s != 'ram')
+    if not rest:
+        raise InvalidInput('--strategies', "ram does not apply to range-bearing (the paper's "
+                                           'method for one scalar measurement): add rq or '
+                                           'another strategy')
     print('formopt-montecarlo: note: range-bearing leaves RAM out (the paper\'s method for one '
           'scalar measurement does not apply; RQ solves it with a certificate)')
     return rest

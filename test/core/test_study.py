@@ -284,6 +284,11 @@ def test_command_rejects_bad_options(capsys: pytest.CaptureFixture) -> None:
             main(argv + ['--out', '/nonexistent/never-written'])
         assert stop.value.code == 2
     assert 'foo' in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:     # RAM alone on both sensors: nothing would run
+        main(['--measurement', 'range-bearing', '--strategies', 'ram', '--out',
+              '/nonexistent/never-written'])
+    assert stop.value.code == 2
+    assert '--strategies ram does not apply to range-bearing' in capsys.readouterr().err
 
 
 def test_report_shows_a_last_bit_difference_as_plus_zero() -> None:
