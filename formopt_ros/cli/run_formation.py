@@ -27,6 +27,7 @@ from formopt_ros.cli.supervisor import (
     stop_on_signals, supervise, supervising)
 from formopt_ros.core.formation import Formation, check_id
 from formopt_ros.core.strategies import STRATEGIES
+from formopt_ros.core.strategies.region import UNREACHABLE
 from formopt_ros.wire.jsonfile import write_json
 
 
@@ -80,6 +81,8 @@ def build_parser() -> ArgumentParser:
 #: An estimator whose run has not started this long after it did ends the run (a peer
 #: frozen or failing before the first step), s.
 START_TIMEOUT = 60.0
+#: Warn when a follower's slot disc was out of reach on more than this share of the steps.
+UNREACHABLE_WARN_SHARE = 0.1
 
 
 def run(args: Any) -> int:
@@ -271,6 +274,13 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
     traces = ', '.join(f"{f} {r['final_weighted_trace']:.6g}" for f, r in followers.items())
     print(f'{PROG}: {steps} steps, final tr(W P W) m^2: {traces}; {wall:.2f} s wall '
           f'({steps / wall:.1f} steps/s); {out / "summary.json"}')
+    for follower_id, result in followers.items():
+        unreachable = (result.get('plan_fallbacks') or {}).get(UNREACHABLE, 0)
+        if unreachable > UNREACHABLE_WARN_SHARE * max(result['steps'], 1):
+            print(f"{PROG}: warning: {follower_id}: its slot's disc was out of reach on "
+                  f"{unreachable} of {result['steps']} steps, so it headed back to the disc "
+                  'instead of planning: max_speed leaves no margin over what keeping pace '
+                  'with the leader needs', file=sys.stderr)
     return 0
 
 

@@ -72,6 +72,19 @@ def test_p_values_shape_the_run_and_its_summary(tmp_path: Path, ros_domain: int)
     np.testing.assert_allclose(summary['final_estimate'], ref.estimate[-1], rtol=0, atol=TOL)
 
 
+def test_a_follower_that_cannot_reach_its_disc_is_named(tmp_path: Path,
+                                                        ros_domain: int) -> None:
+    """A bearing follower limited to the leader's own speed (max_speed 1 m/s, the least the
+    scenario accepts) cannot get back into its disc once noise pushes it out: the run is ok,
+    the summary counts the unreachable plans and the console warns, naming the follower."""
+    out = tmp_path / 'run'
+    result = run('--measurement', 'bearing', '--steps', '60', '-p', 'max_speed:=1.0', '--out',
+                 str(out), '--domain-id', str(ros_domain))
+    assert result.returncode == 0, result.stderr
+    unreachable = json.loads((out / 'summary.json').read_text())['plan_fallbacks']['unreachable']
+    assert unreachable > 6 and f'out of reach on {unreachable} of 60 steps' in result.stderr
+
+
 def test_fig4_formation_recorded(tmp_path: Path, ros_domain: int) -> None:
     """The paper's Fig. 4 pair under a namespace prefix: every follower equals the pure
     formation simulation (1e-9), the bag holds every published message, rosbags reads it."""
