@@ -121,7 +121,7 @@ def foreign_main(args: Any) -> int:
         print(f"after {args.skip} ranges: mean NEES {summary['mean_nees']:.3f} (3 is "
               f"consistent), RMS position error {summary['rmse_m']:.3f} m over "
               f"{summary['evaluated']} ranges" +
-              ('' if bias is None else f'; range bias {bias:.3f} m'))
+              ('' if bias is None else f'; estimated range bias at the end {bias:.3f} m'))
     if args.json:
         write_json(args.json, {'bag': str(args.bag), 'topic_map': str(args.topic_map),
                                **summary})
