@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -56,25 +57,27 @@ def paper_values(rng: np.random.Generator) -> dict[str, Any]:
     return overrides
 
 
+def refused_or_ran(kind: str, overrides: dict[str, Any], strategy: str, seed: int,
+                   steps: int) -> str:
+    """'refused' when Scenario.paper refuses the overrides (InvalidInput), else 'ran' after
+    ``steps`` finite steps of ``strategy`` without a RuntimeWarning."""
+    try:
+        scenario = Scenario.paper(kind, **overrides)
+    except InvalidInput:
+        return 'refused'
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', RuntimeWarning)
+        assert_finite(run_trial(scenario, strategy, seed, 0, steps), (kind, overrides, strategy))
+    return 'ran'
+
+
 @pytest.mark.slow
 def test_scenarios_are_refused_at_the_boundary_or_run() -> None:
     """Scenario.paper with wild overrides: InvalidInput, or 5 finite steps of a strategy."""
     rng = np.random.default_rng(20240)
-    outcomes = {'refused': 0, 'ran': 0}
-    for case in range(160):
-        kind = ('range', 'bearing')[case % 2]
-        overrides = paper_values(rng)
-        label = (kind, overrides)
-        try:
-            scenario = Scenario.paper(kind, **overrides)
-        except InvalidInput:
-            outcomes['refused'] += 1
-            continue
-        with warnings.catch_warnings():
-            warnings.simplefilter('error', RuntimeWarning)
-            assert_finite(run_trial(scenario, STRATEGIES[case % len(STRATEGIES)], case, 0, 5),
-                          label)
-        outcomes['ran'] += 1
+    outcomes = Counter(refused_or_ran(('range', 'bearing')[case % 2], paper_values(rng),
+                                      STRATEGIES[case % len(STRATEGIES)], case, 5)
+                       for case in range(160))
     assert outcomes['refused'] > 40 and outcomes['ran'] > 40, outcomes
 
 
@@ -120,22 +123,13 @@ def test_limits_and_paths_are_refused_at_the_boundary_or_run() -> None:
     leader paths of every kind: InvalidInput, or 6 finite steps of a strategy (every one, and
     RAM only where it applies) without a RuntimeWarning."""
     rng = np.random.default_rng(20243)
-    outcomes = {'refused': 0, 'ran': 0}
+    outcomes: Counter[str] = Counter()
     for case in range(90):
         kind = ('range', 'bearing', 'range-bearing')[case % 3]
         strategies = STRATEGIES + ('lookahead',) if kind != 'range-bearing' else \
             tuple(s for s in STRATEGIES if s != 'ram') + ('lookahead',)
-        overrides = limited_values(rng)
-        try:
-            scenario = Scenario.paper(kind, **overrides)
-        except InvalidInput:
-            outcomes['refused'] += 1
-            continue
-        with warnings.catch_warnings():
-            warnings.simplefilter('error', RuntimeWarning)
-            assert_finite(run_trial(scenario, strategies[case % len(strategies)], case, 0, 6),
-                          (kind, overrides))
-        outcomes['ran'] += 1
+        outcomes[refused_or_ran(kind, limited_values(rng), strategies[case % len(strategies)],
+                                case, 6)] += 1
     assert outcomes['refused'] > 10 and outcomes['ran'] > 50, outcomes
 
 
