@@ -279,8 +279,9 @@ def write_summary(args: Any, formation: Formation, out: Path, launcher: Launcher
         if unreachable > UNREACHABLE_WARN_SHARE * max(result['steps'], 1):
             print(f"{PROG}: warning: {follower_id}: its slot's disc was out of reach on "
                   f"{unreachable} of {result['steps']} steps, so it headed back to the disc "
-                  'instead of planning: max_speed leaves no margin over what keeping pace '
-                  'with the leader needs', file=sys.stderr)
+                  'instead of planning: max_speed leaves too little margin over what keeping '
+                  'pace with the leader needs (or safety_distance cuts the disc)',
+                  file=sys.stderr)
     return 0
 
 
