@@ -77,11 +77,20 @@ class ForeignData:
 
 def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
     """Decode the mapped topics of ``bag``; BagError naming a topic the bag lacks."""
-    def decoded(topic: str, type_name: str) -> list[Any]:
-        if bag.find(topic, required=False) is None:
+    def resolved(topic: str) -> str:
+        found = bag.find(topic, required=False)
+        if found is None:
             raise BagError(f'the topic map names {topic!r}, which the bag does not have '
                            f'(it has: {", ".join(sorted(bag.counts()))})')
-        return [m for _, m in bag.decode(topic, type_name)]
+        return found
+
+    def decoded(topic: str, type_name: str) -> list[Any]:
+        return [m for _, m in bag.decode(resolved(topic), type_name)]
+
+    if resolved(topics.leader_odometry) == resolved(topics.follower_odometry):
+        raise BagError(f'the topic map names {resolved(topics.leader_odometry)!r} as both '
+                       "leader_odometry and follower_odometry: each robot's odometry is its "
+                       'own topic')
 
     refused = {'not_finite': 0, 'out_of_range': 0}
     odometry: dict[str, list[tuple[int, float, float, tuple[float, float] | None]]] = {}
@@ -101,6 +110,13 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
             refused['out_of_range'] += 1
         else:
             ranges.append((header_ns(m), float(m.range)))
+    for name, stamps in (('follower_odometry', [o[0] for o in odometry['follower']]),
+                         ('leader_odometry', [o[0] for o in odometry['leader']]),
+                         ('range', [r[0] for r in ranges])):
+        if len(stamps) > 1 and min(stamps) == max(stamps):
+            raise BagError(f'every message on {resolved(getattr(topics, name))!r} carries the '
+                           f'header stamp {stamps[0]} ns: the estimator orders its inputs by '
+                           'their stamps (record with the stamps set, e.g. by the driver)')
     truth = {}
     if topics.leader_truth and topics.follower_truth:
         for robot in ('leader', 'follower'):

@@ -121,3 +121,44 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and word in done.stderr and \
             len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_topic_names_resolve_as_the_bag_check_does(data: ForeignData) -> None:
+    """A map naming the topics without their leading slash reads the same inputs (it used to
+    pass the check and fail decoding with a KeyError); one topic named as both robots'
+    odometry is refused."""
+    from formopt_ros.bag import BagError
+    bag, full = read_bag(BAG), TopicMap.load(MAP)
+    short = TopicMap(*(name.lstrip('/') for name in (
+        full.leader_odometry, full.follower_odometry, full.range, full.leader_truth,
+        full.follower_truth)), full.estimator)
+    again = read_foreign(bag, short)
+    assert again.ranges == data.ranges and again.odometry == data.odometry
+    twice = TopicMap(full.leader_odometry, 'leader/odom', full.range)
+    with pytest.raises(BagError, match='as both leader_odometry and follower_odometry'):
+        read_foreign(bag, twice)
+
+
+def test_a_bag_without_stamps_is_named(tmp_path: Path) -> None:
+    """The TIERS bag's first messages with every header stamp set to 0 (a driver that never
+    set them): BagError naming the topic (it ran, counted 'late' and 'duplicate' inputs and
+    evaluated nothing)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from formopt_ros.bag import BagError
+    from formopt_ros.bag.writer import BagWriter
+    store, source, topics = get_typestore(Stores.ROS2_JAZZY), read_bag(BAG), TopicMap.load(MAP)
+    path = tmp_path / 'unstamped.mcap'
+    writer = BagWriter(path)
+    for topic, kind in ((topics.leader_odometry, 'nav_msgs/msg/Odometry'),
+                        (topics.follower_odometry, 'nav_msgs/msg/Odometry'),
+                        (topics.range, 'sensor_msgs/msg/Range')):
+        writer.add_channel(topic, kind)
+        for record, message in source.decode(topic, kind)[:20]:
+            message.header.stamp.sec, message.header.stamp.nanosec = 0, 0
+            writer.write(topic, bytes(store.serialize_cdr(message, kind)), record.log_time)
+    writer.close()
+    with pytest.raises(BagError, match=f"every message on '{topics.follower_odometry}' "
+                                       'carries the header stamp 0'):
+        read_foreign(read_bag(path), TopicMap(topics.leader_odometry, topics.follower_odometry,
+                                              topics.range))
