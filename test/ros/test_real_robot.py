@@ -41,6 +41,7 @@ class Probe(Node):
         super().__init__('probe', namespace=PREFIX)
         self.errors: list[int] = []           # stamps of ERROR diagnostics, ns
         self.levels: list[int] = []
+        self.messages: list[str] = []
         self.estimates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.truth: dict[int, np.ndarray] = {}
         self.commands: list[tuple[float, float]] = []
@@ -54,6 +55,7 @@ class Probe(Node):
         for status in message.status:
             if status.name.startswith(f'{PREFIX}/follower_estimator'):
                 self.levels.append(status.level)
+                self.messages.append(status.message)
                 if status.level == DiagnosticStatus.ERROR:
                     self.errors.append(header_ns(message))
 
@@ -256,6 +258,16 @@ def test_one_robot_per_network_namespace(tmp_path: Path, two_hosts: tuple[str, s
     result = json.loads(summary.read_text())
     assert result['ok'] and result['counters']['measurements'] > 150, (result, robot_output)
     assert result['counters']['odometry'] > 500
+
+
+def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """range_sigma 1.0 m for a radio of 0.1 m (a unit slip): the consistency watch finds the
+    filter conservative and /diagnostics says so (WARN); it used to stay OK."""
+    probe, summary = run_pair(tmp_path, {}, 8.0, node_process, {'range_sigma': 1.0})
+    assert any(m.startswith('filter consistency: conservative') for m in probe.messages), \
+        probe.messages
+    assert summary['consistency']['last']['level'] == 'warn', summary['consistency']
 
 
 def test_a_camera_follower_reads_its_mount_from_tf_static(

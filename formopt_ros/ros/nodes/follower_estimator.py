@@ -17,6 +17,7 @@ from sensor_msgs.msg import Range
 from tf2_msgs.msg import TFMessage
 
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
+from formopt_ros.core.consistency import WARN
 from formopt_ros.core.domain import check_deviation_domain
 from formopt_ros.core.controller import Limits, required_velocity, twist_toward
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
@@ -436,7 +437,8 @@ class FollowerEstimatorNode(Node):
         input began. WARN: waiting for the first input, a stream older than half the timeout,
         a delay spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), a
         pause of every input (this process stalled: its backlog is applied in order, nothing
-        dropped), odometry carried past its last message, gaps, gated ranges."""
+        dropped), the consistency watch's current warning (a window outside its band),
+        odometry carried past its last message, gaps, gated ranges."""
         new = {k: v - self._reported.get(k, 0) for k, v in self.counts().items()}
         errors: list[str] = []
         if self.tracker is not None and self.tracker.watch.failed:
@@ -468,6 +470,8 @@ class FollowerEstimatorNode(Node):
                        if a is not None and a > limit / 2]
         if old_streams:
             return [('WARN', 'late: ' + ', '.join(old_streams))]
+        if self.tracker is not None and self.tracker.watch.verdict().level == WARN:
+            return [('WARN', f'filter consistency: {self.tracker.watch.verdict().reason}')]
         if spikes or late:
             return [('WARN', 'inputs delayed beyond reorder_lag (the link stalled)'
                              + (f': {late} dropped as late' if late else '')
