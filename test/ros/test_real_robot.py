@@ -260,6 +260,25 @@ def test_one_robot_per_network_namespace(tmp_path: Path, two_hosts: tuple[str, s
     assert result['counters']['odometry'] > 500
 
 
+def test_an_estimator_that_heard_nothing_is_not_ok(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """follower_estimator alone (its leader odometry remapped to a topic nobody publishes, no
+    robot): its ready line names the topics it reads, and stopped, its summary is not ok and
+    names each stream that never delivered with its topic (it said ok)."""
+    summary_path = tmp_path / 'summary.json'
+    estimator = node_process('follower_estimator',
+                             {**ESTIMATOR, 'summary_path': str(summary_path)},
+                             extra=['-r', f'leader_odom:={LEADER_TOPIC}'])
+    assert estimator.wait_for_line('follower_estimator ready'), estimator.stderr
+    assert f'inputs {PREFIX}/odom, {LEADER_TOPIC}, {PREFIX}/range' in estimator.stderr
+    os.killpg(estimator.process.pid, signal.SIGINT)
+    assert estimator.wait(timeout=20.0) == 0, estimator.stderr
+    summary = json.loads(summary_path.read_text())
+    assert not summary['ok'] and summary['errors'] == [
+        f'no usable input ever arrived: odom on {PREFIX}/odom, leader_odom on {LEADER_TOPIC}, '
+        f'range on {PREFIX}/range'], summary['errors']
+
+
 def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
     """range_sigma 1.0 m for a radio of 0.1 m (a unit slip): the consistency watch finds the

@@ -192,16 +192,17 @@ class FollowerEstimatorNode(Node):
         self.cmd_pub = self.create_publisher(Twist, 'cmd_vel', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      qos.profile('diagnostics'))
-        self.create_subscription(Odometry, 'odom', lambda m: self.on_odometry('odom', m),
-                                 qos.SENSOR)
-        self.create_subscription(Odometry, 'leader_odom',
-                                 lambda m: self.on_odometry('leader_odom', m),
-                                 qos.SENSOR)
-        if sensor == 'range':
-            self.create_subscription(Range, 'range', self.on_range, qos.SENSOR)
-        else:
-            self.create_subscription(Vector3Stamped, 'bearing', self.on_bearing,
-                                     qos.SENSOR)
+        inputs = [self.create_subscription(Odometry, 'odom',
+                                           lambda m: self.on_odometry('odom', m), qos.SENSOR),
+                  self.create_subscription(Odometry, 'leader_odom',
+                                           lambda m: self.on_odometry('leader_odom', m),
+                                           qos.SENSOR),
+                  self.create_subscription(Range, 'range', self.on_range, qos.SENSOR)
+                  if sensor == 'range' else
+                  self.create_subscription(Vector3Stamped, 'bearing', self.on_bearing,
+                                           qos.SENSOR)]
+        #: Per stream, the topic it resolved to (remappings and namespace applied).
+        self.topics = dict(zip(self.streams, (s.topic_name for s in inputs)))
         self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
                                  qos.profile('tf_static'))
         self.create_timer(2.0 * scenario.dt, self.plan)
@@ -209,7 +210,8 @@ class FollowerEstimatorNode(Node):
         self.create_timer(p['status_period'], self.publish_diagnostics)
         self.frame = frame
         self.get_logger().info(f'follower_estimator ready ({sensor}, strategy {strategy.name}, '
-                               f'slot {list(scenario.p_o)} m in {frame!r})')
+                               f'slot {list(scenario.p_o)} m in {frame!r}; inputs '
+                               f"{', '.join(self.topics.values())})")
 
     @staticmethod
     def _scenario(p: dict[str, Any]) -> Scenario:
@@ -462,8 +464,9 @@ class FollowerEstimatorNode(Node):
         started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
         if old and started:
             errors.append(f'stale (silent or behind this clock for over {limit:g} s): '
-                          + ', '.join(s + (f' (its messages are refused: {self.refusal[s]})'
-                                           if s in self.refusal else '') for s in old))
+                          + ', '.join(f'{s} on {self.topics[s]}'
+                                      + (f' (its messages are refused: {self.refusal[s]})'
+                                         if s in self.refusal else '') for s in old))
         if errors:
             return [('ERROR', e) for e in errors]
         old_streams = [f'{s} {a:.2f} s' for s, a in ages.items()
@@ -526,11 +529,17 @@ class FollowerEstimatorNode(Node):
             self.finished = True
 
     def summary(self) -> dict[str, Any]:
-        """Final estimate, counters and health: ok only if no ERROR was raised."""
+        """Final estimate, counters and health: ok only if no ERROR was raised and every input
+        stream delivered."""
         estimator = self.estimator
+        never = [f'{s} on {self.topics[s]}'
+                 + (f' (its messages are refused: {self.refusal[s]})' if s in self.refusal
+                    else '') for s, t in self.newest.items() if t is None]
+        errors = list(self.errors) + ([f"no usable input ever arrived: {', '.join(never)}"]
+                                      if never else [])
         return {
-            'ok': self.worst != 'ERROR', 'worst_diagnostic': self.worst,
-            'errors': list(self.errors),
+            'ok': self.worst != 'ERROR' and not never, 'worst_diagnostic': self.worst,
+            'errors': errors,
             'final_estimate': estimator.x.tolist(), 'final_covariance': estimator.P.tolist(),
             'range_bias': float(estimator.state[3]) if estimator.state.size == 4 else None,
             'final_weighted_trace': estimator.weighted_trace(),
