@@ -6,7 +6,7 @@ import sys
 
 from formopt_ros.bag import BagError, read_bag, repair
 from formopt_ros.bag.reader import info
-from formopt_ros.cli.common import ArgumentParser, command, existing_file, fail, new_file
+from formopt_ros.cli.common import ArgumentParser, bag_file, command, fail, new_file
 
 
 def build_parser() -> ArgumentParser:
@@ -15,11 +15,11 @@ def build_parser() -> ArgumentParser:
                             'recover every readable chunk of a damaged or truncated one.')
     commands = parser.add_subparsers(dest='command', required=True)
     show = commands.add_parser('info', help='topics, types and counts of a bag')
-    show.add_argument('bag', type=existing_file)
+    show.add_argument('bag', type=bag_file)
     show.add_argument('--json', action='store_true', help='print JSON instead of a table')
     fix = commands.add_parser('repair', help='recover the readable chunks of a damaged bag '
                               '(killed recorder, flipped bytes)')
-    fix.add_argument('source', type=existing_file, metavar='IN')
+    fix.add_argument('source', type=bag_file, metavar='IN')
     fix.add_argument('target', type=new_file, metavar='OUT', help='a new file (never '
                      'overwritten)')
     for sub in (show, fix):

@@ -186,6 +186,23 @@ def _check_parent(path: Path, text: str) -> None:
             f'({error.strerror})') from None
 
 
+def bag_file(text: str) -> Path:
+    """argparse type: an .mcap file, or the folder ``ros2 bag record`` writes when it holds
+    exactly one (its .mcap file is returned)."""
+    path = Path(text)
+    if not path.is_dir():
+        return existing_file(text)
+    found = sorted(path.glob('*.mcap'))
+    if len(found) == 1:
+        return found[0]
+    if found:
+        raise argparse.ArgumentTypeError(f'{text}: holds {len(found)} .mcap files (a split '
+                                         'bag): pass one of them')
+    raise argparse.ArgumentTypeError(f'{text}: a folder without an .mcap file (record with '
+                                     '`ros2 bag record -s mcap`, or convert a .db3 bag with '
+                                     '`ros2 bag convert`)')
+
+
 def existing_file(text: str) -> Path:
     """argparse type: a file that exists."""
     path = Path(text)

@@ -12,7 +12,8 @@ from formopt_ros.analysis.recording import load_recording
 from formopt_ros.analysis.report import step_ranges
 from formopt_ros.bag import BagError, read_bag
 from formopt_ros.cli.common import (
-    INTERRUPTED_EXIT, ArgumentParser, command, existing_file, fail, integer, new_file, number)
+    INTERRUPTED_EXIT, ArgumentParser, bag_file, command, existing_file, fail, integer, new_file,
+    number)
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.wire.jsonfile import write_json
 
@@ -52,7 +53,7 @@ def option_value(text: str) -> tuple[str, Any]:
 def build_parser() -> ArgumentParser:
     """Command-line flags of ``replay`` (ROS arguments after --ros-args are passed through)."""
     out = ArgumentParser(prog=PROG, description=__doc__)
-    out.add_argument('bag', type=existing_file, nargs='?',
+    out.add_argument('bag', type=bag_file, nargs='?',
                      help='the .mcap file (or -p bag_path:=... after --ros-args)')
     speed = out.add_mutually_exclusive_group()
     speed.add_argument('--rate', type=number(1e-3, 1e6), help='playback speed factor '

@@ -4,14 +4,14 @@ from __future__ import annotations
 import sys
 
 from formopt_ros.cli.common import (
-    ArgumentParser, command, existing_file, fail, integer, new_folder)
+    ArgumentParser, bag_file, command, fail, integer, new_folder)
 
 
 def build_parser() -> ArgumentParser:
     """The command-line interface."""
     parser = ArgumentParser(prog='formopt-report', description='Figures (trajectory, weighted '
                             'trace, NEES) and a summary of a recorded formation run.')
-    parser.add_argument('bag', type=existing_file, help='the recorded .mcap file')
+    parser.add_argument('bag', type=bag_file, help='the recorded .mcap file (or its folder)')
     parser.add_argument('--out', type=new_folder, required=True,
                         help='output folder (new, or empty)')
     parser.add_argument('--follower', help='which follower (default: the only one)')

@@ -268,3 +268,22 @@ def test_robot_sh_names_a_bad_argument(argv: list[str], message: str) -> None:
                           timeout=30)
     assert done.returncode == 2 and message in done.stderr, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and done.stdout == ''
+
+
+def test_a_rosbag2_folder_is_read_through_its_mcap_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A bag as `ros2 bag record` writes it (a folder holding one .mcap file) is read as that
+    file; a folder with none, or with two (a split bag), is refused in one line (exit 2)."""
+    from formopt_ros.cli import bag
+    source = Path(__file__).resolve().parents[1] / 'data' / 'tiers_uwb_case4_test3.mcap'
+    folder = tmp_path / 'rosbag2_run'
+    folder.mkdir()
+    for copies, message in ((0, 'a folder without an .mcap file'), (2, 'holds 2 .mcap files')):
+        for index in range(copies):
+            (folder / f'run_{index}.mcap').symlink_to(source)
+        with pytest.raises(SystemExit) as stop:
+            bag.main(['info', str(folder)])
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    (folder / 'run_1.mcap').unlink()
+    bag.main(['info', str(folder)])
+    assert '/uwb/range' in capsys.readouterr().out
