@@ -196,8 +196,8 @@ def bag_file(text: str) -> Path:
     if len(found) == 1:
         return found[0]
     if found:
-        raise argparse.ArgumentTypeError(f'{text}: holds {len(found)} .mcap files (a split '
-                                         'bag): pass one of them')
+        raise argparse.ArgumentTypeError(f'{text}: holds {len(found)} .mcap files: pass one '
+                                         'of them')
     raise argparse.ArgumentTypeError(f'{text}: a folder without an .mcap file (record with '
                                      '`ros2 bag record -s mcap`, or convert a .db3 bag with '
                                      '`ros2 bag convert`)')

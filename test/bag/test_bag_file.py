@@ -465,7 +465,7 @@ def test_cli_info_repair_and_bad_files(tmp_path: Path) -> None:
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'none.mcap')), 'no such file')
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'text.mcap')), 'not an MCAP file')
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'cut.mcap')), 'truncated')
-    assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'directory')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'holds 4 .mcap files')
     assert_clean_error(run_module(cli, 'bogus'), 'invalid choice')
 
 

@@ -273,7 +273,8 @@ def test_robot_sh_names_a_bad_argument(argv: list[str], message: str) -> None:
 def test_a_rosbag2_folder_is_read_through_its_mcap_file(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """A bag as `ros2 bag record` writes it (a folder holding one .mcap file) is read as that
-    file; a folder with none, or with two (a split bag), is refused in one line (exit 2)."""
+    file; a folder with none, or with two (a split bag, say), is refused in one line (exit
+    2)."""
     from formopt_ros.cli import bag
     source = Path(__file__).resolve().parents[1] / 'data' / 'tiers_uwb_case4_test3.mcap'
     folder = tmp_path / 'rosbag2_run'
