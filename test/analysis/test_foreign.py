@@ -124,9 +124,8 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
 
 
 def test_topic_names_resolve_as_the_bag_check_does(data: ForeignData) -> None:
-    """A map naming the topics without their leading slash reads the same inputs (it used to
-    pass the check and fail decoding with a KeyError); one topic named as both robots'
-    odometry is refused."""
+    """A map naming the topics without their leading slash reads the same inputs; one topic
+    named as both robots' odometry is refused."""
     from formopt_ros.bag import BagError
     bag, full = read_bag(BAG), TopicMap.load(MAP)
     short = TopicMap(*(name.lstrip('/') for name in (
@@ -141,8 +140,7 @@ def test_topic_names_resolve_as_the_bag_check_does(data: ForeignData) -> None:
 
 def test_a_bag_without_stamps_is_named(tmp_path: Path) -> None:
     """The TIERS bag's first messages with every header stamp set to 0 (a driver that never
-    set them): BagError naming the topic (it ran, counted 'late' and 'duplicate' inputs and
-    evaluated nothing)."""
+    set them): BagError naming the topic."""
     from rosbags.typesys import Stores, get_typestore
 
     from formopt_ros.bag import BagError

@@ -247,7 +247,7 @@ def test_replay_refuses_a_flag_its_mode_would_not_read(
         flags: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
     """replay BAG with a flag of another mode (an offline flag without --offline, a playback
     flag with it, a recorded-run flag with --topic-map): exit 2, one line naming the flag,
-    before the bag is read (it used to play back or re-estimate and ignore the flag)."""
+    before the bag is read."""
     from formopt_ros.cli import replay
     with pytest.raises(SystemExit) as stop:
         replay.main([__file__, *flags])
@@ -262,7 +262,7 @@ def test_replay_refuses_a_flag_its_mode_would_not_read(
     (['--robot', '1x'], '--robot must be letters'), (['--robto', 'f1'], 'unknown argument')])
 def test_robot_sh_names_a_bad_argument(argv: list[str], message: str) -> None:
     """scripts/robot.sh with a flag missing its value, a bad id or an unknown flag: exit 2 and
-    one line naming it, before any node starts (a missing value used to exit 1 silently)."""
+    one line naming it, before any node starts."""
     script = Path(__file__).resolve().parents[2] / 'scripts' / 'robot.sh'
     done = subprocess.run(['bash', str(script), *argv], capture_output=True, text=True,
                           timeout=30)

@@ -264,7 +264,7 @@ def test_an_estimator_that_heard_nothing_is_not_ok(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
     """follower_estimator alone (its leader odometry remapped to a topic nobody publishes, no
     robot): its ready line names the topics it reads, and stopped, its summary is not ok and
-    names each stream that never delivered with its topic (it said ok)."""
+    names each stream that never delivered with its topic."""
     summary_path = tmp_path / 'summary.json'
     estimator = node_process('follower_estimator',
                              {**ESTIMATOR, 'summary_path': str(summary_path)},
@@ -282,7 +282,7 @@ def test_an_estimator_that_heard_nothing_is_not_ok(
 def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
     """range_sigma 1.0 m for a radio of 0.1 m (a unit slip): the consistency watch finds the
-    filter conservative and /diagnostics says so (WARN); it used to stay OK."""
+    filter conservative and /diagnostics says so (WARN)."""
     probe, summary = run_pair(tmp_path, {}, 8.0, node_process, {'range_sigma': 1.0})
     assert any(m.startswith('filter consistency: conservative') for m in probe.messages), \
         probe.messages
