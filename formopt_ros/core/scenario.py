@@ -94,6 +94,8 @@ EULER_TURN_BOUND = 0.5
 #: The fields of :class:`LeaderPath` each kind of path uses (the others keep their defaults).
 PATH_FIELDS = {'straight': ('speed',), 'arc': ('speed', 'yaw_rate'),
                's-curve': ('speed', 'amplitude', 'period'), 'segments': ('segments', 'repeat')}
+#: The field that sets how fast a path of each kind turns (segments: each segment's yaw_rate).
+TURN_FIELDS = {'arc': 'yaw_rate', 's-curve': 'amplitude'}
 
 
 @dataclass(frozen=True)
@@ -138,7 +140,7 @@ class LeaderPath:
                 owners = [kind for kind, used in PATH_FIELDS.items() if name in used]
                 raise InvalidInput(f'leader {name}', f'is not used by a path of kind '
                                    f'{self.kind!r} (only by {owners}), got {value!r}')
-        turn = {'arc': 'yaw_rate', 's-curve': 'amplitude'}.get(self.kind)
+        turn = TURN_FIELDS.get(self.kind)
         if turn is not None and getattr(self, turn) == 0.0:
             raise InvalidInput(f'leader {turn}', f"of a path of kind {self.kind!r} must not be 0 "
                                                  "(a leader that never turns is kind 'straight')")
@@ -379,7 +381,7 @@ def check_limits(scenario: 'Scenario') -> None:
     motions = path.extreme_motions()
     turn = max(abs(w) for _, w in motions)
     if s.kinematics == EULER and turn * s.dt > EULER_TURN_BOUND:
-        name = {'arc': 'yaw_rate', 's-curve': 'amplitude'}.get(path.kind, 'segments')
+        name = TURN_FIELDS.get(path.kind, 'segments')
         raise InvalidInput(f'leader {name}', f'{turn:g} rad/s turns {turn * s.dt:.3g} rad per dt '
                            f"= {s.dt:g} s: the paper's Euler kinematics (eq. 9) is no model of "
                            'that (it scales the relative position by sqrt(1 + (omega dt)^2) '
