@@ -384,10 +384,13 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     # which would make p the disc's optimum; the disc's optimum lies outside the region and
     # gains more, so the lines through the leader decide (tried first)
     lines_first = problem.measurement != RANGE and _circles_through(region, p) == [0]
-    if lines_first:
+
+    def by_lines() -> Solution | None:
         lines = lines_plan(problem, method, region=region, seeds=(p,))
-        if lines.certificate in STACKED_CERTIFICATES:
-            return lines
+        return lines if lines.certificate in STACKED_CERTIFICATES else None
+
+    if lines_first and (decided := by_lines()) is not None:
+        return decided
     name, details = certify_in_region(problem, region, p, g, interval)
     details['region'] = 'restricted'
     on_boundary = not (problem.measurement != RANGE and best == 0 and points
@@ -395,10 +398,8 @@ def rq_in_region(problem: Problem, region: Region, method: str = 'rq') -> Soluti
     if name in PROVED:
         return make_solution(problem, p, method, on_boundary, len(points), certificate=name,
                              details=details, gain=g)
-    if not lines_first:
-        lines = lines_plan(problem, method, region=region, seeds=(p,))
-        if lines.certificate in STACKED_CERTIFICATES:
-            return lines
+    if not lines_first and (decided := by_lines()) is not None:
+        return decided
     details['reason'] = ('the S-lemma with several constraints found no multipliers: the '
                          f'best of {len(feasible)} enumerated KKT points and samples')
     return make_solution(problem, p, method, on_boundary, len(points), fallback=ENUMERATION,
