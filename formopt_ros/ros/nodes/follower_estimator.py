@@ -408,6 +408,12 @@ class FollowerEstimatorNode(Node):
         return [s for s, age in self.ages().items()
                 if age is None or age > self.params['stale_timeout']]
 
+    def stream_label(self, stream: str) -> str:
+        """'leader_odom on /f1/leader_odom', and why its messages are refused, if they are."""
+        return f'{stream} on {self.topics[stream]}' + (
+            f' (its messages are refused: {self.refusal[stream]})' if stream in self.refusal
+            else '')
+
     def ages(self) -> dict[str, float | None]:
         """Per stream, seconds since its newest stamp (None: nothing yet)."""
         now = self.now_ns()
@@ -464,9 +470,7 @@ class FollowerEstimatorNode(Node):
         started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
         if old and started:
             errors.append(f'stale (silent or behind this clock for over {limit:g} s): '
-                          + ', '.join(f'{s} on {self.topics[s]}'
-                                      + (f' (its messages are refused: {self.refusal[s]})'
-                                         if s in self.refusal else '') for s in old))
+                          + ', '.join(map(self.stream_label, old)))
         if errors:
             return [('ERROR', e) for e in errors]
         old_streams = [f'{s} {a:.2f} s' for s, a in ages.items()
@@ -532,9 +536,7 @@ class FollowerEstimatorNode(Node):
         """Final estimate, counters and health: ok only if no ERROR was raised and every input
         stream delivered."""
         estimator = self.estimator
-        never = [f'{s} on {self.topics[s]}'
-                 + (f' (its messages are refused: {self.refusal[s]})' if s in self.refusal
-                    else '') for s, t in self.newest.items() if t is None]
+        never = [self.stream_label(s) for s, t in self.newest.items() if t is None]
         errors = list(self.errors) + ([f"no usable input ever arrived: {', '.join(never)}"]
                                       if never else [])
         return {
