@@ -166,8 +166,8 @@ def leader_path_from(values: dict[str, Any]) -> LeaderPath:
         return LeaderPath('segments', segments=tuple(Segment(*t) for t in zip(*lists)),
                           repeat=values['repeat_segments'])
     except InvalidInput as error:
-        name = {'leader speed': 'v_leader', 'leader yaw_rate': 'omega_leader',
-                'leader amplitude': 'amplitude', 'leader period': 'period'}.get(error.name)
+        name = {f'leader {field}': param.name for param, field in PATH_PARAMETERS
+                if field in ('speed', 'yaw_rate', 'amplitude', 'period')}.get(error.name)
         raise ParameterError('the leader path parameters are inconsistent: ' + (
             f"parameter '{name}' {error.reason}" if name else str(error))) from None
 
