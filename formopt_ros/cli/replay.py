@@ -50,6 +50,10 @@ def option_value(text: str) -> tuple[str, Any]:
         return name, value
 
 
+#: Defaults of --tolerance (the largest admissible difference) and --skip (ranges left out).
+TOLERANCE, SKIP = 1e-9, 30
+
+
 def build_parser() -> ArgumentParser:
     """Command-line flags of ``replay`` (ROS arguments after --ros-args are passed through)."""
     out = ArgumentParser(prog=PROG, description=__doc__)
@@ -77,7 +81,7 @@ def build_parser() -> ArgumentParser:
     flags.add_argument('--trial', type=integer(0, 2**31 - 1),
                        help='trial index (default: from the run description)')
     flags.add_argument('--tolerance', type=number(0.0),
-                       help='largest admissible difference (default 1e-9)')
+                       help=f'largest admissible difference (default {TOLERANCE:g})')
     flags.add_argument('--json', type=new_file, help='also write the result here (a new file)')
     flags.add_argument('--topic-map', type=existing_file, metavar='MAP',
                        help='a bag of standard types (another robot, a data set): which topic is '
@@ -86,7 +90,7 @@ def build_parser() -> ArgumentParser:
                        'and reports NEES and RMS error against its ground truth')
     flags.add_argument('--skip', type=integer(0, 10**9),
                        help='--topic-map: ranges left out of the evaluation at the start '
-                       '(default 30)')
+                       f'(default {SKIP})')
     return out
 
 
@@ -235,8 +239,8 @@ def main(args: list[str] | None = None) -> None:
     if options.offline:
         if options.bag is None:
             fail(PROG, '--offline needs BAG')
-        options.tolerance = 1e-9 if options.tolerance is None else options.tolerance
-        options.skip = 30 if options.skip is None else options.skip
+        options.tolerance = TOLERANCE if options.tolerance is None else options.tolerance
+        options.skip = SKIP if options.skip is None else options.skip
         sys.exit(foreign_main(options) if options.topic_map else offline_main(options))
     from formopt_ros.ros.nodes.replay import PARAMS, SUMMARY, Replay, select_topics
     from formopt_ros.ros.runtime import node_main
