@@ -4,13 +4,14 @@
   plausibility gate (:class:`~formopt_ros.core.estimator.InputBounds`, relative to |p_o|):
   otherwise every leader odometry message of a tiny slot (e.g. 2 mm at 1 m/s) is refused as
   implausible and the run hangs until its timeout.
-* :func:`check_deviation_domain`: a bearing follower whose disc comes too close to the leader
-  diverges (docs/faults.md, "Why large discs diverge for bearing"): the EKF's bearing model is
-  linearised with a Jacobian of size 1/|p| and a curvature of 1/|p|^2, so a position error
-  that is a fair fraction of the distance to the leader makes the update wrong by more than
-  the measurement noise. Measured boundary (50 trials x 600 steps, RAM): consistent when the
-  disc keeps ``CLEARANCE_SIGMAS`` initial position standard deviations and
-  ``CLEARANCE_FRACTION`` |p_o| from the leader, divergent trials just beyond.
+* :func:`check_deviation_domain`: a follower that measures bearings (alone or with ranges)
+  whose disc comes too close to the leader diverges (docs/faults.md, "Why large discs diverge
+  for bearing"): the EKF's bearing model is linearised with a Jacobian of size 1/|p| and a
+  curvature of 1/|p|^2, so a position error that is a fair fraction of the distance to the
+  leader makes the update wrong by more than the measurement noise. Measured boundary (50
+  trials x 600 steps, RAM): consistent when the disc keeps ``CLEARANCE_SIGMAS`` initial
+  position standard deviations and ``CLEARANCE_FRACTION`` |p_o| from the leader, divergent
+  trials just beyond; range-bearing diverges from 0.7 |p_o| on and is held to the same rule.
 
 Both raise ValueError naming the field to change; neither is needed for the paper's settings.
 """
@@ -19,13 +20,10 @@ from __future__ import annotations
 import math
 
 from formopt_ros.core.estimator import TRAVEL_BOUND, TURN_BOUND
-from formopt_ros.core.model import BEARING
+from formopt_ros.core.model import BEARING, RANGE_BEARING
+from formopt_ros.core.reach import CLEARANCE_FRACTION, CLEARANCE_SIGMAS
 from formopt_ros.core.scenario import LeaderPath, Scenario
 
-#: Bearing: the disc must keep this many initial position standard deviations from the leader.
-CLEARANCE_SIGMAS = 3.5
-#: Bearing: ... and this fraction of |p_o| (the steady state near the leader).
-CLEARANCE_FRACTION = 0.2
 #: Initial position standard deviations the estimate may move by when it settles (the
 #: follower's commands cover that correction in one sub-step).
 SETTLING_SIGMAS = 3.0
@@ -77,12 +75,13 @@ def check_input_domain(scenario: Scenario, field: str = 'p_o') -> None:
 
 
 def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None:
-    """Refuse a bearing scenario whose disc reaches too close to the leader (module docstring).
+    """Refuse a bearing or range-bearing scenario whose disc reaches too close to the leader
+    (module docstring).
 
     The clearance |p_o| - r must be at least CLEARANCE_SIGMAS initial position standard
     deviations (the first updates) and CLEARANCE_FRACTION |p_o| (the steady state). Range
-    followers are not limited: RAM and RQ stay consistent up to a deviation of 0.999 |p_o|
-    (PERIODIC does not at 0.9-0.95; the consistency watch flags it).
+    followers are not limited: RAM, RQ and PERIODIC stay consistent up to a deviation of
+    0.95 |p_o| (PERIODIC keeps its cycle CLEARANCE_FRACTION |p_o| from the leader).
 
     Args:
         scenario: the follower's settings.
@@ -93,7 +92,7 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
         ValueError: naming ``field``, the clearance, the rule and the largest fraction allowed.
     """
     s = scenario
-    if s.measurement != BEARING:
+    if s.measurement not in (BEARING, RANGE_BEARING):
         return
     sigma0 = math.sqrt(max(s.initial_covariance[0], s.initial_covariance[1]))
     clearance = s.d_o - s.r
@@ -101,13 +100,13 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
     if clearance < need * (1.0 - 1e-9):     # the limit itself passes (0.8 of 0.2 |p_o| ...)
         largest = max(0.0, 1.0 - need / s.d_o)
         raise ValueError(
-            f"{field} {s.r / s.d_o:.6g}: a bearing follower's disc must stay {need:.4g} m from "
-            f'the leader (the larger of {CLEARANCE_SIGMAS:g} initial position standard '
-            f'deviations = {CLEARANCE_SIGMAS * sigma0:.4g} m and {CLEARANCE_FRACTION:g} '
-            f'|p_o| = {CLEARANCE_FRACTION * s.d_o:.4g} m), this one comes to '
-            f'{clearance:.4g} m: closer, the linearised bearing model is wrong by more than '
-            f'the noise and the filter diverges (docs/faults.md). Use a deviation of at most '
-            f'{largest:.4g}')
+            f'{field} {s.r / s.d_o:.6g}: a follower that measures bearings must keep its disc '
+            f'{need:.4g} m from the leader (the larger of {CLEARANCE_SIGMAS:g} initial '
+            f'position standard deviations = {CLEARANCE_SIGMAS * sigma0:.4g} m and '
+            f'{CLEARANCE_FRACTION:g} |p_o| = {CLEARANCE_FRACTION * s.d_o:.4g} m), this one '
+            f'comes to {clearance:.4g} m: closer, the linearised bearing model is wrong by more '
+            f'than the noise and the filter diverges (docs/faults.md). Use a deviation of at '
+            f'most {largest:.4g}')
 
 
 def check_domain(scenario: Scenario, slot_field: str = 'p_o',

@@ -34,6 +34,14 @@ from formopt_ros.core.model import propagate_state
 #: in floating point lies within a few units of roundoff of both its circles.
 FEASIBLE_RTOL = 1e-12
 
+#: Clearance from the leader that keeps the linearised measurement models valid (a range's
+#: Jacobian turns by 1/|p| per metre, a bearing's is 1/|p|, its curvature 1/|p|^2;
+#: docs/faults.md, "Why large discs diverge for bearing"): this many position standard
+#: deviations (the first updates, or whenever the filter is uncertain) ...
+CLEARANCE_SIGMAS = 3.5
+#: ... and this fraction of |p_o| (the steady state near the leader).
+CLEARANCE_FRACTION = 0.2
+
 #: A circle (centre x m, centre y m, radius m, inside): inside True for |p - c| <= radius,
 #: False for |p - c| >= radius.
 Circle = tuple[float, float, float, bool]

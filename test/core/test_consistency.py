@@ -208,15 +208,16 @@ def test_study_flags_an_inconsistent_strategy_and_the_report_withholds_it() -> N
 
 
 def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
-    """The paper's settings pass; a bearing disc of 0.6 |p_o| and a 2 mm slot are refused,
-    naming the field, the rule and the limit."""
-    for kind in ('range', 'bearing'):
+    """The paper's settings pass; a bearing (or range-bearing) disc of 0.6 |p_o| and a 2 mm
+    slot are refused, naming the field, the rule and the limit."""
+    for kind in ('range', 'bearing', 'range-bearing'):
         check_domain(Scenario.paper(kind))
     check_deviation_domain(Scenario.paper('range', r=0.999 * SQRT5))
     check_deviation_domain(Scenario.paper('bearing', r=0.5 * SQRT5))
-    with pytest.raises(ValueError, match=r'^deviation_fraction 0\.6: a bearing follower.*'
-                                         r'at most 0\.505'):
-        check_deviation_domain(Scenario.paper('bearing', r=0.6 * SQRT5), 'deviation_fraction')
+    for kind in ('bearing', 'range-bearing'):
+        with pytest.raises(ValueError, match=r'^deviation_fraction 0\.6: .*measures bearings.*'
+                                             r'at most 0\.505'):
+            check_deviation_domain(Scenario.paper(kind, r=0.6 * SQRT5), 'deviation_fraction')
     with pytest.raises(ValueError, match=r'0\.2 \|p_o\|'):
         check_deviation_domain(Scenario.paper('bearing', r=0.9 * SQRT5,
                                               initial_covariance=(1e-4, 1e-4, 4e-4)))

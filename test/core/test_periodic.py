@@ -12,7 +12,7 @@ from formopt_ros.core import solve
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.protocol import held_leader_motion, step_substeps
-from formopt_ros.core.reach import reach_centre
+from formopt_ros.core.reach import CLEARANCE_FRACTION, reach_centre
 from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
@@ -140,6 +140,25 @@ def test_gain_on_a_seeded_short_study(kind: str) -> None:
     assert periodic['steady_trace'] <= 0.90 * rq['steady_trace']
     assert periodic['mean_trace'] <= rq['mean_trace']
     assert periodic['nees_in_band'] >= 0.8
+
+
+@pytest.mark.parametrize('fraction', [0.9, 0.95])
+def test_a_wide_range_disc_keeps_the_cycle_clear_of_the_leader(fraction: float) -> None:
+    """Range, r = 0.9 and 0.95 |p_o|: the four-point boundary cycle would come 0.26 and 0.11 m
+    from the leader, where the filter of a follower playing it turns inconsistent (flagged:
+    trial-mean NEES 14 and 5.9 over 50 trials). The design keeps CLEARANCE_FRACTION |p_o|
+    (0.45 m) from the leader; 20 trials x 600 steps, seed 0: nothing flagged, steady tr(W P W)
+    at least 20 % below RQ's (measured -30.2 % and -29.3 %)."""
+    r = fraction * math.sqrt(5.0)
+    design = cached_design(SteadyConditions.from_scenario(Scenario.paper('range', r=r)), 4)[0]
+    assert design is not None
+    assert np.min(np.hypot(*design.points.T)) >= CLEARANCE_FRACTION * math.sqrt(5.0)
+    summary = summarize(run_study(StudyConfig('range', trials=20, steps=600, seed=0,
+                                              strategies=('rq', 'periodic'),
+                                              scenario={'r': r}), jobs=1))
+    assert summary['consistency']['flagged'] == {}
+    rq, periodic = summary['strategies']['rq'], summary['strategies']['periodic']
+    assert periodic['steady_trace'] <= 0.8 * rq['steady_trace']
 
 
 # --- feasibility and fallbacks -------------------------------------------------------------------
@@ -378,7 +397,8 @@ def test_no_cycle_without_odometry_noise() -> None:
     assert cached_design(conditions('range', sigma_v=0.0, sigma_omega=0.0), 2)[0] is None
     scenario = Scenario.paper('range', sigma_v=0.0, sigma_omega=0.0)
     records = drive(lambda k: scenario, 5, {'period': 2})
-    assert {s.details['reason'] for s, _, _ in records} == {'no periodic steady state'}
+    assert all(s.details['reason'].startswith('no periodic steady state')
+               for s, _, _ in records)
 
 
 @pytest.mark.parametrize('options', [{'period': 1}, {'period': 7}, {'check_every': 0},

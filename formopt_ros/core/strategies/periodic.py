@@ -19,8 +19,10 @@ transient, and it may take hundreds of steps to pay. So this strategy
 Under a speed limit or a safety distance the design is a cycle within reach when the boundary
 cycle does not fit (:func:`.periodic_design.design_within_reach`: every move in the reach
 disc, every point outside the safety distance); a cycle point out of reach of the estimated
-pose is projected onto the step's reachable set (:func:`.region.plan_within`). When the leader
-keeps one velocity (v, omega), straight or on an arc, the conditions are stationary in its
+pose is projected onto the step's reachable set (:func:`.region.plan_within`). A range cycle
+that would come closer to the leader than 0.2 |p_o| (a wide disc) is designed within reach
+too, with that clearance as its safety distance (:func:`.periodic_design.design_for`). When the
+leader keeps one velocity (v, omega), straight or on an arc, the conditions are stationary in its
 frame and the cycle is designed for them (it rotates with the leader). When the expected
 leader velocity is not constant over the step, or the conditions changed (the slot or r, or a
 noise level, the leader velocity, dt or the limits by more than ``replan_tolerance``) and have
@@ -62,6 +64,13 @@ SETTLE_DECISIONS = 10
 PATTERN = 'pattern'
 #: The interval between switch tests grows at most 2**6 = 64-fold.
 MAX_BACKOFF_DOUBLINGS = 6
+
+
+def no_cycle_reason(conditions: SteadyConditions) -> str:
+    """Why no cycle was designed for ``conditions`` (PERIODIC then plays greedy)."""
+    if conditions.limited:
+        return 'no cycle within reach beats greedy'
+    return 'no periodic steady state, or no cycle clear of the leader beats greedy'
 
 
 def steady_conditions(problem: Problem, context: PlanContext) -> SteadyConditions | None:
@@ -142,8 +151,7 @@ class PeriodicPattern(Strategy):
             return self._greedy(problem, CHANGING)
         designed = self._adopt(conditions, context.step)
         if self.design is None:
-            return self._greedy(problem, 'no cycle within reach beats greedy'
-                                if conditions.limited else 'no periodic steady state', designed)
+            return self._greedy(problem, no_cycle_reason(conditions), designed)
         if not fits_reach(self.design.points, conditions):
             self.mode = GREEDY
             return self._greedy(problem, 'the cycle does not fit the reachable set', designed)
@@ -327,8 +335,7 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     period = int(PeriodicPattern(**options).settings['period'])
     design = cached_design(conditions, period)[0]
     if design is None:
-        return ('no cycle within reach beats greedy (greedy throughout)' if conditions.limited
-                else 'no cycle has a steady state (greedy throughout)')
+        return f'{no_cycle_reason(conditions)} (greedy throughout)'
     angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
     radii = np.hypot(*(design.points - conditions.slot).T)
     if not np.allclose(radii, conditions.r, rtol=1e-9):       # designed within reach

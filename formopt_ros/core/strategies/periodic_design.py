@@ -43,11 +43,11 @@ import numpy as np
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weight_vector, weighted_trace
 from formopt_ros.core.model import (
-    EXACT, RANGE_BEARING, ekf_update, ekf_update_stacked, measurement_jacobian,
+    EXACT, RANGE, RANGE_BEARING, ekf_update, ekf_update_stacked, measurement_jacobian,
     predict_measurement, propagate_state, transition_matrices)
 from formopt_ros.core.stacked import StackedProblem
 from formopt_ros.core.protocol import SUBSTEPS, motion_commands, predict_move
-from formopt_ros.core.reach import Region, reach_centre
+from formopt_ros.core.reach import CLEARANCE_FRACTION, Region, reach_centre
 from formopt_ros.core.strategies.region import rq_target
 
 if TYPE_CHECKING:
@@ -834,7 +834,8 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
                default=(math.inf, np.empty((0, 2))))
     if not best[0] < greedy_cost:
         return None
-    points = best[1]
+    offsets = best[1] - c.slot            # into the disc: SLSQP meets its margins to ~1e-5 m
+    points = c.slot + offsets * np.minimum(1.0, c.r / np.hypot(*offsets.T))[:, None]
     maps = cycle_maps(points, c)
     mean_cost, posteriors, decay = evaluate_cycles(maps[None], points[None], c)
     m, factor = len(points), min(float(decay[0]), 1.0 - 1e-9)
@@ -849,8 +850,18 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
 def design_for(conditions: SteadyConditions, period: int) -> PatternDesign | None:
     """The boundary cycle of :func:`design_pattern`; under a speed limit or a safety distance
     it is kept when it fits the reachable set (and is no worse than the best cycle within
-    reach), else the cycle of :func:`design_within_reach`."""
+    reach), else the cycle of :func:`design_within_reach`.
+
+    A range cycle that would come closer to the leader than CLEARANCE_FRACTION |p_o| is
+    designed within reach with that clearance as its safety distance: the filter of a range
+    follower that plays the boundary cycle there turns inconsistent (docs/faults.md). Bearing
+    and range-bearing discs are held that far from the leader at the door
+    (:func:`~formopt_ros.core.domain.check_deviation_domain`)."""
+    clearance = CLEARANCE_FRACTION * math.hypot(*conditions.p_o)
     design = design_pattern(conditions, period)
+    if conditions.measurement == RANGE and design is not None and \
+            conditions.safety < clearance and np.min(np.hypot(*design.points.T)) < clearance:
+        return design_within_reach(replace(conditions, safety=clearance))
     if not conditions.limited and not conditions.safety > 0.0:
         return design
     if design is not None and fits_reach(design.points, conditions):
