@@ -142,20 +142,21 @@ def test_gain_on_a_seeded_short_study(kind: str) -> None:
     assert periodic['nees_in_band'] >= 0.8
 
 
-@pytest.mark.parametrize('fraction', [0.9, 0.95])
-def test_a_wide_range_disc_keeps_the_cycle_clear_of_the_leader(fraction: float) -> None:
+def test_a_wide_range_disc_keeps_the_cycle_clear_of_the_leader() -> None:
     """Range, r = 0.9 and 0.95 |p_o|: the four-point boundary cycle would come 0.26 and 0.11 m
     from the leader, where the filter of a follower playing it turns inconsistent (flagged:
-    trial-mean NEES 14 and 5.9 over 50 trials). The design keeps CLEARANCE_FRACTION |p_o|
-    (0.45 m) from the leader; 20 trials x 600 steps, seed 0: nothing flagged, steady tr(W P W)
-    at least 20 % below RQ's (measured -30.2 % and -29.3 %)."""
-    r = fraction * math.sqrt(5.0)
-    design = cached_design(SteadyConditions.from_scenario(Scenario.paper('range', r=r)), 4)[0]
-    assert design is not None
-    assert np.min(np.hypot(*design.points.T)) >= CLEARANCE_FRACTION * math.sqrt(5.0)
-    summary = summarize(run_study(StudyConfig('range', trials=20, steps=600, seed=0,
+    trial-mean NEES 14 and 5.9 over 50 trials x 600 steps). Each design keeps
+    CLEARANCE_FRACTION |p_o| (0.45 m) from the leader; at 0.9, 20 trials x 300 steps, seed 0
+    (the old cycle's trial 17 diverged by step 40): nothing flagged, steady tr(W P W) at least
+    20 % below RQ's (measured -30 % over 600 steps)."""
+    for fraction in (0.9, 0.95):
+        scenario = Scenario.paper('range', r=fraction * math.sqrt(5.0))
+        design = cached_design(SteadyConditions.from_scenario(scenario), 4)[0]
+        assert design is not None
+        assert np.min(np.hypot(*design.points.T)) >= CLEARANCE_FRACTION * math.sqrt(5.0)
+    summary = summarize(run_study(StudyConfig('range', trials=20, steps=300, seed=0,
                                               strategies=('rq', 'periodic'),
-                                              scenario={'r': r}), jobs=1))
+                                              scenario={'r': 0.9 * math.sqrt(5.0)}), jobs=1))
     assert summary['consistency']['flagged'] == {}
     rq, periodic = summary['strategies']['rq'], summary['strategies']['periodic']
     assert periodic['steady_trace'] <= 0.8 * rq['steady_trace']
