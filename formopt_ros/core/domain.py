@@ -81,7 +81,7 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
     The clearance |p_o| - r must be at least CLEARANCE_SIGMAS initial position standard
     deviations (the first updates) and CLEARANCE_FRACTION |p_o| (the steady state). Range
     followers are not limited: RAM, RQ and PERIODIC stay consistent up to a deviation of
-    0.95 |p_o| (PERIODIC keeps its cycle CLEARANCE_FRACTION |p_o| from the leader).
+    0.999 |p_o| (PERIODIC keeps its cycle CLEARANCE_FRACTION |p_o| from the leader).
 
     Args:
         scenario: the follower's settings.

@@ -36,8 +36,8 @@ FEASIBLE_RTOL = 1e-12
 
 #: Clearance from the leader that keeps the linearised measurement models valid (a range's
 #: Jacobian turns by 1/|p| per metre, a bearing's is 1/|p|, its curvature 1/|p|^2;
-#: docs/faults.md, "Why large discs diverge for bearing"): this many position standard
-#: deviations (the first updates, or whenever the filter is uncertain) ...
+#: docs/faults.md, "Why large discs diverge for bearing"): this many initial position standard
+#: deviations (the first updates) ...
 CLEARANCE_SIGMAS = 3.5
 #: ... and this fraction of |p_o| (the steady state near the leader).
 CLEARANCE_FRACTION = 0.2

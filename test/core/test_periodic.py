@@ -20,7 +20,7 @@ from formopt_ros.core.strategies.periodic_design import (
     SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps, design_within_reach,
     greedy_loop, greedy_target, lft, move_map, noise_free_step, pair_grid, reach_map, solve_rows)
 from formopt_ros.core.strategies.rq import rq_optimum
-from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS
+from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS, describe_design
 from formopt_ros.core.strategies.phase_locked import (
     MIN_GAIN, design_phase_locked, path_period, phase_conditions)
 from formopt_ros.core.study import StudyConfig, run_study, summarize
@@ -154,6 +154,7 @@ def test_a_wide_range_disc_keeps_the_cycle_clear_of_the_leader() -> None:
         design = cached_design(SteadyConditions.from_scenario(scenario), 4)[0]
         assert design is not None
         assert np.min(np.hypot(*design.points.T)) >= CLEARANCE_FRACTION * math.sqrt(5.0)
+        assert '0.447 m clear of the leader' in describe_design(scenario, {})
     summary = summarize(run_study(StudyConfig('range', trials=20, steps=300, seed=0,
                                               strategies=('rq', 'periodic'),
                                               scenario={'r': 0.9 * math.sqrt(5.0)}), jobs=1))

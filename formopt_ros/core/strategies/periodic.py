@@ -339,7 +339,11 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
     radii = np.hypot(*(design.points - conditions.slot).T)
     if not np.allclose(radii, conditions.r, rtol=1e-9):       # designed within reach
-        return (f'cycle of {design.period} points within reach (angles [{angles}] deg around '
+        held = 'within reach'
+        if design.conditions.safety > conditions.safety:      # a range cycle held off
+            held = f'{design.conditions.safety:.3g} m clear of the leader' + \
+                (' and within reach' if conditions.limited else '')
+        return (f'cycle of {design.period} points {held} (angles [{angles}] deg around '
                 f'p_o), steady tr(W P W) {design.steady_cost:.6g} m^2, designed offline in '
                 f'{design.design_time_s:.2f} s (once per scenario and worker process)')
     return (f'cycle of {period} boundary points at [{angles}] deg around p_o, steady '
