@@ -103,6 +103,10 @@ class RecedingHorizon(Strategy):
                 else rq_in_region(problem, context.region, self.name)
             solution.details['mode'] = 'greedy (no estimator view)'
             return solution
+        if context.region is not None and context.region.empty():   # RQ's fallback, tagged
+            solution = rq_in_region(problem, context.region, self.name)
+            solution.details['mode'] = 'unreachable'
+            return solution
         rows = self._rows(problem)
         first, score, paths = self._search(problem, context, view.x, view.P, rows)
         details: dict[str, object] = {'mode': 'search', 'horizon_cost': score,
@@ -113,7 +117,7 @@ class RecedingHorizon(Strategy):
             details['greedy_horizon_cost'] = greedy_score
             if first is None or greedy_score <= score:
                 first, details['mode'] = greedy_first, 'greedy guard'
-        if first is None:       # nothing reachable: the region's own fallback
+        if first is None:       # no candidate reachable: RQ's optimum over the region
             return rq_in_region(problem, context.region, self.name) \
                 if context.region is not None else rq_optimum(problem, self.name)
         on_boundary = math.hypot(first[0] - problem.slot[0], first[1] - problem.slot[1]) \
