@@ -1,7 +1,7 @@
 """Why large discs diverge: trial-mean NEES over deviation fractions, or one trial step by step.
 
 Usage:
-    .venv/bin/python scripts/measure_divergence.py sweep bearing 0.5,0.7,0.9 [--trials 50]
+    .venv/bin/python scripts/measure_divergence.py sweep KIND 0.5,0.7,0.9 [--trials 50]
         [--variance 0.1] [--strategies ram,rq,periodic]
     .venv/bin/python scripts/measure_divergence.py trace bearing 0.9 --trial 1 [--steps 120]
 
@@ -62,7 +62,7 @@ def main() -> None:
     """Command line (module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('mode', choices=('sweep', 'trace'))
-    parser.add_argument('kind', choices=('range', 'bearing'))
+    parser.add_argument('kind', choices=('range', 'bearing', 'range-bearing'))
     parser.add_argument('fractions', help='comma list of r / |p_o| (trace: one)')
     parser.add_argument('--trials', type=int, default=50)
     parser.add_argument('--variance', type=float, default=0.1,

@@ -209,7 +209,8 @@ def test_study_flags_an_inconsistent_strategy_and_the_report_withholds_it() -> N
 
 def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     """The paper's settings pass; a bearing (or range-bearing) disc of 0.6 |p_o| and a 2 mm
-    slot are refused, naming the field, the rule and the limit."""
+    slot are refused, naming the field, the rule and the limit; a safety distance of 1.2 m
+    lets a bearing disc of 0.9 |p_o| pass."""
     for kind in ('range', 'bearing', 'range-bearing'):
         check_domain(Scenario.paper(kind))
     check_deviation_domain(Scenario.paper('range', r=0.999 * SQRT5))
@@ -218,9 +219,11 @@ def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
         with pytest.raises(ValueError, match=r'^deviation_fraction 0\.6: .*measures bearings.*'
                                              r'at most 0\.505'):
             check_deviation_domain(Scenario.paper(kind, r=0.6 * SQRT5), 'deviation_fraction')
-    with pytest.raises(ValueError, match=r'0\.2 \|p_o\|'):
+    with pytest.raises(ValueError, match=r'0\.22 \|p_o\|'):
         check_deviation_domain(Scenario.paper('bearing', r=0.9 * SQRT5,
                                               initial_covariance=(1e-4, 1e-4, 4e-4)))
+    # a safety distance keeps every planned point as far out as a smaller disc would
+    check_deviation_domain(Scenario.paper('bearing', r=0.9 * SQRT5, safety_distance=1.2))
     tiny = Scenario.paper('range', p_o=(-0.002, 0.0), r=0.0002)
     with pytest.raises(ValueError, match=r'^slot \[-0\.002, 0\] .*refuses as implausible.*'
                                          r'at least 0\.052'):

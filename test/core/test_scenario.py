@@ -132,11 +132,13 @@ def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
 
 def test_the_largest_bearing_deviation_named_in_a_refusal_passes() -> None:
     """A refused bearing deviation names the largest one allowed, and that one is accepted
-    (with a 1e-4 m^2 initial covariance the steady-state rule binds: 0.8 |p_o|)."""
+    (with a 1e-4 m^2 initial covariance the steady-state rule binds: 0.78 |p_o|; with 0.11 m^2
+    the first updates' rule, 0.480865 |p_o|, named rounded down)."""
     from formopt_ros.core.domain import check_deviation_domain
-    covariance = (1e-4, 1e-4, 1e-4)
     d_o = math.hypot(*Scenario.paper('bearing').p_o)
-    with pytest.raises(ValueError, match='at most 0.8$'):
-        check_deviation_domain(Scenario.paper('bearing', r=0.81 * d_o,
+    for covariance, limit in (((1e-4, 1e-4, 1e-4), '0.78'), ((0.11, 0.11, 4e-4), '0.4808')):
+        with pytest.raises(ValueError, match=f'at most {limit},'):
+            check_deviation_domain(Scenario.paper('bearing', r=0.9 * d_o,
+                                                  initial_covariance=covariance))
+        check_deviation_domain(Scenario.paper('bearing', r=float(limit) * d_o,
                                               initial_covariance=covariance))
-    check_deviation_domain(Scenario.paper('bearing', r=0.8 * d_o, initial_covariance=covariance))
