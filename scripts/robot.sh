@@ -18,9 +18,10 @@ NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odo
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
 ROS_STATIC_PEERS to the other computers' addresses). The clocks must agree to a few milliseconds
-(chrony or NTP against one server on every robot): a message stamped ahead of this clock by
-more than future_tolerance (0.05 s), or arriving more than reorder_lag (0.1 s) after its stamp,
-is an ERROR on /diagnostics and ends the run not ok.
+(chrony or NTP against one server on every robot): messages stamped ahead of this clock by
+more than future_tolerance (0.05 s), or a stream whose median delay over a status period
+exceeds reorder_lag (0.1 s), is an ERROR on /diagnostics and ends the run not ok (a single
+late message is a WARN: the link stalled).
 EOF
 }
 

@@ -163,6 +163,55 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
     assert delayed_streams(behind, 0.1) == (['leader_odom 0.30 s'], ['leader_odom 0.30 s'])
 
 
+def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
+    """In one process, through the node's callbacks: a first odometry stamped 0 (ros2 topic
+    pub without a header) is refused, counted and an ERROR, and does not start the filter;
+    a camera's mount is the chain of static transforms base_link -> camera_link ->
+    camera_optical (0.2 m ahead and 0.1 m left of the base), and its bearing starts it."""
+    from geometry_msgs.msg import TransformStamped, Vector3Stamped
+    from nav_msgs.msg import Odometry
+    from tf2_msgs.msg import TFMessage
+    from formopt_ros.ros.conversions import stamp
+    from formopt_ros.ros.nodes.follower_estimator import FollowerEstimatorNode
+
+    def transform(parent: str, child: str, offset: tuple[float, float],
+                  rotation: tuple[float, float, float, float]) -> TransformStamped:
+        message = TransformStamped()
+        message.header.frame_id, message.child_frame_id = parent, child
+        message.transform.translation.x, message.transform.translation.y = offset
+        q = message.transform.rotation
+        q.x, q.y, q.z, q.w = rotation
+        return message
+
+    rclpy.init()
+    try:
+        node = FollowerEstimatorNode(cli_args=[
+            '--ros-args', '-p', 'sensor:=bearing', '-p',
+            f"summary_path:={tmp_path / 'summary.json'}"])
+        node.on_odometry('odom', Odometry())                  # stamped 0
+        assert node.refused['before_start'] == 1 and node.tracker is None
+        assert any(level == 'ERROR' and 'stale_timeout' in text
+                   for level, text in node.health()), node.health()
+        # camera_link turned 90 deg left of the base; the optical frame (z forward) in it
+        half = float(np.sqrt(0.5))
+        node.on_tf_static(TFMessage(transforms=[
+            transform('base_link', 'camera_link', (0.2, 0.1), (0.0, 0.0, half, half)),
+            transform('camera_link', 'camera_optical', (0.0, 0.0), (-0.5, 0.5, -0.5, 0.5))]))
+        bearing = Vector3Stamped()
+        now = node.now_ns()
+        bearing.header.frame_id, bearing.header.stamp = 'camera_optical', stamp(now)
+        bearing.vector.z = 1.0                                # out of the lens: to the left
+        node.on_bearing(bearing)
+        assert node.refused['no_mount'] == 0 and node.sensor_frame == 'camera_optical'
+        assert node.estimator.sensor_offset == pytest.approx((0.2, 0.1), abs=1e-12)
+        assert node.tracker is not None and node.tracker.time_ns == now - 1
+        (_, value, _), = node.tracker._waiting
+        assert value == pytest.approx(np.pi / 2, abs=1e-12)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 @pytest.mark.parametrize('offset, cause', [(2.0, 'clocks'), (0.3, 'clocks'),
                                            (-0.3, 'reorder_lag')])
 def test_a_leader_clock_off_is_an_error(tmp_path: Path, offset: float, cause: str,
@@ -292,13 +341,12 @@ def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
 def test_a_camera_follower_reads_its_mount_from_tf_static(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
     """10 s with a camera 0.2 m ahead and 0.1 m left of the base, turned 0.3 rad, whose mount
-    only /tf_static tells: the bearings are applied once it is known, and the estimate stays
-    consistent
+    only /tf_static tells, both nodes at their default slot (the paper's bearing slot): the
+    bearings are applied once the mount is known, and the estimate stays consistent
     (mean NEES below 6, RMS error below 0.3 m after 3 s)."""
     probe, summary = run_pair(
-        tmp_path, {'sensor': 'bearing', 'camera_mount': [0.2, 0.1, 0.3], 'bearing_sigma': 0.02,
-                   'formation_slot': [-1.0, -2.0]}, 10.0, node_process,
-        {'sensor': 'bearing', 'bearing_sigma': 0.02, 'formation_slot': [-1.0, -2.0]})
+        tmp_path, {'sensor': 'bearing', 'camera_mount': [0.2, 0.1, 0.3], 'bearing_sigma': 0.02},
+        10.0, node_process, {'sensor': 'bearing', 'bearing_sigma': 0.02})
     nees, rms, count = consistency(probe, min(probe.truth) + 3 * 10**9)
     assert count > 80 and nees < 6.0 and rms < 0.3, (nees, rms, count)
     # bearings that arrive before /tf_static's transient-local mount are refused and counted

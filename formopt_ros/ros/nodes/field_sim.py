@@ -96,7 +96,7 @@ class FieldSimNode(Node):
         super().__init__('field_sim', cli_args=cli_args)
         self.params = p = declare(self, PARAMS)
         check_output_path('summary_path', p['summary_path'], may_exist=False)
-        slot = Scenario.paper('range').p_o if p['formation_slot'] == [0.0] else \
+        slot = Scenario.paper(p['sensor']).p_o if p['formation_slot'] == [0.0] else \
             tuple(p['formation_slot'])
         if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3 or \
                 len(p['initial_covariance']) != 3:

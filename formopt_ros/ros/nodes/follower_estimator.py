@@ -53,11 +53,12 @@ PARAMS = [
           'in the sensor frame)', choices=SENSORS),
     Param('leader_frame', 'leader', "frame id of the published estimate and target (the "
           "leader's body frame)"),
-    Param('base_frame', 'base_link', "the follower's body frame: the parent of the sensor's "
-          'mounting transform on /tf_static'),
+    Param('base_frame', 'base_link', "the follower's body frame: where the sensor's chain of "
+          'mounting transforms on /tf_static starts'),
     Param('sensor_mount', [0.0], "the sensor frame's pose on the follower, [x m, y m, z m, "
-          'roll rad, pitch rad, yaw rad] ([0.0]: from /tf_static, base_frame to the '
-          "measurement's frame_id; a measurement in base_frame needs none)", -100.0, 100.0),
+          'roll rad, pitch rad, yaw rad] ([0.0]: from /tf_static, the chain from base_frame '
+          "to the measurement's frame_id; a measurement in base_frame needs none)", -100.0,
+          100.0),
     Param('follower_child_frame', '', "child_frame_id the follower's odometry must carry "
           "('': any)"),
     Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
@@ -84,7 +85,8 @@ PARAMS = [
     Param('future_tolerance', 0.05, 'messages stamped further ahead of this clock are refused '
           '(clocks out of sync: a message cannot arrive before it was stamped), s', 0.0, 60.0),
     Param('stale_timeout', 1.0, 'a stream silent (or stamped behind this clock) this long is an '
-          'ERROR (half as long: WARN), and the base stops, s', 0.05, 60.0),
+          'ERROR (half as long: WARN), and the base stops; the filter starts at the first input '
+          'stamped within it of this clock, s', 0.05, 60.0),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
     Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
@@ -151,7 +153,8 @@ class FollowerEstimatorNode(Node):
         self.tracker: AsyncEstimator | None = None         # starts with the first message
         self.variance = (p['range_variance'] if sensor == 'range' else 0.0) or \
             scenario.sigma ** 2
-        self.mounts: dict[str, tuple[tuple[float, float], np.ndarray]] = {}   # frame -> mount
+        #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
+        self.static: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
         self.sensor_frame: str | None = None       # the frame of the first measurement
         self.fixed_mount: tuple[tuple[float, float], np.ndarray] | None = None
         if p['sensor_mount'] != [0.0]:
@@ -160,8 +163,8 @@ class FollowerEstimatorNode(Node):
                                      f"yaw] or [0.0], got {p['sensor_mount']!r}")
             x, y, _, *rpy = p['sensor_mount']
             self.fixed_mount = ((x, y), rotation_matrix(rpy_quaternion(*rpy)))
-        self.refused = {'frame': 0, 'future': 0, 'out_of_range': 0, 'not_finite': 0,
-                        'no_mount': 0}
+        self.refused = {'frame': 0, 'future': 0, 'before_start': 0, 'out_of_range': 0,
+                        'not_finite': 0, 'no_mount': 0}
         self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
         self.delays: dict[str, list[float]] = {s: [] for s in self.streams}  # this period, s
         self.refusal: dict[str, str] = {}            # the last refusal per stream
@@ -249,6 +252,13 @@ class FollowerEstimatorNode(Node):
             self._refuse('future', stream, f'{stream} stamped {(stamp - now) / NS_PER_S:.3f} s '
                          'ahead of this clock: are the clocks synchronised?')
             return False
+        behind = now - stamp
+        if self.tracker is None and behind > int(self.params['stale_timeout'] * NS_PER_S):
+            # the filter starts at its first input's stamp: an old one would be integrated over
+            self._refuse('before_start', stream, f'{stream} stamped {behind / NS_PER_S:.3f} s '
+                         'behind this clock: the filter starts only at an input stamped within '
+                         'stale_timeout of it (a stamp of 0, or clocks not synchronised?)')
+            return False
         self.first_input_ns = self.first_input_ns or now
         wall = time.monotonic()
         pause = wall - (self._last_input_s or wall)
@@ -334,14 +344,27 @@ class FollowerEstimatorNode(Node):
         self._measure('bearing', header_ns(message), value)
 
     def on_tf_static(self, message: TFMessage) -> None:
-        """Mounting poses: base_frame -> sensor frame transforms (yaw, pitch, roll and the
-        horizontal offset are used)."""
+        """Static transforms, kept by child frame; a sensor frame's mount is its chain up to
+        base_frame (e.g. base_link -> camera_link -> camera_optical)."""
         for transform in message.transforms:
-            if transform.header.frame_id != self.params['base_frame']:
-                continue
             t, q = transform.transform.translation, transform.transform.rotation
-            self.mounts[transform.child_frame_id] = (
-                (t.x, t.y), rotation_matrix((q.x, q.y, q.z, q.w)))
+            self.static[transform.child_frame_id] = (
+                transform.header.frame_id, np.array([t.x, t.y, t.z]),
+                rotation_matrix((q.x, q.y, q.z, q.w)))
+
+    def _static_mount(self, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
+        """The pose of ``frame`` in base_frame through /tf_static (yaw, pitch, roll and the
+        horizontal offset are used), or None when its chain does not reach base_frame."""
+        offset, rotation, seen = np.zeros(3), np.eye(3), {frame}
+        while frame != self.params['base_frame']:
+            if frame not in self.static:
+                return None
+            frame, t, R = self.static[frame]      # parent; the child's pose in it
+            offset, rotation = R @ offset + t, R @ rotation
+            if frame in seen:                     # a loop of static transforms
+                return None
+            seen.add(frame)
+        return (float(offset[0]), float(offset[1])), rotation
 
     def _mount(self, stream: str, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
         """The mounting pose of the measurement frame ``frame``: the parameter, the body frame
@@ -351,7 +374,7 @@ class FollowerEstimatorNode(Node):
             self._refuse('frame', stream, f'{stream}: frame_id {frame!r} is not the sensor '
                          f'frame {self.sensor_frame!r} of the first measurement')
             return None
-        mount = self.fixed_mount or self.mounts.get(frame)
+        mount = self.fixed_mount or self._static_mount(frame)
         if mount is None and (frame in ('', self.params['base_frame']) or stream == 'range'):
             mount = ((0.0, 0.0), np.eye(3))
         if mount is None:
@@ -438,13 +461,13 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); stamps ahead of this clock; more than
-        LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
-        (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or
-        a slow link); a stream silent, or stamped behind this clock, for stale_timeout since
-        input began. WARN: waiting for the first input, a stream older than half the timeout,
-        a delay spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), a
-        pause of every input (this process stalled: its backlog is applied in order, nothing
+        gating (the consistency watch, latched); stamps ahead of this clock, or first inputs
+        stamped more than stale_timeout behind it; more than LATE_FRACTION of the period's
+        inputs dropped as late, or a stream whose median delay (arrival minus stamp) over the
+        period exceeds reorder_lag (a clock behind this one, or a slow link); a stream silent,
+        or stamped behind this clock, for stale_timeout since input began. WARN: waiting for a
+        stream's first input, a stream older than half the timeout, a delay spike beyond
+        reorder_lag or fewer inputs dropped as late (the link stalled), a pause of every input (this process stalled: its backlog is applied in order, nothing
         dropped), the consistency watch's current warning (a window outside its band),
         odometry carried past its last message, gaps, gated ranges."""
         new = {k: v - self._reported.get(k, 0) for k, v in self.counts().items()}
@@ -454,6 +477,9 @@ class FollowerEstimatorNode(Node):
             errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
         if new.get('refused_future'):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
+        if new.get('refused_before_start'):
+            errors.append('first inputs stamped more than stale_timeout behind this clock are '
+                          'refused: stamps of 0, or clocks not synchronised')
         lag = self.params['reorder_lag']
         slow, spikes = delayed_streams(self.delays, lag)
         late = new.get('late_odometry', 0) + new.get('late_measurements', 0)
@@ -473,6 +499,9 @@ class FollowerEstimatorNode(Node):
                           + ', '.join(map(self.stream_label, old)))
         if errors:
             return [('ERROR', e) for e in errors]
+        never = [s for s, a in ages.items() if a is None]
+        if never:
+            return [('WARN', 'waiting for input: ' + ', '.join(never))]
         old_streams = [f'{s} {a:.2f} s' for s, a in ages.items()
                        if a is not None and a > limit / 2]
         if old_streams:
