@@ -9,7 +9,9 @@
 # CONFIG is $FORMOPT_CONFIG_DIR/NODE.yaml, default <this folder>/../config (the repo's config/,
 # or share/formopt_ros/config when installed); without that file the node's defaults apply. It
 # is not passed when ARGS set formation_file (the formation file then decides the scenario, and
-# the config's values would conflict with it).
+# the config's values would conflict with it) or give a --params-file of their own (CONFIG only
+# restates the node's defaults, and where two files give one parameter values of different
+# types, e.g. "0.5" and 0.5, rcl keeps the first file's and the user's is lost without a word).
 # The process replaces the shell (exec), so signals reach the node directly.
 
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
@@ -49,7 +51,8 @@ formopt_run_node() {
   local node="$1"; shift
   local config="${FORMOPT_CONFIG_DIR:-$_formopt_scripts/../config}/$node.yaml"
   local params=()
-  [[ -f "$config" && " $* " != *" formation_file:="* ]] && params=(--params-file "$config")
+  [[ -f "$config" && " $* " != *" formation_file:="* && " $* " != *" --params-file "* ]] &&
+    params=(--params-file "$config")
   if formopt_ros2_knows_package; then
     exec ros2 run formopt_ros "$node" --ros-args "${params[@]}" "$@"
   fi
