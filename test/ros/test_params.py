@@ -77,6 +77,19 @@ def test_existing_summary_is_not_overwritten(node_process, tmp_path) -> None:
     assert summary.read_text() == '{"earlier": true}'
 
 
+def test_a_params_file_of_the_users_own_is_read_whole(node_process, tmp_path) -> None:
+    """A node script given a --params-file reads it alone (config/<node>.yaml only restates
+    the defaults): a quoted number in it is converted and checked, where next to the config
+    file rcl kept the config's value and the user's was lost without a word."""
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('/**/follower_estimator:\n  ros__parameters:\n    sensor: bearing\n'
+                    '    deviation_fraction: "0.9"\n')
+    process = node_process('follower_estimator', {'summary_path': str(tmp_path / 's.json')},
+                           extra=['--params-file', str(mine)])
+    assert process.wait(timeout=60.0) == 2, process.stderr
+    assert 'deviation_fraction 0.9: a follower that measures bearings' in process.stderr
+
+
 def test_help_does_not_start_the_node(node_process) -> None:
     """--help prints every parameter and exits 0 without starting a node."""
     process = node_process('estimator_planner', {}, extra=['--help'])
