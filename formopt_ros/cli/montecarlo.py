@@ -43,6 +43,10 @@ TITLES = {'range': 'range-only', 'bearing': 'bearing-only', RANGE_BEARING: 'rang
 COMPARISON_FOLDER = 'sensors'
 COMPARISON_STRATEGIES = ('rq', 'periodic')
 
+#: What a refusal of the domain rules adds: the way past them, and what it costs.
+ANYWAY = ('--allow-inconsistent runs it anyway; the study then flags each strategy whose '
+          'filter is inconsistent')
+
 
 def build_parser() -> ArgumentParser:
     """The command-line interface."""
@@ -542,12 +546,12 @@ def main(argv: list[str] | None = None) -> int:
         comparison = comparison_configs(configs, strategies)
     except ValueError as error:
         fail(parser.prog, str(error))
-    try:
-        for config in configs if not args.allow_inconsistent else []:
+    for config in configs if not args.allow_inconsistent else []:
+        try:
             check_domain(Scenario.paper(config.measurement, **config.scenario), 'slot',
                          '--r-fraction')
-    except ValueError as error:
-        fail(parser.prog, f'{error} (--allow-inconsistent runs it anyway, flagged)')
+        except ValueError as error:
+            fail(parser.prog, f'{config.measurement} follower: {error} ({ANYWAY})')
     need, have = memory_estimate(configs), physical_memory()
     if need > have // 2:
         fail(parser.prog, f'--trials {args.trials} x --steps {args.steps}: the study would hold '

@@ -13,7 +13,7 @@ from typing import Any
 
 from formopt_ros.cli.common import (
     INTERRUPTED_EXIT, ArgumentParser, command, ctrl_c_deferred, fail, integer, name_list)
-from formopt_ros.cli.montecarlo import option_setting, progress_bar, strategy_options
+from formopt_ros.cli.montecarlo import ANYWAY, option_setting, progress_bar, strategy_options
 from formopt_ros.core.domain import check_domain
 from formopt_ros.core.strategies import STRATEGIES
 from formopt_ros.core.sweep import AXES, NAMED_AXES, Cell, expand, scenario_of
@@ -190,8 +190,7 @@ def make_cells(spec: dict[str, Any], allow_inconsistent: bool) -> list[Cell]:
             try:
                 check_domain(scenario_of(point), 'slot', 'r_fraction')
             except ValueError as error:
-                raise ValueError(f'scenario {json.dumps(point)}: {error} '
-                                 '(--allow-inconsistent runs it anyway, flagged)') from None
+                raise ValueError(f'scenario {json.dumps(point)}: {error} ({ANYWAY})') from None
     return [Cell.make(point, name, spec['options'].get(name), spec['trials'], spec['steps'],
                       spec['seed']) for point in points for name in spec['strategies']]
 
