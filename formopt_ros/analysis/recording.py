@@ -150,8 +150,10 @@ def reconstruct_description(recording: Recording,
     kind = (status[-1].measurement_kind if status else
             KIND_NAMES.get(int(meas[0].kind)) if meas else None)
     if kind not in MEASUREMENT_KINDS:
-        raise BagError(f'{recording.bag.path}: cannot tell the measurement kind of '
-                       f'{follower.namespace} (got {kind!r})')
+        raise BagError(f'{recording.bag.path}: {follower.namespace} has no formopt '
+                       'measurement or status messages to tell its measurement kind from (a '
+                       'run of standard messages, e.g. on real interfaces? re-estimate it with '
+                       '--topic-map, docs/real_robots.md)')
     base = Scenario.paper(kind)
     dt = waypoints[0].substep_duration if waypoints else base.dt
     p_o = ((waypoints[0].formation_slot.x, waypoints[0].formation_slot.y) if waypoints

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -24,7 +25,7 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
     """8 s of the shipped file (a UWB follower and a camera follower behind an S-curve):
     exit 0; each estimator ok, tracking its recorded truth (mean NEES below 6, RMS error below
     0.3 m); every odometry message, measurement and estimate the nodes sent is in run.mcap;
-    nothing refused."""
+    nothing refused; replay --offline points to --topic-map for its standard messages."""
     out = tmp_path / 'real'
     result = run('--formation', str(REAL), '--steps', '80', '--out', str(out), '--domain-id',
                  str(ros_domain))
@@ -43,6 +44,11 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
         'leader_odom'] > 300
     assert counts['/seer/bearing'] == summary['followers']['seer']['field_sim']['sent'][
         'bearing']
+    # its standard messages are re-estimated through a topic map, which replay points to
+    offline = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay',
+                              str(out / 'run.mcap'), '--offline', '--follower', 'ranger'],
+                             capture_output=True, text=True, timeout=120)
+    assert offline.returncode == 2 and '--topic-map' in offline.stderr, offline.stderr
 
 
 @pytest.mark.parametrize('change, text', [
