@@ -114,9 +114,9 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
             f'{need:.6g} m from the leader (the larger of {CLEARANCE_SIGMAS:g} initial '
             f'position standard deviations = {CLEARANCE_SIGMAS * sigma0:.6g} m and '
             f'{BEARING_CLEARANCE_FRACTION:g} |p_o| = {BEARING_CLEARANCE_FRACTION * s.d_o:.6g} '
-            f'm), this one comes to {clearance:.6g} m: closer, the linearised bearing model is wrong by more '
-            f'than the noise and the filter diverges (docs/faults.md). Use a deviation of at '
-            f'most {largest:g}, or a safety distance of at least {need:.6g} m')
+            f'm), this one comes to {clearance:.6g} m: closer, the linearised bearing model is '
+            'wrong by more than the noise and the filter diverges (docs/faults.md). Use a '
+            f'deviation of at most {largest:g}, or a safety distance of at least {need:.6g} m')
 
 
 def check_domain(scenario: Scenario, slot_field: str = 'p_o',

@@ -467,9 +467,10 @@ class FollowerEstimatorNode(Node):
         period exceeds reorder_lag (a clock behind this one, or a slow link); a stream silent,
         or stamped behind this clock, for stale_timeout since input began. WARN: waiting for a
         stream's first input, a stream older than half the timeout, a delay spike beyond
-        reorder_lag or fewer inputs dropped as late (the link stalled), a pause of every input (this process stalled: its backlog is applied in order, nothing
-        dropped), the consistency watch's current warning (a window outside its band),
-        odometry carried past its last message, gaps, gated ranges."""
+        reorder_lag or fewer inputs dropped as late (the link stalled), a pause of every input
+        (this process stalled: its backlog is applied in order, nothing dropped), the
+        consistency watch's current warning (a window outside its band), odometry carried past
+        its last message, gaps, gated ranges."""
         new = {k: v - self._reported.get(k, 0) for k, v in self.counts().items()}
         errors: list[str] = []
         if self.tracker is not None and self.tracker.watch.failed:
