@@ -487,8 +487,9 @@ class FollowerEstimatorNode(Node):
         inputs = late + new.get('odometry', 0) + new.get('measurements', 0)
         if slow or late > LATE_FRACTION * inputs:
             errors.append(f'inputs arrive later than reorder_lag ({lag:g} s) after their '
-                          'stamps and are dropped: a clock behind this one or a slow link'
-                          + (f" ({', '.join(slow)})" if slow else f' ({late} of {inputs})'))
+                          'stamps: a clock behind this one or a slow link'
+                          + (f" ({', '.join(slow)})" if slow else '')
+                          + f'; {late} of {inputs} dropped as late')
         ages, limit = self.ages(), self.params['stale_timeout']
         if self.first_input_ns is None:
             return [('ERROR', e) for e in errors] or \
