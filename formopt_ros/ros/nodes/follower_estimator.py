@@ -461,13 +461,14 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); stamps ahead of this clock, or first inputs
-        stamped more than stale_timeout behind it; more than LATE_FRACTION of the period's
-        inputs dropped as late, or a stream whose median delay (arrival minus stamp) over the
-        period exceeds reorder_lag (a clock behind this one, or a slow link); a stream silent,
-        or stamped behind this clock, for stale_timeout since input began. WARN: waiting for a
-        stream's first input, a stream older than half the timeout, a delay spike beyond
-        reorder_lag or fewer inputs dropped as late (the link stalled), a pause of every input
+        gating (the consistency watch, latched); stamps ahead of this clock, or inputs stamped
+        more than stale_timeout behind it while the filter has not started; more than
+        LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
+        (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or
+        a slow link); a stream silent, or stamped behind this clock, for stale_timeout since
+        input began. WARN: waiting for a stream's first input, a stream older than half the
+        timeout, a delay spike beyond reorder_lag or fewer inputs dropped as late (the link
+        stalled), a pause of every input
         (this process stalled: its backlog is applied in order, nothing dropped), the
         consistency watch's current warning (a window outside its band), odometry carried past
         its last message, gaps, gated ranges."""
@@ -478,7 +479,7 @@ class FollowerEstimatorNode(Node):
             errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
         if new.get('refused_future'):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
-        if new.get('refused_before_start'):
+        if new.get('refused_before_start') and self.tracker is None:    # nothing started it
             errors.append('first inputs stamped more than stale_timeout behind this clock are '
                           'refused: stamps of 0, or clocks not synchronised')
         lag = self.params['reorder_lag']
