@@ -71,6 +71,8 @@ def main() -> None:
     parser.add_argument('--trial', type=int, default=1)
     parser.add_argument('--steps', type=int, default=120)
     args = parser.parse_args()
+    if args.mode == 'trace' and args.kind == 'range-bearing':
+        parser.error('trace runs RAM, which does not apply to range-bearing')
     fractions = [float(f) for f in args.fractions.split(',')]
     if args.mode == 'sweep':
         sweep(args.kind, fractions, args.trials, args.variance,
