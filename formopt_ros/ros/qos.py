@@ -37,6 +37,11 @@ TF = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=STREAM_DEPTH,
 TF_STATIC = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: A reader of /tf_static: tf2's static listener keeps 100, so that the latched messages of
+#: several publishers (robot_state_publisher, a camera driver) arriving together all stay.
+TF_STATIC_READER = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)

@@ -164,11 +164,12 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
 
 
 def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
-    """In one process, through the node's callbacks: a first odometry stamped 0 (ros2 topic
-    pub without a header) is refused, counted and an ERROR, and does not start the filter;
+    """In one process, through the node's callbacks: a first odometry and bearing stamped 0
+    (ros2 topic pub without a header) are refused, counted and an ERROR, and neither starts
+    the filter nor fixes the sensor frame;
     a camera's mount is the chain of static transforms base_link -> camera_link ->
     camera_optical (0.2 m ahead and 0.1 m left of the base), and its bearing starts it."""
-    from geometry_msgs.msg import TransformStamped, Vector3Stamped
+    from geometry_msgs.msg import TransformStamped, Vector3, Vector3Stamped
     from nav_msgs.msg import Odometry
     from tf2_msgs.msg import TFMessage
     from formopt_ros.ros.conversions import stamp
@@ -189,7 +190,9 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
             '--ros-args', '-p', 'sensor:=bearing', '-p',
             f"summary_path:={tmp_path / 'summary.json'}"])
         node.on_odometry('odom', Odometry())                  # stamped 0
-        assert node.refused['before_start'] == 1 and node.tracker is None
+        node.on_bearing(Vector3Stamped(vector=Vector3(x=1.0)))    # stamped 0, frame ''
+        assert node.refused['before_start'] == 2 and node.tracker is None
+        assert node.sensor_frame is None                      # a refused one fixes nothing
         assert any(level == 'ERROR' and 'stale_timeout' in text
                    for level, text in node.health()), node.health()
         # camera_link turned 90 deg left of the base; the optical frame (z forward) in it
@@ -209,6 +212,41 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         assert value == pytest.approx(np.pi / 2, abs=1e-12)
         node.destroy_node()
     finally:
+        rclpy.try_shutdown()
+
+
+def test_static_transforms_of_two_publishers_both_arrive(tmp_path: Path) -> None:
+    """robot_state_publisher and a camera driver each latch their /tf_static message before the
+    estimator starts: both reach it (a reader history of 1 kept only the last), so the chain
+    base_link -> camera_link -> camera_optical is complete within 5 s."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+    from formopt_ros.ros import qos
+    from formopt_ros.ros.nodes.follower_estimator import FollowerEstimatorNode
+
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    publishers = [Node(name, namespace=PREFIX) for name in ('state_publisher', 'camera')]
+    try:
+        for node, (parent, child) in zip(publishers, (('base_link', 'camera_link'),
+                                                      ('camera_link', 'camera_optical'))):
+            transform = TransformStamped()
+            transform.header.frame_id, transform.child_frame_id = parent, child
+            transform.transform.rotation.w = 1.0
+            node.create_publisher(TFMessage, '/tf_static', qos.TF_STATIC).publish(
+                TFMessage(transforms=[transform]))
+            executor.add_node(node)
+        estimator = FollowerEstimatorNode(cli_args=[
+            '--ros-args', '-r', f'__ns:={PREFIX}', '-p', 'sensor:=bearing', '-p',
+            f"summary_path:={tmp_path / 'summary.json'}"])
+        executor.add_node(estimator)
+        assert spin_until(executor, lambda: {'camera_link', 'camera_optical'} <= set(
+            estimator.static), 5.0), estimator.static
+        estimator.destroy_node()
+    finally:
+        executor.shutdown()
+        for node in publishers:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 

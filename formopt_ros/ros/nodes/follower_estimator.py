@@ -207,7 +207,7 @@ class FollowerEstimatorNode(Node):
         #: Per stream, the topic it resolved to (remappings and namespace applied).
         self.topics = dict(zip(self.streams, (s.topic_name for s in inputs)))
         self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
-                                 qos.profile('tf_static'))
+                                 qos.TF_STATIC_READER)
         self.create_timer(2.0 * scenario.dt, self.plan)
         self.create_timer(1.0 / p['control_rate'], self.control)
         self.create_timer(p['status_period'], self.publish_diagnostics)
@@ -322,9 +322,11 @@ class FollowerEstimatorNode(Node):
             self._refuse('out_of_range', 'range', f'range {value:.3f} m outside '
                          f'[{message.min_range:.3f}, {message.max_range:.3f}) m')
             return
-        if self._mount('range', message.header.frame_id) is None:
+        frame = message.header.frame_id
+        mount = self._mount('range', frame)
+        if mount is None:
             return
-        self._measure('range', header_ns(message), value)
+        self._measure('range', header_ns(message), value, frame, mount[0])
 
     def on_bearing(self, message: Vector3Stamped) -> None:
         """A direction toward the leader in the sensor frame (any length), turned into a
@@ -333,7 +335,8 @@ class FollowerEstimatorNode(Node):
         if not all(math.isfinite(c) for c in (v.x, v.y, v.z)):
             self._refuse('not_finite', 'bearing', 'bearing: direction is not finite')
             return
-        mount = self._mount('bearing', message.header.frame_id)
+        frame = message.header.frame_id
+        mount = self._mount('bearing', frame)
         if mount is None:
             return
         value = direction_bearing((v.x, v.y, v.z), mount[1])
@@ -341,7 +344,7 @@ class FollowerEstimatorNode(Node):
             self._refuse('out_of_range', 'bearing', 'bearing: the direction is vertical in the '
                          'body frame (no bearing)')
             return
-        self._measure('bearing', header_ns(message), value)
+        self._measure('bearing', header_ns(message), value, frame, mount[0])
 
     def on_tf_static(self, message: TFMessage) -> None:
         """Static transforms, kept by child frame; a sensor frame's mount is its chain up to
@@ -368,8 +371,9 @@ class FollowerEstimatorNode(Node):
 
     def _mount(self, stream: str, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
         """The mounting pose of the measurement frame ``frame``: the parameter, the body frame
-        itself (none), or /tf_static; refused (counted) when unknown or when the sensor's frame
-        changes. Ranges from an unknown frame are taken at the body origin."""
+        itself (none), or /tf_static; refused (counted) when unknown or when it is not the
+        sensor frame of the first measurement accepted. Ranges from an unknown frame are taken
+        at the body origin."""
         if self.sensor_frame is not None and frame != self.sensor_frame:
             self._refuse('frame', stream, f'{stream}: frame_id {frame!r} is not the sensor '
                          f'frame {self.sensor_frame!r} of the first measurement')
@@ -382,16 +386,18 @@ class FollowerEstimatorNode(Node):
                          f"set sensor_mount or publish {self.params['base_frame']!r} -> "
                          f'{frame!r} on /tf_static')
             return None
-        if self.sensor_frame is None:
-            self.sensor_frame = frame
-            offset = mount[0]
-            self.estimator.sensor_offset = None if offset == (0.0, 0.0) else offset
         return mount
 
-    def _measure(self, stream: str, stamp: int, value: float) -> None:
+    def _measure(self, stream: str, stamp: int, value: float, frame: str,
+                 offset: tuple[float, float]) -> None:
+        """Buffer a measurement its stamp rules accept; the first one accepted fixes the
+        sensor frame and its lever arm ``offset`` (m)."""
         started = time.perf_counter()
         if not self._accept(stream, stamp):
             return
+        if self.sensor_frame is None:
+            self.sensor_frame = frame
+            self.estimator.sensor_offset = None if offset == (0.0, 0.0) else offset
         assert self.tracker is not None
         self.tracker.add_measurement(stamp, value, self.variance)
         self._advance(started)
