@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 
+from formopt_ros.core.cost import MIN_DEVIATION
 from formopt_ros.core.estimator import TRAVEL_BOUND, TURN_BOUND
 from formopt_ros.core.model import BEARING, RANGE_BEARING
 from formopt_ros.core.reach import CLEARANCE_SIGMAS
@@ -107,16 +108,22 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
     clearance = max(s.d_o - s.r, s.safety_distance)     # no point is planned inside either
     need = max(CLEARANCE_SIGMAS * sigma0, BEARING_CLEARANCE_FRACTION * s.d_o)
     if clearance < need * (1.0 - 1e-9):     # the limit itself passes (0.78 of 0.22 |p_o| ...)
-        # rounded down to 4 decimals, so that the value named passes (1e-10: 0.78 stays 0.78)
-        largest = math.floor(max(0.0, 1.0 - need / s.d_o) * 1e4 + 1e-6) / 1e4
+        # the remedies named are rounded so that they pass (1e-10: 0.78 stays 0.78)
+        largest = math.floor((1.0 - need / s.d_o) * 1e4 + 1e-6) / 1e4
+        safety = math.ceil(need * 1e4 - 1e-6) / 1e4       # m, on a 0.1 mm grid
+        remedies = [f'a deviation of at most {largest:g}'] if largest >= MIN_DEVIATION else []
+        if safety < s.d_o + s.r:                           # a safety distance leaves a point
+            remedies.append(f'a safety distance of at least {safety:g} m')
+        if not remedies:
+            remedies.append('a slot farther from the leader or a smaller initial covariance')
         raise ValueError(
             f'{field} {s.r / s.d_o:.6g}: a follower that measures bearings must keep its disc '
             f'{need:.6g} m from the leader (the larger of {CLEARANCE_SIGMAS:g} initial '
             f'position standard deviations = {CLEARANCE_SIGMAS * sigma0:.6g} m and '
             f'{BEARING_CLEARANCE_FRACTION:g} |p_o| = {BEARING_CLEARANCE_FRACTION * s.d_o:.6g} '
             f'm), this one comes to {clearance:.6g} m: closer, the linearised bearing model is '
-            'wrong by more than the noise and the filter diverges (docs/faults.md). Use a '
-            f'deviation of at most {largest:g}, or a safety distance of at least {need:.6g} m')
+            'wrong by more than the noise and the filter diverges (docs/faults.md). Use '
+            + ', or '.join(remedies))
 
 
 def check_domain(scenario: Scenario, slot_field: str = 'p_o',

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 
@@ -133,12 +134,22 @@ def test_the_longest_id_keeps_every_derived_file_name_short() -> None:
 def test_the_largest_bearing_deviation_named_in_a_refusal_passes() -> None:
     """A refused bearing deviation names the largest one allowed, and that one is accepted
     (with a 1e-4 m^2 initial covariance the steady-state rule binds: 0.78 |p_o|; with 0.11 m^2
-    the first updates' rule, 0.480865 |p_o|, named rounded down)."""
+    the first updates' rule, 0.480865 |p_o|, named rounded down), and so does the safety
+    distance named (rounded up); with 0.5 m^2 it names neither, which no value would fix."""
     from formopt_ros.core.domain import check_deviation_domain
     d_o = math.hypot(*Scenario.paper('bearing').p_o)
     for covariance, limit in (((1e-4, 1e-4, 1e-4), '0.78'), ((0.11, 0.11, 4e-4), '0.4808')):
-        with pytest.raises(ValueError, match=f'at most {limit},'):
+        with pytest.raises(ValueError, match=f'at most {limit}, or a safety distance of at '
+                                             r'least ([0-9.]+) m$') as refused:
             check_deviation_domain(Scenario.paper('bearing', r=0.9 * d_o,
                                                   initial_covariance=covariance))
         check_deviation_domain(Scenario.paper('bearing', r=float(limit) * d_o,
                                               initial_covariance=covariance))
+        safety = float(re.search(r'least ([0-9.]+) m$', str(refused.value)).group(1))
+        check_deviation_domain(Scenario.paper('bearing', r=0.9 * d_o, safety_distance=safety,
+                                              initial_covariance=covariance))
+    # 3.5 initial standard deviations (2.47 m) beyond the disc's far edge: neither remedy fits
+    with pytest.raises(ValueError, match='Use a slot farther from the leader or a smaller '
+                                         'initial covariance$'):
+        check_deviation_domain(Scenario.paper('bearing', r=0.1 * d_o,
+                                              initial_covariance=(0.5, 0.5, 0.01)))
