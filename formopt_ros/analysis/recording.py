@@ -20,6 +20,11 @@ from formopt_ros.wire.description import RunDescription
 from formopt_ros.wire.messages import KIND_NAMES, header_ns
 from formopt_ros.wire.topics import BY_KEY, DEFAULT_LEADER, resolve, split_follower_topic
 
+#: What to do with a bag of standard messages (odometry, ranges: another robot, a data set, a
+#: run on real interfaces), which formopt's own readers cannot take.
+STANDARD_HINT = ('standard messages, e.g. from real robots, are re-estimated with: replay BAG '
+                 '--offline --topic-map MAP, docs/real_robots.md')
+
 
 @dataclass
 class FollowerRecording:
@@ -113,7 +118,8 @@ def load_recording(bag: Bag) -> Recording:
         recording.followers[follower.follower_id] = follower
     if not recording.followers:
         raise BagError(f'{bag.path}: no follower topics (estimate, status, measurement) in the '
-                       f"bag; it has: {', '.join(sorted(bag.channels)) or 'no topics'}")
+                       f"bag; it has: {', '.join(sorted(bag.channels)) or 'no topics'} "
+                       f'({STANDARD_HINT})')
     first = next(iter(recording.followers.values()))
     recording.leader_topic = _leader_topic(bag, first.namespace, first.description.leader_id)
     return recording
@@ -151,9 +157,8 @@ def reconstruct_description(recording: Recording,
             KIND_NAMES.get(int(meas[0].kind)) if meas else None)
     if kind not in MEASUREMENT_KINDS:
         raise BagError(f'{recording.bag.path}: {follower.namespace} has no formopt '
-                       'measurement or status messages to tell its measurement kind from (a '
-                       'run of standard messages, e.g. on real interfaces? re-estimate it with '
-                       '--topic-map, docs/real_robots.md)')
+                       'measurement or status messages to tell its measurement kind from '
+                       f'({STANDARD_HINT})')
     base = Scenario.paper(kind)
     dt = waypoints[0].substep_duration if waypoints else base.dt
     p_o = ((waypoints[0].formation_slot.x, waypoints[0].formation_slot.y) if waypoints
