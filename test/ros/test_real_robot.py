@@ -166,7 +166,7 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
 def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: a first odometry and bearing stamped 0
     (ros2 topic pub without a header) are refused, counted and an ERROR, and neither starts
-    the filter nor fixes the sensor frame;
+    the filter nor fixes the sensor frame (nor, with use_sim_time, before the first /clock);
     a camera's mount is the chain of static transforms base_link -> camera_link ->
     camera_optical (0.2 m ahead and 0.1 m left of the base), and its bearing starts it."""
     from geometry_msgs.msg import TransformStamped, Vector3, Vector3Stamped
@@ -210,6 +210,13 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         assert node.tracker is not None and node.tracker.time_ns == now - 1
         (_, value, _), = node.tracker._waiting
         assert value == pytest.approx(np.pi / 2, abs=1e-12)
+        node.destroy_node()
+        # with use_sim_time and no /clock yet this clock reads 0: a stamp of 0 starts nothing
+        node = FollowerEstimatorNode(cli_args=[
+            '--ros-args', '-p', 'use_sim_time:=true', '-p',
+            f"summary_path:={tmp_path / 'sim_time.json'}"])
+        node.on_odometry('odom', Odometry())
+        assert node.refused['before_start'] == 1 and node.tracker is None
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
