@@ -167,8 +167,9 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: a first odometry and bearing stamped 0
     (ros2 topic pub without a header) are refused, counted and an ERROR, and neither starts
     the filter nor fixes the sensor frame (nor, with use_sim_time, before the first /clock);
-    a camera's mount is the chain of static transforms base_link -> camera_link ->
-    camera_optical (0.2 m ahead and 0.1 m left of the base), and its bearing starts it."""
+    a camera's mount is its pose in base_link through the static transforms (camera_link on
+    base_footprint beside base_link, camera_optical in it: 0.2 m ahead and 0.1 m left of
+    base_link), and its bearing starts it."""
     from geometry_msgs.msg import TransformStamped, Vector3, Vector3Stamped
     from nav_msgs.msg import Odometry
     from tf2_msgs.msg import TFMessage
@@ -195,10 +196,12 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         assert node.sensor_frame is None                      # a refused one fixes nothing
         assert any(level == 'ERROR' and 'stale_timeout' in text
                    for level, text in node.health()), node.health()
-        # camera_link turned 90 deg left of the base; the optical frame (z forward) in it
+        # base_link 0.05 m ahead of base_footprint, camera_link on base_footprint (a sibling)
+        # turned 90 deg left; the optical frame (z forward) in it
         half = float(np.sqrt(0.5))
         node.on_tf_static(TFMessage(transforms=[
-            transform('base_link', 'camera_link', (0.2, 0.1), (0.0, 0.0, half, half)),
+            transform('base_footprint', 'base_link', (0.05, 0.0), (0.0, 0.0, 0.0, 1.0)),
+            transform('base_footprint', 'camera_link', (0.25, 0.1), (0.0, 0.0, half, half)),
             transform('camera_link', 'camera_optical', (0.0, 0.0), (-0.5, 0.5, -0.5, 0.5))]))
         bearing = Vector3Stamped()
         now = node.now_ns()

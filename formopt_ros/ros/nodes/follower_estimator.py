@@ -53,12 +53,11 @@ PARAMS = [
           'in the sensor frame)', choices=SENSORS),
     Param('leader_frame', 'leader', "frame id of the published estimate and target (the "
           "leader's body frame)"),
-    Param('base_frame', 'base_link', "the follower's body frame: where the sensor's chain of "
-          'mounting transforms on /tf_static starts'),
+    Param('base_frame', 'base_link', "the follower's body frame: the sensor's mount is its pose "
+          'in this frame through /tf_static'),
     Param('sensor_mount', [0.0], "the sensor frame's pose on the follower, [x m, y m, z m, "
-          'roll rad, pitch rad, yaw rad] ([0.0]: from /tf_static, the chain from base_frame '
-          "to the measurement's frame_id; a measurement in base_frame needs none)", -100.0,
-          100.0),
+          "roll rad, pitch rad, yaw rad] ([0.0]: from /tf_static, the measurement's frame_id "
+          'in base_frame; a measurement in base_frame needs none)', -100.0, 100.0),
     Param('follower_child_frame', '', "child_frame_id the follower's odometry must carry "
           "('': any)"),
     Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
@@ -348,27 +347,35 @@ class FollowerEstimatorNode(Node):
         self._measure('bearing', header_ns(message), value, frame, mount[0])
 
     def on_tf_static(self, message: TFMessage) -> None:
-        """Static transforms, kept by child frame; a sensor frame's mount is its chain up to
-        base_frame (e.g. base_link -> camera_link -> camera_optical)."""
+        """Static transforms, kept by child frame; a sensor frame's mount is its pose in
+        base_frame through them (e.g. base_link -> camera_link -> camera_optical)."""
         for transform in message.transforms:
             t, q = transform.transform.translation, transform.transform.rotation
             self.static[transform.child_frame_id] = (
                 transform.header.frame_id, np.array([t.x, t.y, t.z]),
                 rotation_matrix((q.x, q.y, q.z, q.w)))
 
-    def _static_mount(self, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
-        """The pose of ``frame`` in base_frame through /tf_static (yaw, pitch, roll and the
-        horizontal offset are used), or None when its chain does not reach base_frame."""
+    def _in_root(self, frame: str) -> tuple[str, np.ndarray, np.ndarray] | None:
+        """(the root of ``frame``'s chain of static transforms, its offset (3,) m and rotation
+        (3, 3) in that root), or None for a loop."""
         offset, rotation, seen = np.zeros(3), np.eye(3), {frame}
-        while frame != self.params['base_frame']:
-            if frame not in self.static:
-                return None
+        while frame in self.static:
             frame, t, R = self.static[frame]      # parent; the child's pose in it
             offset, rotation = R @ offset + t, R @ rotation
-            if frame in seen:                     # a loop of static transforms
+            if frame in seen:
                 return None
             seen.add(frame)
-        return (float(offset[0]), float(offset[1])), rotation
+        return frame, offset, rotation
+
+    def _static_mount(self, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
+        """The pose of ``frame`` in base_frame through /tf_static, below it or on another
+        branch of one tree (yaw, pitch, roll and the horizontal offset are used), or None when
+        they are not connected."""
+        sensor, base = self._in_root(frame), self._in_root(self.params['base_frame'])
+        if sensor is None or base is None or sensor[0] != base[0]:
+            return None
+        offset = base[2].T @ (sensor[1] - base[1])
+        return (float(offset[0]), float(offset[1])), base[2].T @ sensor[2]
 
     def _mount(self, stream: str, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
         """The mounting pose of the measurement frame ``frame``: the parameter, the body frame
