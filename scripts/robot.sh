@@ -13,7 +13,8 @@ Start the nodes of follower ID on this computer, in the namespace /ID:
                       /ID/target and /diagnostics.
   field_sim (--sim)   a simulated base and radio for ID (and the leader, publishing
                       /LEADER/odom), to try the set-up without robots.
-NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom).
+NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom); with --sim
+its sensor:= and formation_slot:= go to field_sim too.
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
@@ -54,7 +55,12 @@ pids=()
 stop() { kill -INT "${pids[@]}" 2>/dev/null; wait; }
 trap stop INT TERM HUP
 if [[ $sim -eq 1 ]]; then
-  "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" &
+  shared=()                              # the simulated robot carries the estimator's sensor
+  for arg in "$@"; do
+    [[ "$arg" == sensor:=* || "$arg" == formation_slot:=* ]] && shared+=(-p "$arg")
+  done
+  "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" \
+    "${shared[@]}" &
   pids+=($!)
 fi
 "$here/follower_estimator.sh" -r "__ns:=/$robot" -r "leader_odom:=/$leader/odom" \
