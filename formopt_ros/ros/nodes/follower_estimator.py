@@ -252,8 +252,11 @@ class FollowerEstimatorNode(Node):
                          'ahead of this clock: are the clocks synchronised?')
             return False
         behind = now - stamp
-        if self.tracker is None and (behind > int(self.params['stale_timeout'] * NS_PER_S)
-                                     or now <= 0):       # use_sim_time before any /clock
+        if self.tracker is None and now <= 0:
+            self._refuse('before_start', stream, f'{stream} before this clock started '
+                         '(use_sim_time and no /clock yet): the filter does not start on it')
+            return False
+        if self.tracker is None and behind > int(self.params['stale_timeout'] * NS_PER_S):
             # the filter starts at its first input's stamp: an old one would be integrated over
             self._refuse('before_start', stream, f'{stream} stamped {behind / NS_PER_S:.3f} s '
                          'behind this clock: the filter starts only at an input stamped within '
