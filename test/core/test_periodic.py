@@ -539,3 +539,17 @@ def test_behind_a_repeating_path_greedy_then_the_locked_cycle(kind: str) -> None
     np.testing.assert_array_equal(periodic.waypoints[:20], greedy.waypoints[:20])
     assert not np.allclose(periodic.waypoints[20:40], greedy.waypoints[20:40])
     assert np.mean(periodic.weighted_trace[100:]) <= 0.95 * np.mean(greedy.weighted_trace[100:])
+
+
+@pytest.mark.slow
+def test_an_arc_design_within_reach_with_exact_kinematics_runs() -> None:
+    """Range behind an arc (0.1 rad/s) under 1.5 m/s with exact kinematics, the defaults of
+    formation files and nodes: some candidate cycles of the design have no steady state (their
+    period map overflows); they are left out, the design is made and the run goes on (it ended
+    in LinAlgError before step 1)."""
+    scenario = Scenario.paper('range', leader=LeaderPath('arc', 1.0, yaw_rate=0.1),
+                              max_speed=1.5, kinematics='exact')
+    with np.errstate(all='raise'):
+        run = run_trial(scenario, 'periodic', 0, 0, 3)
+    assert np.all(np.isfinite(run.weighted_trace))
+    assert describe_design(scenario, {}).startswith('cycle of ')

@@ -292,12 +292,15 @@ def solve_rows(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 def periodic_solutions(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Steady states of period maps M (n, 6, 6): P (n, 3, 3), the convergence factor per
     period (n,) and which rows have a unique positive definite steady state (n,) bool (the
-    others leave a direction unobservable; their P and factor are meaningless)."""
-    values, vectors = np.linalg.eig(M)
+    others leave a direction unobservable, or their product overflowed; their P and factor
+    are meaningless)."""
+    finite = np.all(np.isfinite(M), axis=(1, 2))
+    values, vectors = np.linalg.eig(np.where(finite[:, None, None], M, np.eye(6)))
     order = np.argsort(-np.abs(values), axis=-1)
     moduli = np.take_along_axis(np.abs(values), order, axis=-1)
     dominant = np.take_along_axis(vectors, order[:, None, :3], axis=-1)       # (n, 6, 3)
-    valid = np.all(np.isfinite(moduli), axis=-1) & (moduli[:, 2] > (1.0 + 1e-9) * moduli[:, 3])
+    valid = finite & np.all(np.isfinite(moduli), axis=-1) & \
+        (moduli[:, 2] > (1.0 + 1e-9) * moduli[:, 3])
     X, Y = dominant[:, :3], dominant[:, 3:]
     Y = np.where(valid[:, None, None], Y, np.eye(3))                # keep singular rows solvable
     P = np.real(np.swapaxes(solve_rows(np.swapaxes(Y, 1, 2), np.swapaxes(X, 1, 2)), 1, 2))
@@ -516,8 +519,9 @@ def evaluate_cycles(maps: np.ndarray, points: np.ndarray, conditions: SteadyCond
     posteriors (n, m, 3, 3) and the convergence factors per period (n,).
     """
     period_maps = maps[:, 0]
-    for k in range(1, maps.shape[1]):
-        period_maps = maps[:, k] @ period_maps
+    with np.errstate(over='ignore', invalid='ignore'):    # a long unstable cycle: no state
+        for k in range(1, maps.shape[1]):
+            period_maps = maps[:, k] @ period_maps
     P, decay, valid = periodic_solutions(period_maps)     # posterior at the last phase
     posteriors = np.empty(maps.shape[:2] + (3, 3))
     for k in range(maps.shape[1]):
