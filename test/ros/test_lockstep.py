@@ -70,8 +70,9 @@ def test_lockstep_equals_run_trial(formation, kind: str, strategy: str,
 @pytest.mark.slow
 def test_periodic_behind_an_s_curve_equals_run_trial(formation) -> None:
     """PERIODIC behind an S-curve of 2 s (20 steps) at 2 m/s: the estimator node designs the
-    cycle locked to the path inside decision 21 and plays it; every estimate and covariance
-    equals run_trial's, whose moves after the first period are not greedy's."""
+    cycle locked to the path before step 1 and plays it from decision 21; every estimate and
+    covariance equals run_trial's (which designs inside decision 21), whose moves after the
+    first period are not greedy's."""
     curve = {'path': 's-curve', 'amplitude': 0.5, 'period': 2.0, 'max_speed': 2.0}
     run = formation({'measurement': 'bearing', 'strategy': 'periodic', 'seed': SEED,
                      'steps': STEPS, 'resend_timeout': 60.0, **curve})

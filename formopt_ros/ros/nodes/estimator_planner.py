@@ -56,8 +56,8 @@ PARAMS = [FORMATION_FILE, FOLLOWER_ID, LEADER_ID, MODE, SEED, TRIAL] + SCENARIO_
               'run has not started this long after the node did (a peer missing or frozen), '
               's; 0: wait for good (run_formation.sh sets 60)', 0.0, 86400.0),
         Param('stall_timeout', 20.0, 'end the run (exit 1, naming the inputs not heard) when '
-              'no step completes for this long once it started (a peer frozen or gone), s; 0: '
-              'wait for good', 0.0, 86400.0, read_only=False),
+              'no step completes for this long once one did (a peer frozen or gone; before, '
+              'start_timeout), s; 0: wait for good', 0.0, 86400.0, read_only=False),
         RUN_ID, RECORDERS, WAIT_FOR_PEERS, SUMMARY_PATH, CHECKPOINT_PATH]
 SUMMARY = ("The follower's EKF and motion strategy: odometry and measurements in; estimate, "
            'waypoint, status, markers, leader -> <follower>/estimate on /tf, /diagnostics and '
@@ -128,6 +128,7 @@ class EstimatorPlannerNode(Node):
         self.last_plan: StepPlan | None = None
         self.last_waypoint: Waypoint | None = None
         self.last_progress = self.last_step_at = self.created_at = time.monotonic()
+        self.stepped = False            # a step completed in this process
         self.heard_at_step: dict[str, int] = {}     # self.received at the last completed step
         #: per stall input: (messages received, when that count was first seen) on the timer
         self.heard = {key: (0, time.monotonic()) for key in STALL_INPUTS}
@@ -473,6 +474,7 @@ class EstimatorPlannerNode(Node):
         self.published['estimate'] += 1
         self.published['tf'] += 1
         self.last_progress = self.last_step_at = time.monotonic()
+        self.stepped = True
         self.heard_at_step = dict(self.received)
         self._publish_status(stamp, outcome.step, outcome.weighted_trace)
         if time.monotonic() - self.last_markers >= MARKER_PERIOD or outcome.plan is None:
@@ -562,8 +564,11 @@ class EstimatorPlannerNode(Node):
         """End the run (exit 1) when no step completed, or one input was not heard, for
         stall_timeout s (a peer frozen or gone; in realtime the steps go on without the
         leader's odometry); the message names the silent inputs, those whose publisher left
-        the ROS graph first. True when it ended the run."""
-        limit = self.params['stall_timeout']
+        the ROS graph first. True when it ended the run. Until a step completes the limit is
+        start_timeout: a peer may still be preparing (PERIODIC designs a cycle locked to an
+        S-curve, 10-40 s, before its step 1)."""
+        name = 'stall_timeout' if self.stepped else 'start_timeout'
+        limit = self.params[name]
         for key in STALL_INPUTS:
             if self.received[key] != self.heard[key][0]:
                 self.heard[key] = (self.received[key], now)
@@ -577,7 +582,7 @@ class EstimatorPlannerNode(Node):
                  for key in gone] + [STALL_INPUTS[key] for key in silent if key not in gone]
         what = f'nothing heard for {limit:g} s' if quiet else \
             f'no step completed for {now - self.last_step_at:.0f} s'
-        stop_run(self, 1, f'{what} (stall_timeout) after step {self.session.step}: '
+        stop_run(self, 1, f'{what} ({name}) after step {self.session.step}: '
                           + (f"silent: {'; '.join(names)}" if names else
                              'inputs arrive but do not complete the step'))
         return True
