@@ -553,3 +553,15 @@ def test_an_arc_design_within_reach_with_exact_kinematics_runs() -> None:
         run = run_trial(scenario, 'periodic', 0, 0, 3)
     assert np.all(np.isfinite(run.weighted_trace))
     assert describe_design(scenario, {}).startswith('cycle of ')
+
+
+def test_prepare_designs_the_cycle_locked_to_a_repeating_path() -> None:
+    """A node prepares its strategy before step 1: PERIODIC designs the cycle locked to an
+    S-curve then (cached), so that no lockstep step spends the 10-40 s of a design."""
+    scenario = Scenario.paper('bearing', leader=LeaderPath('s-curve', 1.0, amplitude=0.5,
+                                                           period=2.0), max_speed=2.0)
+    design_phase_locked.cache_clear()
+    make_strategy('periodic').prepare(scenario)
+    assert design_phase_locked.cache_info().currsize == 1
+    design_phase_locked(scenario)
+    assert design_phase_locked.cache_info().hits == 1
