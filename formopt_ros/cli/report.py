@@ -14,7 +14,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('bag', type=bag_file, help='the recorded .mcap file (or its folder)')
     parser.add_argument('--out', type=new_folder, required=True,
                         help='output folder (new, or empty)')
-    parser.add_argument('--follower', help='which follower (default: the only one)')
+    parser.add_argument('--follower', help='report this follower only (default: every one)')
     parser.add_argument('--trajectory-steps', type=integer(1), default=40,
                         help='steps drawn in the trajectory figure (default: first 40)')
     return parser
