@@ -19,7 +19,9 @@ Both raise ValueError naming the field to change; neither is needed for the pape
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.cost import MIN_DEVIATION
 from formopt_ros.core.estimator import TRAVEL_BOUND, TURN_BOUND
 from formopt_ros.core.model import BEARING, RANGE_BEARING
@@ -112,8 +114,11 @@ def check_deviation_domain(scenario: Scenario, field: str = 'deviation') -> None
         largest = math.floor((1.0 - need / s.d_o) * 1e4 + 1e-6) / 1e4
         safety = math.ceil(need * 1e4 - 1e-6) / 1e4       # m, on a 0.1 mm grid
         remedies = [f'a deviation of at most {largest:g}'] if largest >= MIN_DEVIATION else []
-        if safety < s.d_o + s.r:                           # a safety distance leaves a point
+        try:                                     # Scenario's own rule: it leaves a point
+            replace(s, safety_distance=safety)
             remedies.append(f'a safety distance of at least {safety:g} m')
+        except InvalidInput:
+            pass
         if not remedies:
             remedies.append('a slot farther from the leader or a smaller initial covariance')
         raise ValueError(
