@@ -154,6 +154,7 @@ class FollowerEstimatorNode(Node):
             scenario.sigma ** 2
         #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
         self.static: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        self.mounts: dict[str, tuple[tuple[float, float], np.ndarray]] = {}   # frame -> mount
         self.sensor_frame: str | None = None       # the frame of the first measurement
         self.fixed_mount: tuple[tuple[float, float], np.ndarray] | None = None
         if p['sensor_mount'] != [0.0]:
@@ -350,13 +351,16 @@ class FollowerEstimatorNode(Node):
         self._measure('bearing', header_ns(message), value, frame, mount[0])
 
     def on_tf_static(self, message: TFMessage) -> None:
-        """Static transforms, kept by child frame; a sensor frame's mount is its pose in
-        base_frame through them (e.g. base_link -> camera_link -> camera_optical)."""
+        """Static transforms, kept by child frame, and the mount of every frame they connect to
+        base_frame: its pose there (e.g. base_link -> camera_link -> camera_optical), resolved
+        here rather than per measurement."""
         for transform in message.transforms:
             t, q = transform.transform.translation, transform.transform.rotation
             self.static[transform.child_frame_id] = (
                 transform.header.frame_id, np.array([t.x, t.y, t.z]),
                 rotation_matrix((q.x, q.y, q.z, q.w)))
+        resolved = {frame: self._static_mount(frame) for frame in self.static}
+        self.mounts = {frame: mount for frame, mount in resolved.items() if mount is not None}
 
     def _in_root(self, frame: str) -> tuple[str, np.ndarray, np.ndarray] | None:
         """(the root of ``frame``'s chain of static transforms, its offset (3,) m and rotation
@@ -389,7 +393,7 @@ class FollowerEstimatorNode(Node):
             self._refuse('frame', stream, f'{stream}: frame_id {frame!r} is not the sensor '
                          f'frame {self.sensor_frame!r} of the first measurement')
             return None
-        mount = self.fixed_mount or self._static_mount(frame)
+        mount = self.fixed_mount or self.mounts.get(frame)
         if mount is None and (frame in ('', self.params['base_frame']) or stream == 'range'):
             mount = ((0.0, 0.0), np.eye(3))
         if mount is None:
