@@ -45,6 +45,8 @@ class Probe(Node):
         self.estimates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.truth: dict[int, np.ndarray] = {}
         self.commands: list[tuple[float, float]] = []
+        #: how many commands had arrived when the first 'filter inconsistent' ERROR did
+        self.commands_before_inconsistent: int | None = None
         self.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, 50)
         self.create_subscription(PoseWithCovarianceStamped, 'estimate', self.on_estimate, 1000)
         self.create_subscription(PoseStamped, 'truth', self.on_truth, 1000)
@@ -58,6 +60,9 @@ class Probe(Node):
                 self.messages.append(status.message)
                 if status.level == DiagnosticStatus.ERROR:
                     self.errors.append(header_ns(message))
+                    if self.commands_before_inconsistent is None and \
+                            status.message.startswith('filter inconsistent'):
+                        self.commands_before_inconsistent = len(self.commands)
 
     def on_estimate(self, message: PoseWithCovarianceStamped) -> None:
         self.estimates[header_ns(message)] = estimate_values(message)
@@ -384,6 +389,21 @@ def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
     assert any(m.startswith('filter consistency: conservative') for m in probe.messages), \
         probe.messages
     assert summary['consistency']['last']['level'] == 'warn', summary['consistency']
+
+
+def test_an_inconsistent_filter_stops_the_base_when_asked(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """range_sigma 0.01 m for a radio of 0.1 m (overconfident) with stop_when_inconsistent:
+    the latched consistency ERROR stops the base; nothing but zero cmd_vel follows it (three
+    commands of slack: /diagnostics and cmd_vel are two topics)."""
+    probe, summary = run_pair(tmp_path, {}, 10.0, node_process,
+                              {'range_sigma': 0.01, 'stop_when_inconsistent': True})
+    assert not summary['ok'] and summary['stops'] >= 1, summary
+    moving = [i for i, c in enumerate(probe.commands) if c != (0.0, 0.0)]
+    assert moving, 'the base never moved before the error'
+    assert probe.commands_before_inconsistent is not None
+    assert max(moving) <= probe.commands_before_inconsistent + 3, \
+        (max(moving), probe.commands_before_inconsistent, len(probe.commands))
 
 
 def test_a_camera_follower_reads_its_mount_from_tf_static(

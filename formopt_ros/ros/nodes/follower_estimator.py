@@ -86,6 +86,9 @@ PARAMS = [
     Param('stale_timeout', 1.0, 'a stream silent (or stamped behind this clock) this long is an '
           'ERROR (half as long: WARN), and the base stops; the filter starts at the first input '
           'stamped within it of this clock, s', 0.05, 60.0),
+    Param('stop_when_inconsistent', False, 'stop the base (zero cmd_vel) for the rest of the '
+          "run once the consistency watch raised its latched ERROR (false: keep driving on the "
+          'estimate; the run is not ok either way)'),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
     Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
@@ -465,8 +468,10 @@ class FollowerEstimatorNode(Node):
 
     def control(self) -> None:
         """cmd_vel toward the target within the limits; a stop while the target or an input
-        stream is stale (counted)."""
-        if self.tracker is None or self.target is None or self.stale():
+        stream is stale, or once the filter is inconsistent with stop_when_inconsistent
+        (counted)."""
+        if self.tracker is None or self.target is None or self.stale() or \
+                (self.params['stop_when_inconsistent'] and self.tracker.watch.failed):
             self.stops += self.command != (0.0, 0.0)       # a moving base stopped
             self.command = (0.0, 0.0)
         else:
