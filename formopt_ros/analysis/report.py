@@ -145,6 +145,7 @@ def make_report(recording: Recording, out: Path, trajectory_steps: int = 40,
     summary: dict[str, Any] = {
         'bag': str(bag.path),
         'duration_s': (max(times) - min(times)) * 1e-9 if times else 0.0,
+        'run_time_s': max(float(r.time[-1]) for r in runs.values()),
         'nees_band_95': list(nees_band(1)),
         'followers': rows,
         'message_counts': bag.counts(),
@@ -222,8 +223,10 @@ def steps_text(row: dict[str, Any]) -> str:
 def _markdown(s: dict[str, Any]) -> str:
     lo, hi = s['nees_band_95']
     lines = [f"# Formation run: {Path(s['bag']).name}", '',
-             f"Recorded duration {s['duration_s']:.3f} s. Steady value: mean tr(W P W) over the "
-             f'last steps (column); NEES of one run, 95 % band {lo:.3f} to {hi:.3f}.', '',
+             f"Recorded over {s['duration_s']:.3f} s of the recorder's clock; the run's last "
+             f"step is at {s['run_time_s']:.3f} s of the scenario's time. Steady value: mean "
+             f'tr(W P W) over the last steps (column); NEES of one run, 95 % band {lo:.3f} to '
+             f'{hi:.3f}.', '',
              '| follower | sensor | strategy | slot [m] | r [m] | steps | steady tr(W P W) '
              '[m^2] | final tr(W P W) [m^2] | mean NEES | refused meas. / odom. |',
              '|---|---|---|---|---|---|---|---|---|---|']

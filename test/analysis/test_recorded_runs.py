@@ -77,6 +77,9 @@ def test_commands_on_the_legacy_bag(tmp_path: Path) -> None:
     summary = json.loads((report / 'summary.json').read_text())
     assert summary['steps'] == 20 and summary['description'] == 'reconstructed from the messages'
     assert summary['mean_nees'] == pytest.approx(MEAN_NEES, rel=1e-12)
+    # 20 steps of 2 dt = 0.1 s of the scenario, recorded in 0.15 s of the recorder's clock
+    assert summary['run_time_s'] == pytest.approx(2.0, rel=1e-12)
+    assert summary['duration_s'] < 1.0
     for name in ('trajectory.png', 'weighted_trace.png', 'nees.png'):
         assert (report / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     before = (report / 'summary.json').read_bytes()
