@@ -17,8 +17,9 @@ from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps, design_within_reach,
-    greedy_loop, greedy_target, lft, move_map, noise_free_step, pair_grid, reach_map, solve_rows)
+    LOOP_TOLERANCE, SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps,
+    design_within_reach, greedy_loop, greedy_target, lft, loop_length, move_map, noise_free_step,
+    pair_grid, reach_map, solve_rows)
 from formopt_ros.core.strategies.rq import rq_optimum
 from formopt_ros.core.strategies.periodic import CHANGING, SETTLE_DECISIONS, describe_design
 from formopt_ros.core.strategies.phase_locked import (
@@ -358,6 +359,22 @@ def test_design_within_reach_with_exact_kinematics_at_1_75() -> None:
     assert conditions is not None
     design = design_within_reach(conditions)
     assert design is not None and design.steady_cost < greedy_loop(conditions)[0]
+
+
+@pytest.mark.parametrize('max_speed, yaw_rate', [(1.55, 0.0), (1.5, -0.1)])
+def test_greedy_holding_a_point_is_not_a_loop_of_one(max_speed: float, yaw_rate: float) -> None:
+    """Range under a speed limit: greedy holds a point for up to 8 steps before it jumps back;
+    its loop is 22 (19) steps, not 1, and the design from it beats greedy by more than 5 %
+    (the two-target test called the hold a loop of one, and PERIODIC played greedy)."""
+    leader = LeaderPath('arc', 1.0, yaw_rate) if yaw_rate else LeaderPath()
+    conditions = SteadyConditions.from_scenario(
+        Scenario.paper('range', max_speed=max_speed, leader=leader))
+    assert conditions is not None
+    greedy, targets = greedy_loop(conditions)
+    tolerance = LOOP_TOLERANCE * (math.hypot(*conditions.p_o) + conditions.r)
+    assert loop_length(targets, 40, tolerance) == (22 if yaw_rate == 0.0 else 19)
+    design = design_within_reach(conditions)
+    assert design is not None and design.steady_cost < 0.95 * greedy
 
 
 def velocity(scenario: Scenario, step: int) -> tuple[float, float]:

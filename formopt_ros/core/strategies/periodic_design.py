@@ -74,6 +74,9 @@ CACHE_SIZE = 16
 #: length, relative to the loop's, of a slower lap sampled along it; SLSQP's iteration cap; the
 #: relative tolerance of a cycle's moves in the reach disc.
 GREEDY_STEPS, GREEDY_STEADY = 400, 133
+#: A loop of greedy's targets repeats over its last LOOP_WINDOW steps (at least two laps),
+#: within LOOP_TOLERANCE (|p_o| + r) (its bearing loops converge to about 1e-6 of that).
+LOOP_WINDOW, LOOP_TOLERANCE = 20, 1e-5
 REACH_LONGEST_LOOP = 40
 REACH_SAMPLED = 12
 REACH_STRETCH = 1.3
@@ -761,10 +764,14 @@ def greedy_loop(conditions: SteadyConditions) -> tuple[float, np.ndarray]:
 
 
 def loop_length(targets: np.ndarray, longest: int, tolerance: float) -> int | None:
-    """The period of a loop of targets (n, 2): the least K <= ``longest`` with the last two
-    targets repeated K steps earlier within ``tolerance`` (m); None when there is none."""
+    """The period of a loop of targets (n, 2): the least K <= ``longest`` with each of the last
+    max(2 K, LOOP_WINDOW) targets repeated K steps earlier within ``tolerance`` (m); None when
+    there is none. Greedy under a speed limit holds one point for up to 18 steps before it
+    jumps back: the last few targets alone would call that hold a loop of one."""
     for period in range(1, min(longest, len(targets) - 2) + 1):
-        if all(np.hypot(*(targets[-j] - targets[-j - period])) <= tolerance for j in (1, 2)):
+        window = min(max(2 * period, LOOP_WINDOW), len(targets) - period)
+        if np.all(np.hypot(*(targets[-window:] - targets[-window - period:-period]).T)
+                  <= tolerance):
             return period
     return None
 
@@ -826,7 +833,8 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     start_time = time.perf_counter()
     c = conditions
     greedy_cost, targets = greedy_loop(c)
-    period = loop_length(targets, REACH_LONGEST_LOOP, 1e-6 * (math.hypot(*c.p_o) + c.r))
+    period = loop_length(targets, REACH_LONGEST_LOOP,
+                         LOOP_TOLERANCE * (math.hypot(*c.p_o) + c.r))
     starts = [] if period is None or period < 2 else [targets[-period:]]
     cycle = targets[-(period or len(targets)):]
     lengths = {REACH_SAMPLED} if period is None else \
