@@ -360,6 +360,11 @@ class AsyncEstimator:
                 'leader_odometry': len(self.timelines['leader'].samples),
                 'measurements': len(self._waiting)}
 
+    def waiting_measurements(self) -> list[tuple[int, float]]:
+        """The measurements buffered and not yet applied: (stamp ns, value m or rad), in stamp
+        order."""
+        return [(stamp, value) for stamp, value, _ in sorted(self._waiting)]
+
 
 __all__ = ['AppliedMeasurement', 'AsyncCounters', 'AsyncEstimator', 'AsyncSettings',
            'ROBOTS', 'TwistTimeline']

@@ -216,7 +216,7 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         assert node.refused['no_mount'] == 0 and node.sensor_frame == 'camera_optical'
         assert node.estimator.sensor_offset == pytest.approx((0.2, 0.1), abs=1e-12)
         assert node.tracker is not None and node.tracker.time_ns == now - 1
-        (_, value, _), = node.tracker._waiting
+        (_, value), = node.tracker.waiting_measurements()
         assert value == pytest.approx(np.pi / 2, abs=1e-12)
         node.destroy_node()
         # with use_sim_time and no /clock yet this clock reads 0: a stamp of 0 starts nothing
