@@ -1,4 +1,5 @@
-"""Reading rosbag2 MCAP files: a record scan that survives damage, and decoding with rosbags.
+"""Reading rosbag2 MCAP bags (one file, or the folder of a split recording): a record scan that
+survives damage, and decoding with rosbags.
 
 Messages are decoded with a rosbags typestore built from the bag's own ros2msg schemas, so
 reading a bag needs neither rclpy nor the message packages that recorded it.
@@ -6,9 +7,12 @@ reading a bag needs neither rclpy nor the message packages that recorded it.
 from __future__ import annotations
 
 import io
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import yaml
 
 from formopt_ros.bag.errors import BagError
 from formopt_ros.bag.qos import Qos, parse_qos_yaml
@@ -263,9 +267,8 @@ class Bag:
         return out
 
 
-def read_bag(path: str | Path) -> Bag:
-    """Load a complete rosbag2 MCAP file; BagError (one clear line) for anything unusable."""
-    path = Path(path)
+def _read_file(path: Path) -> Bag:
+    """One complete rosbag2 MCAP file; BagError (one clear line) for anything unusable."""
     result = scan(path)
     if not result.complete or result.damage:
         where = (f'damaged at byte {result.damage[0].offset} ({result.damage[0].reason})'
@@ -295,6 +298,61 @@ def read_bag(path: str | Path) -> Bag:
                                message.publish_time, message.data))
     messages.sort(key=lambda r: r.log_time)
     return Bag(path, result.profile, result.library, channels, messages)
+
+
+def _split_index(path: Path) -> tuple[str, int]:
+    """Sort key of a split file: its stem without the _N suffix, then N (run_2 before run_10)."""
+    match = re.fullmatch(r'(.*)_(\d+)', path.stem)
+    return (match.group(1), int(match.group(2))) if match else (path.stem, -1)
+
+
+def bag_files(path: str | Path) -> list[Path]:
+    """The .mcap files of a bag in recording order: the file itself, or those of a rosbag2
+    folder (its metadata.yaml's ``relative_file_paths``, else every .mcap file by split
+    index); BagError for a folder without one or of another storage (sqlite3)."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path]
+    metadata = path / 'metadata.yaml'
+    convert = ('record with `ros2 bag record -s mcap`, or convert the bag with `ros2 bag '
+               'convert`')
+    if metadata.is_file():
+        try:
+            information = yaml.safe_load(metadata.read_text())['rosbag2_bagfile_information']
+            storage = information.get('storage_identifier', 'mcap')
+            files = [path / name for name in information['relative_file_paths']]
+        except (yaml.YAMLError, OSError, KeyError, TypeError, AttributeError):
+            raise BagError(f'{metadata}: not a rosbag2 metadata file') from None
+        if storage != 'mcap':
+            raise BagError(f'{path}: a {storage} bag; only MCAP is read: {convert}')
+        return files
+    found = sorted(path.glob('*.mcap'), key=_split_index)
+    if not found:
+        raise BagError(f'{path}: a folder without an .mcap file ({convert})')
+    keys = [_split_index(file) for file in found]
+    if len(found) > 1 and (len({name for name, _ in keys}) > 1 or
+                           any(index < 0 for _, index in keys)):
+        raise BagError(f'{path}: holds {len(found)} .mcap files that are not the parts of one '
+                       'split recording (NAME_0.mcap, NAME_1.mcap, ...): pass one of them')
+    return found
+
+
+def read_bag(path: str | Path) -> Bag:
+    """Load a complete rosbag2 MCAP bag: one file, or the files of a split recording's folder
+    (:func:`bag_files`) as one bag; BagError (one clear line) for anything unusable."""
+    path = Path(path)
+    parts = [_read_file(file) for file in bag_files(path)]
+    if len(parts) == 1:
+        return parts[0]
+    channels: dict[str, ChannelInfo] = {}
+    for part in parts:
+        for topic, channel in part.channels.items():
+            if channels.setdefault(topic, channel).type != channel.type:
+                raise BagError(f'{part.path}: topic {topic} has type {channel.type}, '
+                               f'{channels[topic].type} in an earlier file of {path}')
+    messages = sorted((record for part in parts for record in part.messages),
+                      key=lambda record: record.log_time)
+    return Bag(path, parts[0].profile, parts[0].library, channels, messages)
 
 
 def info(bag: Bag) -> dict[str, Any]:

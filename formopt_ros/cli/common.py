@@ -187,20 +187,18 @@ def _check_parent(path: Path, text: str) -> None:
 
 
 def bag_file(text: str) -> Path:
-    """argparse type: an .mcap file, or the folder ``ros2 bag record`` writes when it holds
-    exactly one (its .mcap file is returned)."""
+    """argparse type: an .mcap file, or the folder ``ros2 bag record`` writes (its one .mcap
+    file, or the folder itself for a split recording, read as one bag)."""
+    from formopt_ros.bag import BagError
+    from formopt_ros.bag.reader import bag_files
     path = Path(text)
     if not path.is_dir():
         return existing_file(text)
-    found = sorted(path.glob('*.mcap'))
-    if len(found) == 1:
-        return found[0]
-    if found:
-        raise argparse.ArgumentTypeError(f'{text}: holds {len(found)} .mcap files: pass one '
-                                         'of them')
-    raise argparse.ArgumentTypeError(f'{text}: a folder without an .mcap file (record with '
-                                     '`ros2 bag record -s mcap`, or convert a .db3 bag with '
-                                     '`ros2 bag convert`)')
+    try:
+        files = bag_files(path)
+    except BagError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return files[0] if len(files) == 1 else path
 
 
 def existing_file(text: str) -> Path:

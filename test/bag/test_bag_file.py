@@ -173,6 +173,29 @@ def test_writer_reader_round_trip(tmp_path: Path) -> None:
     assert set(summary.statistics.channel_message_counts.values()) == {60, 30}
 
 
+def test_a_split_recording_is_one_bag(tmp_path: Path) -> None:
+    """The files of a split rosbag2 folder (run_2 before run_10 without metadata.yaml) are one
+    bag, messages in log-time order; a topic whose type changes between files is refused."""
+    def part(name: str, start: int, topic_type: str = ODOMETRY) -> None:
+        writer = bag.BagWriter(tmp_path / name)
+        writer.add_channel('/leader/odom', topic_type)
+        for i in range(start, start + 5):
+            writer.write('/leader/odom', bytes([0, 1, 0, 0]) + struct.pack('<iI', i, 0),
+                         1_000_000 * i)
+        writer.close()
+
+    part('run_10.mcap', 20)
+    part('run_2.mcap', 10)
+    assert [p.name for p in bag.reader.bag_files(tmp_path)] == ['run_2.mcap', 'run_10.mcap']
+    loaded = bag.read_bag(tmp_path)
+    assert loaded.path == tmp_path and loaded.counts() == {'/leader/odom': 10}
+    expected = [1_000_000 * i for i in [*range(10, 15), *range(20, 25)]]
+    assert [r.log_time for r in loaded.messages] == expected
+    part('run_11.mcap', 30, 'formopt_interfaces/msg/PlannerStatus')
+    with pytest.raises(bag.BagError, match='has type formopt_interfaces'):
+        bag.read_bag(tmp_path)
+
+
 def test_writer_refuses_to_overwrite(tmp_path: Path) -> None:
     path = tmp_path / 'run.mcap'
     path.write_bytes(b'keep me')
@@ -465,7 +488,7 @@ def test_cli_info_repair_and_bad_files(tmp_path: Path) -> None:
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'none.mcap')), 'no such file')
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'text.mcap')), 'not an MCAP file')
     assert_clean_error(run_module(cli, 'info', str(tmp_path / 'cut.mcap')), 'truncated')
-    assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'holds 4 .mcap files')
+    assert_clean_error(run_module(cli, 'info', str(tmp_path)), 'holds 4 .mcap files that')
     assert_clean_error(run_module(cli, 'bogus'), 'invalid choice')
 
 

@@ -270,21 +270,31 @@ def test_robot_sh_names_a_bad_argument(argv: list[str], message: str) -> None:
     assert len(done.stderr.strip().splitlines()) == 1 and done.stdout == ''
 
 
-def test_a_rosbag2_folder_is_read_through_its_mcap_file(
+def test_a_rosbag2_folder_is_read_through_its_mcap_files(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """A bag as `ros2 bag record` writes it (a folder holding one .mcap file) is read as that
-    file; a folder with none, or with two (a split bag, say), is refused in one line (exit
-    2)."""
+    """A bag as `ros2 bag record` writes it (a folder holding one .mcap file, or several for a
+    split recording) is read as one bag; a folder with none, or of sqlite3 storage, is refused
+    in one line (exit 2)."""
     from formopt_ros.cli import bag
     source = Path(__file__).resolve().parents[1] / 'data' / 'tiers_uwb_case4_test3.mcap'
     folder = tmp_path / 'rosbag2_run'
     folder.mkdir()
-    for copies, message in ((0, 'a folder without an .mcap file'), (2, 'holds 2 .mcap files')):
-        for index in range(copies):
-            (folder / f'run_{index}.mcap').symlink_to(source)
-        with pytest.raises(SystemExit) as stop:
-            bag.main(['info', str(folder)])
-        assert stop.value.code == 2 and message in capsys.readouterr().err
-    (folder / 'run_1.mcap').unlink()
+    with pytest.raises(SystemExit) as stop:
+        bag.main(['info', str(folder)])
+    assert stop.value.code == 2 and 'a folder without an .mcap file' in capsys.readouterr().err
+    (folder / 'run_0.mcap').symlink_to(source)
     bag.main(['info', str(folder)])
-    assert '/uwb/range' in capsys.readouterr().out
+    single = capsys.readouterr().out
+    assert '/uwb/range' in single
+    (folder / 'run_1.mcap').symlink_to(source)      # a split: both files, as one bag
+    bag.main(['info', str(folder)])
+    split = capsys.readouterr().out
+    counts = [int(line.split()[-1]) for text in (single, split)
+              for line in text.splitlines() if line.strip().startswith('/uwb/range')]
+    assert counts[1] == 2 * counts[0], (single, split)
+    (folder / 'metadata.yaml').write_text(
+        'rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n'
+        '  relative_file_paths: [run_0.db3]\n')
+    with pytest.raises(SystemExit) as stop:
+        bag.main(['info', str(folder)])
+    assert stop.value.code == 2 and 'a sqlite3 bag' in capsys.readouterr().err
