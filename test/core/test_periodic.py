@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -375,6 +378,26 @@ def test_greedy_holding_a_point_is_not_a_loop_of_one(max_speed: float, yaw_rate:
     assert loop_length(targets, 40, tolerance) == (22 if yaw_rate == 0.0 else 19)
     design = design_within_reach(conditions)
     assert design is not None and design.steady_cost < 0.95 * greedy
+
+
+@pytest.mark.slow
+def test_a_design_within_reach_does_not_depend_on_the_blas_threads() -> None:
+    """Bearing behind an arc of 0.3 rad/s under 2 m/s, greedy without a loop: one BLAS thread
+    (a Dask worker's) and two end SLSQP at different digits; both processes design a cycle
+    about 24 % below greedy (with one thread SLSQP stopped outside the reach and PERIODIC
+    played greedy, so a study's numbers hung on --jobs)."""
+    code = ("from formopt_ros.core.scenario import LeaderPath, Scenario\n"
+            "from formopt_ros.core.strategies import periodic_design as pd\n"
+            "c = pd.SteadyConditions.from_scenario(Scenario.paper('bearing', max_speed=2.0, "
+            "leader=LeaderPath('arc', 1.0, 0.3)))\n"
+            "design = pd.design_within_reach(c)\n"
+            "print(design.steady_cost / pd.greedy_loop(c)[0] if design else 'none')\n")
+    for threads in ('1', '2'):
+        env = {**os.environ, 'OMP_NUM_THREADS': threads, 'OPENBLAS_NUM_THREADS': threads}
+        done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                              env=env, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert 0.7 < float(done.stdout) < 0.8, (threads, done.stdout)
 
 
 def velocity(scenario: Scenario, step: int) -> tuple[float, float]:
