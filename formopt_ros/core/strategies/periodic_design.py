@@ -71,9 +71,9 @@ LINEARITY_MARGIN = 6.0
 CACHE_SIZE = 16
 #: Within reach: greedy's run (steps) whose last GREEDY_STEADY steps give its steady cost and
 #: loop; the longest loop refined as it is; the points of the cycle sampled along it; the
-#: length, relative to the loop's, of a slower lap sampled along it; SLSQP's iteration cap and
-#: its restarts from an end point outside the reachable set; the relative tolerance of a
-#: cycle's moves in the reach disc.
+#: length, relative to the loop's, of a slower lap sampled along it; SLSQP's iteration cap, its
+#: restarts from an end point outside the reachable set and the share of the reach it leaves
+#: free; the relative tolerance of a cycle's moves in the reach disc.
 GREEDY_STEPS, GREEDY_STEADY = 400, 133
 #: A loop of greedy's targets repeats over its last LOOP_WINDOW steps (at least two laps),
 #: within LOOP_TOLERANCE (|p_o| + r) (its bearing loops converge to about 1e-6 of that).
@@ -83,6 +83,7 @@ REACH_SAMPLED = 12
 REACH_STRETCH = 1.3
 REACH_ITERATIONS = 300
 REACH_RESTARTS = 2
+REACH_SLACK = 1e-6
 REACH_RTOL = 1e-9
 REACH_FTOL = 1e-12
 
@@ -807,18 +808,20 @@ class CycleObjective:
 
 
 def refine_cycle(start: np.ndarray, objective: CycleObjective) -> tuple[float, np.ndarray]:
-    """SLSQP from a cycle's points (m, 2) on ``objective`` under :func:`cycle_margins`, run again
-    from where it stopped (up to REACH_RESTARTS times) while that point is outside the
-    reachable set: (its mean steady tr(W P W) m^2, inf when it has none or ends outside the
-    reachable set; the refined points (m, 2), m). SLSQP can stop at its iteration cap a few
-    1e-5 m^2 outside a margin; the digits where it stops depend on the BLAS threads, so
-    without the restart a design could succeed in one process and fail in another."""
+    """SLSQP from a cycle's points (m, 2) on ``objective`` under :func:`cycle_margins` with a
+    reach REACH_SLACK (relative) smaller, run again from where it stopped (up to
+    REACH_RESTARTS times) while that point is outside the reachable set: (its mean steady
+    tr(W P W) m^2, inf when it has none or ends outside the reachable set; the refined points
+    (m, 2), m). SLSQP meets its margins to about 1e-7 of reach^2, and where it stops (also at
+    its iteration cap, further out) depends on the digits the BLAS threads give: without the
+    slack and the restart a design could succeed in one process and fail in another."""
     from scipy.optimize import minimize   # here: it costs every node 0.45 s of start-up
     c = objective.conditions
+    constraint = cycle_constraints(replace(c, reach=c.reach * (1.0 - REACH_SLACK)))
     z = start.ravel()
     for _ in range(1 + REACH_RESTARTS):
         z = minimize(objective, z, jac=objective.gradient, method='SLSQP',
-                     constraints=[cycle_constraints(c)],
+                     constraints=[constraint],
                      options={'maxiter': REACH_ITERATIONS, 'ftol': REACH_FTOL}).x
         points = z.reshape(-1, 2)
         if fits_reach(points, c):
