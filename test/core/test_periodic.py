@@ -595,6 +595,16 @@ def test_an_arc_design_within_reach_with_exact_kinematics_runs() -> None:
     assert describe_design(scenario, {}).startswith('cycle of ')
 
 
+@pytest.mark.parametrize('period, reason', [
+    (7.25, 'not a whole number of steps of 0.1 s'), (0.5, 'outside the 10-400 steps')])
+def test_an_s_curve_without_a_locked_cycle_says_why(period: float, reason: str) -> None:
+    """An S-curve whose period is no whole number of steps, or too short, gets no locked cycle,
+    and the study's line says which (it said only that the velocity changes)."""
+    scenario = Scenario.paper('bearing', leader=LeaderPath('s-curve', 1.0, amplitude=0.5,
+                                                           period=period))
+    assert reason in describe_design(scenario, {})
+
+
 def test_prepare_designs_the_cycle_locked_to_a_repeating_path() -> None:
     """A node prepares its strategy before step 1: PERIODIC designs the cycle locked to an
     S-curve then (cached), so that no lockstep step spends the 10-40 s of a design."""

@@ -49,7 +49,9 @@ from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
     PatternDesign, SteadyConditions, cached_design, fits_reach, greedy_target, noise_free_step)
-from formopt_ros.core.strategies.phase_locked import design_phase_locked, path_period
+from formopt_ros.core.protocol import SUBSTEPS
+from formopt_ros.core.strategies.phase_locked import (
+    LONGEST_PERIOD, SHORTEST_PERIOD, design_phase_locked, path_period)
 from formopt_ros.core.strategies.rq import rq_optimum
 
 if TYPE_CHECKING:
@@ -323,6 +325,19 @@ class PeriodicPattern(Strategy):
         return actual <= (1.0 + float(self.settings['tolerance'])) * expected
 
 
+def unlocked_reason(scenario: Scenario) -> str:
+    """Why an S-curve gets no cycle locked to its phase ('' for other paths)."""
+    path, step = scenario.leader, SUBSTEPS * scenario.dt
+    if path.kind != 's-curve' or path.amplitude == 0.0:
+        return ''
+    steps = path.period / step
+    if abs(steps - round(steps)) > 1e-9 * max(1.0, round(steps)):
+        return (f', and its period {path.period:g} s is not a whole number of steps of '
+                f'{step:g} s, so no cycle locks to its phase')
+    return (f', and its period ({round(steps)} steps) is outside the {SHORTEST_PERIOD}-'
+            f'{LONGEST_PERIOD} steps a cycle locks to')
+
+
 def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     """One line on the cycle PERIODIC plays in ``scenario`` and the time its design took (from
     this process's cache: free after a run, designed now otherwise)."""
@@ -336,7 +351,8 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
                 f'{locked.design_time_s:.1f} s (once per scenario and worker process)')
     conditions = SteadyConditions.from_scenario(scenario)
     if conditions is None:
-        return "the leader's velocity changes from the start: no cycle (greedy while it does)"
+        return f"the leader's velocity changes from the start{unlocked_reason(scenario)}: no " \
+            'cycle (greedy while it does)'
     period = int(PeriodicPattern(**options).settings['period'])
     design = cached_design(conditions, period)[0]
     if design is None:
