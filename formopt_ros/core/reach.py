@@ -128,14 +128,22 @@ class Region:
 
     def fallback_target(self) -> tuple[float, float]:
         """Where to go when the region is empty: the point of the reach disc outside the
-        safety circle nearest the slot (towards the disc at full speed), m."""
+        safety circle nearest the slot (towards the disc at full speed); when the whole reach
+        disc lies inside the safety circle, its point farthest from the leader (out at full
+        speed: the speed limit holds, the safety distance is regained as fast as it can be);
+        without a reach disc, the slot's nearest point outside the safety circle, m."""
         circles: list[Circle] = []
         if self.centre is not None and math.isfinite(self.radius):
             circles.append((self.centre[0], self.centre[1], self.radius, True))
         if self.safety > 0.0:
             circles.append((0.0, 0.0, self.safety, False))
         point = _nearest(circles, *self.slot, FEASIBLE_RTOL * self.scale)
-        return self.slot if point is None else point
+        if point is not None or self.centre is None or not math.isfinite(self.radius):
+            return self.slot if point is None else point
+        cx, cy = self.centre
+        out = math.hypot(cx, cy)
+        ux, uy = (cx / out, cy / out) if out > 0.0 else (1.0, 0.0)
+        return cx + self.radius * ux, cy + self.radius * uy
 
     def ray_interval(self, ux: float, uy: float) -> tuple[float, float]:
         """The distances t (m) for which t (ux, uy) (a unit vector) lies in the region, as

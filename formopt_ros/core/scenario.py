@@ -396,10 +396,12 @@ def check_limits(scenario: 'Scenario') -> None:
         return
     need = max(slowest_speed_in_disc(s.p_o, s.r, v, w) for v, w in motions)
     if s.max_speed < need:
-        raise InvalidInput('max_speed', f'{s.max_speed:g} m/s is below {need:.6g} m/s, the '
+        step = 10.0 ** (math.floor(math.log10(need)) - 5)      # 6 significant digits, up
+        shown = math.ceil(need / step) * step
+        raise InvalidInput('max_speed', f'{s.max_speed:g} m/s is below {shown:.6g} m/s, the '
                            "least world-frame speed at which a point of the slot's disc keeps "
                            "pace with the leader's motion (the follower would fall behind its "
-                           f'disc for good): use at least {need:.6g} m/s')
+                           f'disc for good): use at least {shown:.6g} m/s')
 
 
 def _flatten(data: Any, prefix: str = '') -> dict[str, Any]:

@@ -67,6 +67,28 @@ def test_no_limits_no_region() -> None:
     assert Scenario.paper(RANGE, max_speed=math.inf).max_speed is None
 
 
+@pytest.mark.parametrize('name', ['periodic', 'rq', 'lookahead', 'mme'])
+def test_an_estimate_deep_in_the_safety_circle_keeps_the_speed_limit(name: str) -> None:
+    """Bearing, 1.5 m/s, safety distance 2.1 m (the slot 2.24 m out): the prior's noise puts
+    the estimate 1.8 m from the leader, its whole 0.15 m reach disc inside the circle. The
+    fallback is the reach disc's point farthest from the leader, so no step asks more than the
+    limit (it aimed at the slot, 0.5 m away, and the follower moved at 5 m/s); the true speed
+    stays below 2 m/s (the limit plus what noise adds, as RQ without a safety distance)."""
+    scenario = Scenario.paper(BEARING, max_speed=1.5, safety_distance=2.1)
+    for trial in range(3):
+        run = run_trial(scenario, name, 0, trial, 40)
+        assert follower_motion(scenario, run.truth)[0].max() < 2.0, (name, trial)
+
+
+def test_the_fallback_of_a_reach_disc_inside_the_safety_circle_is_in_reach() -> None:
+    """Reach disc (centre 1.854 m from the leader, radius 0.15 m) wholly inside a 2.1 m safety
+    circle: the fallback is its point farthest from the leader, on the reach circle."""
+    region = Region((-1.0, 2.0), 0.2236, (-1.044, 1.532), 0.15, 2.1)
+    x, y = region.fallback_target()
+    assert math.hypot(x + 1.044, y - 1.532) == pytest.approx(0.15, rel=1e-12)
+    assert math.hypot(x, y) == pytest.approx(math.hypot(-1.044, 1.532) + 0.15, rel=1e-12)
+
+
 def test_limits_refused_with_reasons() -> None:
     """A speed limit below what keeps pace with the leader, a safety distance beyond the disc
     and out-of-range values are refused naming the field."""
@@ -74,9 +96,13 @@ def test_limits_refused_with_reasons() -> None:
         Scenario.paper(RANGE, max_speed=0.5)
     arc = LeaderPath('arc', 1.0, 0.3)
     # range slot (-1, -2) on the outside of a left turn: 0.3 (|(-1, -5.33)| - 0.2236) m/s
-    with pytest.raises(InvalidInput, match='below 1.5608 m/s') as error:
+    with pytest.raises(InvalidInput, match='below 1.56081 m/s') as error:
         Scenario.paper(RANGE, max_speed=1.5, leader=arc)
     assert error.value.name == 'max_speed'
+    # the bound shown is rounded up: the speed it names passes, one a digit below does not
+    assert Scenario.paper(RANGE, max_speed=1.56081, leader=arc).max_speed == 1.56081
+    with pytest.raises(InvalidInput, match='1.5608 m/s is below 1.56081 m/s'):
+        Scenario.paper(RANGE, max_speed=1.5608, leader=arc)
     assert Scenario.paper(BEARING, max_speed=1.5, leader=arc).max_speed == 1.5
     with pytest.raises(InvalidInput, match='safety_distance 2.5 m leaves no point'):
         Scenario.paper(RANGE, safety_distance=2.5)
