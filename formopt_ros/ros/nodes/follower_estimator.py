@@ -37,7 +37,8 @@ from formopt_ros.wire.messages import header_ns, pose_values, twist_noise
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
-#: The longest catch-up after a pause, s (draining a backlog takes a fraction of the pause).
+#: The longest catch-up after a pause, s (draining a backlog takes a fraction of the pause,
+#: more on a loaded machine).
 MAX_CATCH_UP = 1.0
 
 #: Inputs dropped as late beyond this share of a status period's inputs are an ERROR (fewer:
@@ -173,10 +174,13 @@ class FollowerEstimatorNode(Node):
         self.refusal: dict[str, str] = {}            # the last refusal per stream
         self.first_input_ns: int | None = None
         # a pause of every input longer than reorder_lag (this process stalled, or every link
-        # at once): until _catch_up_until (monotonic s) the backlog is applied as its odometry
-        # covers it, not by the clock, so its own odometry is not dropped as late
+        # at once): until _catch_up_until (monotonic s), or until each stream in _draining
+        # delivered an input within reorder_lag of its stamp, the backlog is applied as its
+        # odometry covers it, not by the clock, so its own odometry is not dropped as late,
+        # and its delays (the pause's, not the link's) are not judged
         self._last_input_s: float | None = None
         self._catch_up_until = 0.0
+        self._draining: set[str] = set()
         self.pauses: list[float] = []                 # their lengths, s
         self._reported: dict[str, int] = {}          # counts at the last diagnostics
         self.target: np.ndarray | None = None
@@ -272,9 +276,12 @@ class FollowerEstimatorNode(Node):
         self._last_input_s = wall
         if pause > max(self.params['reorder_lag'], MIN_PAUSE):
             self.pauses.append(pause)
-            self._catch_up_until = wall + min(pause, MAX_CATCH_UP)
-        if not self.catching_up():        # a backlog's delays are the pause's, not the link's
-            self.delays[stream].append((now - stamp) / NS_PER_S)
+            self._catch_up_until, self._draining = wall + MAX_CATCH_UP, set(self.streams)
+        delay = (now - stamp) / NS_PER_S
+        if stream in self._draining and delay <= self.params['reorder_lag']:
+            self._draining.discard(stream)          # this stream's backlog is through
+        if stream not in self._draining or not self.catching_up():
+            self.delays[stream].append(delay)       # a backlog's are the pause's, not the link's
         self.newest[stream] = max(stamp, self.newest[stream] or stamp)
         if self.tracker is None:
             self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
@@ -283,7 +290,7 @@ class FollowerEstimatorNode(Node):
     def catching_up(self) -> bool:
         """Whether the backlog of a pause is still being applied (no measurement is due by the
         clock meanwhile)."""
-        return time.monotonic() < self._catch_up_until
+        return bool(self._draining) and time.monotonic() < self._catch_up_until
 
     def _refuse(self, counter: str, stream: str, text: str) -> None:
         self.refused[counter] += 1
