@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import re
 import subprocess
 import sys
@@ -67,11 +68,13 @@ def pip(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=600)
 
 
-def install(folder: Path) -> None:
-    """pip install the folder, or skip the test when pip cannot (offline, no build backend)."""
-    result = pip('install', '--no-deps', '--no-build-isolation', str(folder))
+def install(folder: Path, target: Path | None = None) -> None:
+    """pip install the folder (into ``target`` when given, a folder only the processes that put
+    it on their path see), or skip the test when pip cannot (offline, no build backend)."""
+    into = ('--target', str(target)) if target else ()
+    result = pip('install', '--no-deps', '--no-build-isolation', *into, str(folder))
     if result.returncode != 0:                       # no local build backend: fetch one
-        result = pip('install', '--no-deps', str(folder))
+        result = pip('install', '--no-deps', *into, str(folder))
     if result.returncode != 0:
         pytest.skip(f'pip cannot install {folder.name} here: '
                     f'{result.stderr.strip().splitlines()[-1:]}')
@@ -102,9 +105,10 @@ def ring(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         sys.modules.pop('formopt_ring', None)
 
 
-def command(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+def command(*args: str, timeout: float = 600,
+            env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, env=env)
 
 
 def test_discovery_and_options(ring: str) -> None:
@@ -187,17 +191,24 @@ def test_a_lockstep_ros_run(ring: str, tmp_path: Path, ros_domain: int) -> None:
 
 
 def test_a_broken_plugin_is_named_and_hides_nothing(ring: str, tmp_path: Path) -> None:
-    folder = tmp_path / 'formopt-broken-plugins'
+    """The broken package goes into a folder of its own, seen by this process and the study it
+    starts only: installed into the environment, the warnings reached every test running
+    beside it (a run_formation test that wants one line of stderr failed)."""
+    folder, site = tmp_path / 'formopt-broken-plugins', tmp_path / 'site'
     folder.mkdir()
     (folder / 'pyproject.toml').write_text(BROKEN_PYPROJECT)
     (folder / 'formopt_broken_plugins.py').write_text(BROKEN_MODULE)
     (folder / 'formopt_ring_bad.py').write_text(BAD_OPTIONS)
+    site.mkdir()
+    sys.path.insert(0, str(site))
     try:
-        install(folder)
+        install(folder, site)
         out = tmp_path / 'mc'
+        path = os.pathsep.join([str(site), *filter(None, [os.environ.get('PYTHONPATH')])])
         result = command('formopt-montecarlo', '--measurement', 'range', '--trials', '2',
                          '--steps', '10', '--strategies', 'ram,ring', '--jobs', '1',
-                         '--no-figures', '--out', str(out))
+                         '--no-figures', '--out', str(out),
+                         env={**os.environ, 'PYTHONPATH': path})
         assert result.returncode == 0, result.stderr
         warnings = [line for line in result.stderr.splitlines() if 'warning: strategy' in line]
         source = 'from formopt-broken-plugins 0.0.1) ignored: '
@@ -217,6 +228,8 @@ def test_a_broken_plugin_is_named_and_hides_nothing(ring: str, tmp_path: Path) -
         assert [p.name for p in STRATEGIES.problems] == ['badoptions', 'missing',
                                                          'notastrategy']
     finally:
-        uninstall('formopt-broken-plugins')
+        sys.path.remove(str(site))
+        importlib.invalidate_caches()
+        STRATEGIES.rediscover()
         for module in ('formopt_broken_plugins', 'formopt_ring_bad'):
             sys.modules.pop(module, None)
