@@ -1,6 +1,7 @@
 """A third-party strategy package (docs/plugins.md's worked example, written here and
-pip-installed into this environment) runs in the study, a sweep, formopt-bench and a lockstep
-ROS run with no file of formopt_ros changed; a broken plugin is reported and hides nothing."""
+pip-installed into a folder on this process's path) runs in the study, a sweep,
+formopt-bench and a lockstep ROS run with no file of formopt_ros changed; a broken plugin is
+reported and hides nothing."""
 from __future__ import annotations
 
 import importlib
@@ -82,26 +83,32 @@ def install(folder: Path, target: Path | None = None) -> None:
     STRATEGIES.rediscover()
 
 
-def uninstall(name: str) -> None:
-    pip('uninstall', '--yes', name)
-    importlib.invalidate_caches()
-    STRATEGIES.rediscover()
-
-
 @pytest.fixture(scope='module')
 def ring(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """The worked example installed for this module (uninstalled afterwards)."""
+    """The worked example installed for this module into a folder of its own, on this
+    process's path and its children's PYTHONPATH (removed afterwards): the environment the
+    other tests share never sees it."""
     folder = tmp_path_factory.mktemp('plugin') / 'formopt-ring'
     folder.mkdir()
+    site = tmp_path_factory.mktemp('plugin-site')
     files = documented_files()
     assert set(files) == {'pyproject.toml', 'formopt_ring.py'}, files.keys()
     for name, content in files.items():
         (folder / name).write_text(content)
+    before = os.environ.get('PYTHONPATH')
+    sys.path.insert(0, str(site))
+    os.environ['PYTHONPATH'] = os.pathsep.join([str(site), *filter(None, [before])])
     try:
-        install(folder)
+        install(folder, site)
         yield 'ring'
     finally:
-        uninstall('formopt-ring')
+        sys.path.remove(str(site))
+        if before is None:
+            os.environ.pop('PYTHONPATH', None)
+        else:
+            os.environ['PYTHONPATH'] = before
+        importlib.invalidate_caches()
+        STRATEGIES.rediscover()
         sys.modules.pop('formopt_ring', None)
 
 
