@@ -44,8 +44,8 @@ from formopt_ros.core.scenario import LeaderPath, Scenario
 from formopt_ros.core.simulation import run_trial
 from formopt_ros.core.strategies import periodic as periodic_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    LOOP_TOLERANCE, CycleObjective, PatternDesign, SteadyConditions, cached_design, greedy_loop,
-    loop_length, refine_cycle)
+    CycleObjective, PatternDesign, SteadyConditions, cached_design, greedy_loop, loop_length,
+    refine_cycle)
 
 #: Standard deviation of a hop's move of every point, m.
 HOP_SIGMA = 0.01
@@ -94,8 +94,7 @@ def main(argv: list[str]) -> int:
     conditions = SteadyConditions.from_scenario(scenario)
     assert conditions is not None
     greedy, targets = greedy_loop(conditions)
-    period = loop_length(targets, 60,
-                         LOOP_TOLERANCE * (math.hypot(*conditions.p_o) + conditions.r))
+    period = loop_length(targets, 60, conditions)
     if period is None:
         raise SystemExit('greedy did not settle into a loop of at most 60 steps')
     print(f'{args.kind}, max_speed {args.max_speed:g} m/s: greedy steady tr(W P W) '

@@ -20,7 +20,7 @@ from formopt_ros.core.scenario import LeaderPath, Scenario, Segment
 from formopt_ros.core.simulation import FollowerTruth, run_trial, trial_streams
 from formopt_ros.core.strategies import PlanContext, Solution, make_strategy
 from formopt_ros.core.strategies.periodic_design import (
-    LOOP_TOLERANCE, SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps,
+    SteadyConditions, arrival_poses, cached_design, clear_cache, cycle_maps,
     design_within_reach, greedy_loop, greedy_target, lft, loop_length, move_map, noise_free_step,
     pair_grid, reach_map, solve_rows)
 from formopt_ros.core.strategies.rq import rq_optimum
@@ -374,8 +374,7 @@ def test_greedy_holding_a_point_is_not_a_loop_of_one(max_speed: float, yaw_rate:
         Scenario.paper('range', max_speed=max_speed, leader=leader))
     assert conditions is not None
     greedy, targets = greedy_loop(conditions)
-    tolerance = LOOP_TOLERANCE * (math.hypot(*conditions.p_o) + conditions.r)
-    assert loop_length(targets, 40, tolerance) == (22 if yaw_rate == 0.0 else 19)
+    assert loop_length(targets, 40, conditions) == (22 if yaw_rate == 0.0 else 19)
     design = design_within_reach(conditions)
     assert design is not None and design.steady_cost < 0.95 * greedy
 

@@ -49,9 +49,8 @@ from formopt_ros.core.strategies.base import (
     OptionSpec, PlanContext, Solution, Strategy, make_solution)
 from formopt_ros.core.strategies.periodic_design import (
     PatternDesign, SteadyConditions, cached_design, fits_reach, greedy_target, noise_free_step)
-from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.strategies.phase_locked import (
-    LONGEST_PERIOD, SHORTEST_PERIOD, design_phase_locked, path_period)
+    design_phase_locked, path_period, unlocked_reason)
 from formopt_ros.core.strategies.rq import rq_optimum
 
 if TYPE_CHECKING:
@@ -325,19 +324,6 @@ class PeriodicPattern(Strategy):
         return actual <= (1.0 + float(self.settings['tolerance'])) * expected
 
 
-def unlocked_reason(scenario: Scenario) -> str:
-    """Why an S-curve gets no cycle locked to its phase ('' for other paths)."""
-    path, step = scenario.leader, SUBSTEPS * scenario.dt
-    if path.kind != 's-curve' or path.amplitude == 0.0:
-        return ''
-    steps = path.period / step
-    if abs(steps - round(steps)) > 1e-9 * max(1.0, round(steps)):
-        return (f', and its period {path.period:g} s is not a whole number of steps of '
-                f'{step:g} s, so no cycle locks to its phase')
-    return (f', and its period ({round(steps)} steps) is outside the {SHORTEST_PERIOD}-'
-            f'{LONGEST_PERIOD} steps a cycle locks to')
-
-
 def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     """One line on the cycle PERIODIC plays in ``scenario`` and the time its design took (from
     this process's cache: free after a run, designed now otherwise)."""
@@ -351,8 +337,10 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
                 f'{locked.design_time_s:.1f} s (once per scenario and worker process)')
     conditions = SteadyConditions.from_scenario(scenario)
     if conditions is None:
-        return f"the leader's velocity changes from the start{unlocked_reason(scenario)}: no " \
-            'cycle (greedy while it does)'
+        reason = unlocked_reason(scenario.leader, scenario.dt)
+        because = f', and {reason}' if reason else ''
+        return f"the leader's velocity changes from the start{because}: no cycle (greedy while " \
+            'it does)'
     period = int(PeriodicPattern(**options).settings['period'])
     design = cached_design(conditions, period)[0]
     if design is None:

@@ -766,11 +766,13 @@ def greedy_loop(conditions: SteadyConditions) -> tuple[float, np.ndarray]:
     return float(np.mean(costs[-GREEDY_STEADY:])), np.array(targets[-GREEDY_STEADY:])
 
 
-def loop_length(targets: np.ndarray, longest: int, tolerance: float) -> int | None:
+def loop_length(targets: np.ndarray, longest: int, conditions: SteadyConditions) -> int | None:
     """The period of a loop of targets (n, 2): the least K <= ``longest`` with each of the last
-    max(2 K, LOOP_WINDOW) targets repeated K steps earlier within ``tolerance`` (m); None when
-    there is none. Greedy under a speed limit holds one point for up to 18 steps before it
-    jumps back: the last few targets alone would call that hold a loop of one."""
+    max(2 K, LOOP_WINDOW) targets repeated K steps earlier within LOOP_TOLERANCE (|p_o| + r)
+    of ``conditions``; None when there is none. Greedy under a speed limit holds one point for
+    up to 18 steps before it jumps back: the last few targets alone would call that hold a
+    loop of one."""
+    tolerance = LOOP_TOLERANCE * (math.hypot(*conditions.p_o) + conditions.r)
     for period in range(1, min(longest, len(targets) - 2) + 1):
         window = min(max(2 * period, LOOP_WINDOW), len(targets) - period)
         if np.all(np.hypot(*(targets[-window:] - targets[-window - period:-period]).T)
@@ -845,8 +847,7 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     start_time = time.perf_counter()
     c = conditions
     greedy_cost, targets = greedy_loop(c)
-    period = loop_length(targets, REACH_LONGEST_LOOP,
-                         LOOP_TOLERANCE * (math.hypot(*c.p_o) + c.r))
+    period = loop_length(targets, REACH_LONGEST_LOOP, c)
     starts = [] if period is None or period < 2 else [targets[-period:]]
     cycle = targets[-(period or len(targets)):]
     lengths = {REACH_SAMPLED} if period is None else \

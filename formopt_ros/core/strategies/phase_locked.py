@@ -90,16 +90,32 @@ class PhaseLockedDesign:
         return len(self.points)
 
 
+def _period_in_steps(path: LeaderPath, dt: float) -> tuple[int | None, str]:
+    """(N, '') for an S-curve whose period is a whole number N of steps from SHORTEST_PERIOD to
+    LONGEST_PERIOD; else (None, why no cycle locks to it: '' for other paths)."""
+    if path.kind != 's-curve' or path.amplitude == 0.0:
+        return None, ''
+    step = SUBSTEPS * dt
+    steps = path.period / step
+    whole = round(steps)
+    if abs(steps - whole) > 1e-9 * whole:
+        return None, (f'its period {path.period:g} s is not a whole number of steps of '
+                      f'{step:g} s, so no cycle locks to its phase')
+    if not SHORTEST_PERIOD <= whole <= LONGEST_PERIOD:
+        return None, (f'its period ({whole} steps) is outside the {SHORTEST_PERIOD}-'
+                      f'{LONGEST_PERIOD} steps a cycle locks to')
+    return whole, ''
+
+
 def path_period(path: LeaderPath, dt: float) -> int | None:
     """N: the steps after which the leader's velocity repeats, for an S-curve whose period is
     a whole number of steps (SHORTEST_PERIOD to LONGEST_PERIOD); None for any other path."""
-    if path.kind != 's-curve' or path.amplitude == 0.0:
-        return None
-    steps = path.period / (SUBSTEPS * dt)
-    whole = round(steps)
-    if not SHORTEST_PERIOD <= whole <= LONGEST_PERIOD or abs(steps - whole) > 1e-9 * whole:
-        return None
-    return whole
+    return _period_in_steps(path, dt)[0]
+
+
+def unlocked_reason(path: LeaderPath, dt: float) -> str:
+    """Why no cycle locks to the phase of an S-curve ('' for other paths, or when one does)."""
+    return _period_in_steps(path, dt)[1]
 
 
 def phase_conditions(scenario: Scenario, period: int) -> list[SteadyConditions]:
@@ -203,4 +219,5 @@ def design_phase_locked(scenario: Scenario) -> PhaseLockedDesign | None:
     return PhaseLockedDesign(points, cost, greedy_cost, time.perf_counter() - started)
 
 
-__all__ = ['PhaseLockedDesign', 'design_phase_locked', 'path_period', 'phase_conditions']
+__all__ = ['PhaseLockedDesign', 'design_phase_locked', 'path_period', 'phase_conditions',
+           'unlocked_reason']
