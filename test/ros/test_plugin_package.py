@@ -83,6 +83,11 @@ def install(folder: Path, target: Path | None = None) -> None:
     STRATEGIES.rediscover()
 
 
+def path_with(folder: Path) -> str:
+    """This process's PYTHONPATH with ``folder`` in front."""
+    return os.pathsep.join([str(folder), *filter(None, [os.environ.get('PYTHONPATH')])])
+
+
 @pytest.fixture(scope='module')
 def ring(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The worked example installed for this module into a folder of its own, on this
@@ -97,7 +102,7 @@ def ring(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         (folder / name).write_text(content)
     before = os.environ.get('PYTHONPATH')
     sys.path.insert(0, str(site))
-    os.environ['PYTHONPATH'] = os.pathsep.join([str(site), *filter(None, [before])])
+    os.environ['PYTHONPATH'] = path_with(site)
     try:
         install(folder, site)
         yield 'ring'
@@ -211,11 +216,10 @@ def test_a_broken_plugin_is_named_and_hides_nothing(ring: str, tmp_path: Path) -
     try:
         install(folder, site)
         out = tmp_path / 'mc'
-        path = os.pathsep.join([str(site), *filter(None, [os.environ.get('PYTHONPATH')])])
         result = command('formopt-montecarlo', '--measurement', 'range', '--trials', '2',
                          '--steps', '10', '--strategies', 'ram,ring', '--jobs', '1',
                          '--no-figures', '--out', str(out),
-                         env={**os.environ, 'PYTHONPATH': path})
+                         env={**os.environ, 'PYTHONPATH': path_with(site)})
         assert result.returncode == 0, result.stderr
         warnings = [line for line in result.stderr.splitlines() if 'warning: strategy' in line]
         source = 'from formopt-broken-plugins 0.0.1) ignored: '
