@@ -371,6 +371,14 @@ def slowest_speed_in_disc(p_o: tuple[float, float], r: float, speed: float,
     return abs(yaw_rate) * max(0.0, distance - r)
 
 
+def keep_pace_speed(scenario: 'Scenario') -> float:
+    """The least world-frame speed (m/s) at which a point of the slot's disc keeps pace with
+    the leader through every motion of its path (:func:`slowest_speed_in_disc` at the path's
+    extreme motions): a speed limit below it is refused."""
+    return max(slowest_speed_in_disc(scenario.p_o, scenario.r, v, w)
+               for v, w in scenario.leader.extreme_motions())
+
+
 def check_limits(scenario: 'Scenario') -> None:
     """Refuse limits no follower can meet, naming the field: a leader turning faster than the
     Euler kinematics can describe, a safety distance that leaves no point of the slot's disc,
@@ -394,7 +402,7 @@ def check_limits(scenario: 'Scenario') -> None:
                            f'less than {d_o + s.r:.6g} m')
     if s.max_speed is None:
         return
-    need = max(slowest_speed_in_disc(s.p_o, s.r, v, w) for v, w in motions)
+    need = keep_pace_speed(s)
     if s.max_speed < need:
         step = 10.0 ** (math.floor(math.log10(need)) - 5)      # 6 significant digits, up
         shown = math.ceil(need / step) * step

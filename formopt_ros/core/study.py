@@ -23,7 +23,7 @@ from scipy.special import gammaincinv
 
 from formopt_ros.core.batched import run_lanes
 from formopt_ros.core.checks import InvalidInput, as_integer
-from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.scenario import Scenario, keep_pace_speed
 from formopt_ros.core.protocol import SUBSTEPS
 from formopt_ros.core.simulation import TrialResult, leader_poses, run_trial
 from formopt_ros.core.strategies import BUILTIN, STRATEGIES, make_strategy
@@ -391,8 +391,8 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'fallback_steps': int(record.fallback.sum()),
             **_motion_summary(record, window),
         }
-    flagged = {name: reason for name, row in strategies.items()
-               if (reason := inconsistency(row, (lo, hi)))}
+    flagged = {name: reason + fallback_note(result.scenario, row, config.trials * config.steps)
+               for name, row in strategies.items() if (reason := inconsistency(row, (lo, hi)))}
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
             'seed': config.seed, 'gbs_cell': config.settings('gbs')['cell'],
             'scenario': result.scenario.to_dict(),
@@ -400,6 +400,22 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies,
             'notes': dict(result.notes), 'ok': not flagged,
             'consistency': {'rule': FLAG_RULE, 'flagged': flagged}}
+
+
+def fallback_note(scenario: Scenario, row: dict[str, Any], decisions: int) -> str:
+    """What a flagged strategy's fallbacks say under a speed limit ('' without a limit or
+    fallbacks): the share of its ``decisions`` on which it fell back, and the margin of the
+    limit above :func:`~.scenario.keep_pace_speed`. Just above that speed
+    the follower rides the disc's edge and a bearing filter can lose consistency
+    (docs/lookahead.md)."""
+    if scenario.max_speed is None or not row['fallback_steps']:
+        return ''
+    need = keep_pace_speed(scenario)
+    return (f'; under the speed limit {scenario.max_speed:g} m/s, '
+            f'{scenario.max_speed - need:.3g} m/s above the {need:.4g} m/s at which the slot\'s '
+            f"disc keeps pace with the leader, it fell back on "
+            f"{100 * row['fallback_steps'] / decisions:.1f} % of its steps: a higher limit "
+            'gives the filter room (docs/lookahead.md)')
 
 
 def _motion_summary(record: StrategyRecord, window: int) -> dict[str, float]:

@@ -207,6 +207,26 @@ def test_study_flags_an_inconsistent_strategy_and_the_report_withholds_it() -> N
     assert '| withheld |' not in report_markdown(paper)
 
 
+def test_a_flag_under_a_tight_speed_limit_names_the_margin() -> None:
+    """Bearing behind an arc at -0.2 rad/s (the disc keeps pace from 1.3695 m/s), RQ, 3 trials
+    x 200 steps: at 1.45 m/s the filter is flagged (mean NEES 17.4) and the reason gives the
+    margin (0.0805 m/s) and the share of steps that fell back (32.0 %); at 1.9 m/s it is
+    consistent and nothing is flagged."""
+    from formopt_ros.core.scenario import LeaderPath
+
+    def flagged(speed: float) -> dict[str, str]:
+        config = StudyConfig('bearing', trials=3, steps=200, seed=0, strategies=('rq',),
+                             scenario={'max_speed': speed,
+                                       'leader': LeaderPath('arc', 1.0, -0.2)})
+        return summarize(run_study(config, jobs=1))['consistency']['flagged']
+
+    reason = flagged(1.45)['rq']
+    assert 'mean NEES 17.39 above' in reason
+    assert 'limit 1.45 m/s, 0.0805 m/s above the 1.369 m/s' in reason
+    assert 'fell back on 32.0 % of its steps' in reason
+    assert flagged(1.9) == {}
+
+
 def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     """The paper's settings pass; a bearing (or range-bearing) disc of 0.6 |p_o| and a 2 mm
     slot are refused, naming the field, the rule and the limit; a safety distance of 1.2 m
