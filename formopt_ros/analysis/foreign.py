@@ -38,7 +38,8 @@ from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
-from formopt_ros.wire.messages import estimate_values, header_ns, pose_values, twist_noise
+from formopt_ros.wire.messages import (
+    estimate_values, header_ns, pose_values, range_problem, twist_noise)
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap
 
 
@@ -104,10 +105,8 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
             odometry[robot].append((header_ns(m), v, omega, twist_noise(m)))
     ranges = []
     for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
-        if not math.isfinite(m.range):
-            refused['not_finite'] += 1
-        elif not m.min_range <= m.range < m.max_range:      # max_range: 'no reading'
-            refused['out_of_range'] += 1
+        if (problem := range_problem(m)) is not None:
+            refused[problem[0]] += 1
         else:
             ranges.append((header_ns(m), float(m.range)))
     for name, stamps in (('follower_odometry', [o[0] for o in odometry['follower']]),

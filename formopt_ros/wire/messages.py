@@ -120,6 +120,22 @@ def odometry_problem(msg: Any, frame_id: str, child_frame_id: str) -> str | None
     return None
 
 
+def range_problem(msg: Any) -> tuple[str, str] | None:
+    """Why a sensor_msgs/Range must be refused, as (counter, text), or None when it is
+    acceptable: a range that is not finite, negative, or outside [min_range, max_range)
+    (drivers report max_range for 'no reading'). The interval applies when the driver gives
+    one (max_range > min_range): many UWB drivers leave both at 0."""
+    value = float(msg.range)
+    if not math.isfinite(value):
+        return 'not_finite', 'range: not finite'
+    low, high = float(msg.min_range), float(msg.max_range)
+    if high > low and not low <= value < high:
+        return 'out_of_range', f'range {value:.3f} m outside [{low:.3f}, {high:.3f}) m'
+    if value < 0.0:
+        return 'out_of_range', f'range {value:.3f} m is negative'
+    return None
+
+
 def waypoint_problem(msg: Any, follower_id: str) -> str | None:
     """Why a waypoint must be refused (None when it is acceptable): another follower, command
     lists empty, of unequal length or not finite."""

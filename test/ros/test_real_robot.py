@@ -168,13 +168,65 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
     assert delayed_streams(behind, 0.1) == (['leader_odom 0.30 s'], ['leader_odom 0.30 s'])
 
 
+def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path) -> None:
+    """In one process, through the node's callbacks: the follower's odometry and a range come
+    first: a WARN names the stream awaited, and the filter waits for the leader's odometry
+    (its motion before that is unknown); a range from a driver that leaves min_range and
+    max_range at 0 is used, a negative or NaN one refused, counted and a WARN; a stream used
+    again is no longer labelled with its old refusal; most targets of a status period beyond
+    the base's reach are a WARN. Remapping leader_odom onto the
+    follower's odometry is refused at start."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Range
+    from formopt_ros.ros.conversions import stamp
+    from formopt_ros.ros.nodes.follower_estimator import FollowerEstimatorNode
+    from formopt_ros.ros.params import ParameterError
+
+    def stamped(message: Any) -> Any:
+        message.header.stamp = stamp(node.now_ns())
+        return message
+
+    rclpy.init()
+    try:
+        node = FollowerEstimatorNode(cli_args=[
+            '--ros-args', '-p', f"summary_path:={tmp_path / 'summary.json'}"])
+        node.on_odometry('odom', stamped(Odometry()))
+        node.on_range(stamped(Range(range=2.2)))              # min_range = max_range = 0
+        assert node.tracker is None and node.refused['out_of_range'] == 0
+        (level, text), = node.health()
+        assert level == 'WARN' and text == 'waiting for the first input: leader_odom on ' \
+            '/leader_odom', text
+        node.on_odometry('leader_odom', stamped(Odometry()))
+        assert node.tracker is not None
+        node.on_range(stamped(Range(range=-0.5)))
+        node.on_range(stamped(Range(range=float('nan'))))
+        assert node.refused['out_of_range'] == node.refused['not_finite'] == 1
+        assert 'not finite' in node.stream_label('range')
+        (level, text), = node.health()
+        assert level == 'WARN' and text.startswith('inputs refused: out_of_range 1, '
+                                                   'not_finite 1'), text
+        node.on_range(stamped(Range(range=2.2)))
+        assert node.stream_label('range') == 'range on /range'
+        node.publish_diagnostics()                  # the refusals are reported
+        node.step, node.unreachable = node.step + 10, node.unreachable + 9
+        assert node.health() == [('WARN', "9 of 10 targets beyond the base's reach (max_speed "
+                                          '2 m/s within horizon 0.5 s)')]
+        node.destroy_node()
+        with pytest.raises(ParameterError, match='odom and leader_odom both resolve to /odom'):
+            FollowerEstimatorNode(cli_args=['--ros-args', '-r', 'leader_odom:=odom', '-p',
+                                            f"summary_path:={tmp_path / 'same.json'}"])
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: a first odometry and bearing stamped 0
-    (ros2 topic pub without a header) are refused, counted and an ERROR, and neither starts
-    the filter nor fixes the sensor frame (nor, with use_sim_time, before the first /clock);
-    a camera's mount is its pose in base_link through the static transforms (camera_link on
-    base_footprint beside base_link, camera_optical in it: 0.2 m ahead and 0.1 m left of
-    base_link), and its bearing starts it."""
+    (ros2 topic pub without a header) are refused as unstamped, counted and an ERROR, an
+    odometry stamped 2 s behind is refused before the start, and none of them starts the
+    filter or fixes the sensor frame (nor, with use_sim_time, a stamp of 0 before the first
+    /clock); the filter starts with the second robot's odometry; a camera's mount is its pose
+    in base_link through the static transforms (camera_link on base_footprint beside
+    base_link, camera_optical in it: 0.2 m ahead and 0.1 m left of base_link)."""
     from geometry_msgs.msg import TransformStamped, Vector3, Vector3Stamped
     from nav_msgs.msg import Odometry
     from tf2_msgs.msg import TFMessage
@@ -197,10 +249,14 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
             f"summary_path:={tmp_path / 'summary.json'}"])
         node.on_odometry('odom', Odometry())                  # stamped 0
         node.on_bearing(Vector3Stamped(vector=Vector3(x=1.0)))    # stamped 0, frame ''
-        assert node.refused['before_start'] == 2 and node.tracker is None
+        assert node.refused['unstamped'] == 2 and node.tracker is None
         assert node.sensor_frame is None                      # a refused one fixes nothing
-        assert any(level == 'ERROR' and 'stale_timeout' in text
+        assert any(level == 'ERROR' and 'header stamp 0' in text
                    for level, text in node.health()), node.health()
+        old = Odometry()                                      # stamped before stale_timeout
+        old.header.stamp = stamp(node.now_ns() - 2_000_000_000)   # 2 s
+        node.on_odometry('odom', old)
+        assert node.refused['before_start'] == 1 and node.tracker is None
         # base_link 0.05 m ahead of base_footprint, camera_link on base_footprint (a sibling)
         # turned 90 deg left; the optical frame (z forward) in it
         half = float(np.sqrt(0.5))
@@ -212,6 +268,11 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         now = node.now_ns()
         bearing.header.frame_id, bearing.header.stamp = 'camera_optical', stamp(now)
         bearing.vector.z = 1.0                                # out of the lens: to the left
+        odometry = Odometry()
+        odometry.header.stamp = stamp(now)
+        node.on_odometry('odom', odometry)
+        assert node.tracker is None               # not before the leader's odometry has come
+        node.on_odometry('leader_odom', odometry)
         node.on_bearing(bearing)
         assert node.refused['no_mount'] == 0 and node.sensor_frame == 'camera_optical'
         assert node.estimator.sensor_offset == pytest.approx((0.2, 0.1), abs=1e-12)
@@ -391,13 +452,12 @@ def test_a_range_sigma_in_the_wrong_unit_is_a_warning(
     assert summary['consistency']['last']['level'] == 'warn', summary['consistency']
 
 
-def test_an_inconsistent_filter_stops_the_base_when_asked(
+def test_an_inconsistent_filter_stops_the_base(
         tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
-    """range_sigma 0.01 m for a radio of 0.1 m (overconfident) with stop_when_inconsistent:
-    the latched consistency ERROR stops the base; nothing but zero cmd_vel follows it (three
-    commands of slack: /diagnostics and cmd_vel are two topics)."""
-    probe, summary = run_pair(tmp_path, {}, 10.0, node_process,
-                              {'range_sigma': 0.01, 'stop_when_inconsistent': True})
+    """range_sigma 0.01 m for a radio of 0.1 m (overconfident), stop_when_inconsistent at its
+    default: the latched consistency ERROR stops the base; nothing but zero cmd_vel follows it
+    (three commands of slack: /diagnostics and cmd_vel are two topics)."""
+    probe, summary = run_pair(tmp_path, {}, 10.0, node_process, {'range_sigma': 0.01})
     assert not summary['ok'] and summary['stops'] >= 1, summary
     moving = [i for i, c in enumerate(probe.commands) if c != (0.0, 0.0)]
     assert moving, 'the base never moved before the error'

@@ -33,7 +33,7 @@ from formopt_ros.ros.run_config import (
     strategy_options, strategy_params)
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
-from formopt_ros.wire.messages import header_ns, pose_values, twist_noise
+from formopt_ros.wire.messages import header_ns, pose_values, range_problem, twist_noise
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -45,6 +45,10 @@ MAX_CATCH_UP = 1.0
 #: a delay spike, a WARN).
 LATE_FRACTION = 0.1
 
+#: The odometry streams: the filter starts once both robots' odometry has come.
+ODOMETRY_STREAMS = ('odom', 'leader_odom')
+#: More than this share of a status period's plans beyond the base's reach is a WARN.
+UNREACHABLE_FRACTION = 0.5
 #: The sensors a follower may carry (its measurement stream is named after the sensor).
 SENSORS = ('range', 'bearing')
 
@@ -87,7 +91,7 @@ PARAMS = [
     Param('stale_timeout', 1.0, 'a stream silent (or stamped behind this clock) this long is an '
           'ERROR (half as long: WARN), and the base stops; the filter starts at the first input '
           'stamped within it of this clock, s', 0.05, 60.0),
-    Param('stop_when_inconsistent', False, 'stop the base (zero cmd_vel) for the rest of the '
+    Param('stop_when_inconsistent', True, 'stop the base (zero cmd_vel) for the rest of the '
           "run once the consistency watch raised its latched ERROR (false: keep driving on the "
           'estimate; the run is not ok either way)'),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
@@ -167,11 +171,11 @@ class FollowerEstimatorNode(Node):
                                      f"yaw] or [0.0], got {p['sensor_mount']!r}")
             x, y, _, *rpy = p['sensor_mount']
             self.fixed_mount = ((x, y), rotation_matrix(rpy_quaternion(*rpy)))
-        self.refused = {'frame': 0, 'future': 0, 'before_start': 0, 'out_of_range': 0,
-                        'not_finite': 0, 'no_mount': 0}
+        self.refused = {'frame': 0, 'future': 0, 'before_start': 0, 'unstamped': 0,
+                        'out_of_range': 0, 'not_finite': 0, 'no_mount': 0}
         self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
         self.delays: dict[str, list[float]] = {s: [] for s in self.streams}  # this period, s
-        self.refusal: dict[str, str] = {}            # the last refusal per stream
+        self.refusal: dict[str, str] = {}      # per stream, its refusal since it was last used
         self.first_input_ns: int | None = None
         # a pause of every input longer than reorder_lag (this process stalled, or every link
         # at once): until _catch_up_until (monotonic s), or until each stream in _draining
@@ -213,6 +217,10 @@ class FollowerEstimatorNode(Node):
                                            qos.SENSOR)]
         #: Per stream, the topic it resolved to (remappings and namespace applied).
         self.topics = dict(zip(self.streams, (s.topic_name for s in inputs)))
+        if self.topics['odom'] == self.topics['leader_odom']:
+            raise ParameterError(f"odom and leader_odom both resolve to {self.topics['odom']}: "
+                                 "the leader's odometry must come from the leader (check the "
+                                 'robot and leader names, or the remappings)')
         self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
                                  qos.TF_STATIC_READER)
         self.create_timer(2.0 * scenario.dt, self.plan)
@@ -260,6 +268,10 @@ class FollowerEstimatorNode(Node):
                          'ahead of this clock: are the clocks synchronised?')
             return False
         behind = now - stamp
+        if stamp == 0 and behind > int(self.params['stale_timeout'] * NS_PER_S):
+            self._refuse('unstamped', stream, f'{stream}: header stamp 0 (its driver does not '
+                         'stamp its messages)')
+            return False
         if self.tracker is None and now <= 0:
             self._refuse('before_start', stream, f'{stream} before this clock started '
                          '(use_sim_time and no /clock yet): the filter does not start on it')
@@ -283,7 +295,10 @@ class FollowerEstimatorNode(Node):
         if stream not in self._draining or not self.catching_up():
             self.delays[stream].append(delay)       # a backlog's are the pause's, not the link's
         self.newest[stream] = max(stamp, self.newest[stream] or stamp)
+        self.refusal.pop(stream, None)          # the stream's last refusal is past
         if self.tracker is None:
+            if any(self.newest[s] is None for s in ODOMETRY_STREAMS):
+                return False        # the leader's motion before its first odometry is unknown
             self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
         return True
 
@@ -326,16 +341,13 @@ class FollowerEstimatorNode(Node):
         self._advance(started)
 
     def on_range(self, message: Range) -> None:
-        """A range: dropped (counted) outside [min_range, max_range) (drivers report max_range
-        for 'no reading') or not finite."""
+        """A range: dropped (counted) when :func:`~formopt_ros.wire.messages.range_problem`
+        refuses it (not finite, negative, outside the driver's [min_range, max_range))."""
+        problem = range_problem(message)
+        if problem is not None:
+            self._refuse(problem[0], 'range', problem[1])
+            return
         value = float(message.range)
-        if not math.isfinite(value):
-            self._refuse('not_finite', 'range', 'range: not finite')
-            return
-        if not message.min_range <= value < message.max_range:
-            self._refuse('out_of_range', 'range', f'range {value:.3f} m outside '
-                         f'[{message.min_range:.3f}, {message.max_range:.3f}) m')
-            return
         frame = message.header.frame_id
         mount = self._mount('range', frame)
         if mount is None:
@@ -494,17 +506,18 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); stamps ahead of this clock, or inputs stamped
-        more than stale_timeout behind it while the filter has not started; more than
+        gating (the consistency watch, latched); stamps ahead of this clock, stamps of 0, or inputs
+        stamped more than stale_timeout behind it while the filter has not started; more than
         LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
-        (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or
-        a slow link); a stream silent, or stamped behind this clock, for stale_timeout since
-        input began. WARN: waiting for a stream's first input, a stream older than half the
-        timeout, a delay spike beyond reorder_lag or fewer inputs dropped as late (the link
-        stalled), a pause of every input
-        (this process stalled: its backlog is applied in order, nothing dropped), the
-        consistency watch's current warning (a window outside its band), odometry carried past
-        its last message, gaps, gated ranges."""
+        (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or a
+        slow link); a stream silent, or stamped behind this clock, for stale_timeout after its last
+        input, or whose every message was refused for stale_timeout since input began. WARN:
+        waiting for a stream's first input (a driver that comes up later), a stream older than half
+        the timeout, the consistency watch's current warning (a window outside its band), a delay
+        spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), inputs
+        refused, more than UNREACHABLE_FRACTION of the plans beyond the base's reach, a pause of
+        every input (this process stalled: its backlog is applied in order, nothing dropped),
+        odometry carried past its last message, gaps, gated ranges."""
         new = {k: v - self._reported.get(k, 0) for k, v in self.counts().items()}
         errors: list[str] = []
         if self.tracker is not None and self.tracker.watch.failed:
@@ -512,6 +525,9 @@ class FollowerEstimatorNode(Node):
             errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
         if new.get('refused_future'):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
+        if new.get('refused_unstamped'):
+            errors.append('messages with header stamp 0 are refused: their driver does not '
+                          'stamp them')
         if new.get('refused_before_start') and self.tracker is None:    # nothing started it
             errors.append('first inputs stamped more than stale_timeout behind this clock are '
                           'refused: stamps of 0, or clocks not synchronised')
@@ -528,16 +544,21 @@ class FollowerEstimatorNode(Node):
         if self.first_input_ns is None:
             return [('ERROR', e) for e in errors] or \
                 [('WARN', 'waiting for input: ' + ', '.join(self.streams))]
-        old = [s for s, a in ages.items() if a is None or a > limit]
+        old = [s for s, a in ages.items() if a is not None and a > limit]
+        refused = [s for s, a in ages.items() if a is None and s in self.refusal]
         started = (self.now_ns() - self.first_input_ns) / NS_PER_S > limit
         if old and started:
             errors.append(f'stale (silent or behind this clock for over {limit:g} s): '
                           + ', '.join(map(self.stream_label, old)))
+        if refused and started:
+            errors.append('no usable input (every message refused) for over '
+                          f"{limit:g} s: {', '.join(map(self.stream_label, refused))}")
         if errors:
             return [('ERROR', e) for e in errors]
         never = [s for s, a in ages.items() if a is None]
-        if never:
-            return [('WARN', 'waiting for input: ' + ', '.join(never))]
+        if never:       # a driver that comes up later: the base is held until it does
+            return [('WARN', 'waiting for the first input: '
+                             + ', '.join(map(self.stream_label, never)))]
         old_streams = [f'{s} {a:.2f} s' for s, a in ages.items()
                        if a is not None and a > limit / 2]
         if old_streams:
@@ -548,6 +569,15 @@ class FollowerEstimatorNode(Node):
             return [('WARN', 'inputs delayed beyond reorder_lag (the link stalled)'
                              + (f': {late} dropped as late' if late else '')
                              + (': ' + ', '.join(spikes) if spikes else ''))]
+        refusals = [f'{k[8:]} {v}' for k, v in new.items() if k.startswith('refused_') and v]
+        if refusals:
+            return [('WARN', 'inputs refused: ' + ', '.join(refusals)
+                             + ''.join(f' ({text})' for text in self.refusal.values()))]
+        if new.get('plans') and new.get('unreachable_targets', 0) > \
+                UNREACHABLE_FRACTION * new['plans']:
+            return [('WARN', f"{new['unreachable_targets']} of {new['plans']} targets beyond "
+                             f"the base's reach (max_speed {self.params['max_speed']:g} m/s "
+                             f"within horizon {self.params['horizon']:g} s)")]
         if new.get('pauses'):
             return [('WARN', f'every input paused {self.pauses[-1]:.2f} s (this process or '
                              'every link stalled); the backlog was applied in order')]
@@ -565,7 +595,8 @@ class FollowerEstimatorNode(Node):
         /diagnostics (:meth:`health` judges what changed since the last report)."""
         counters = self.tracker.counters.as_dict() if self.tracker else {}
         return {**counters, **{f'refused_{k}': v for k, v in self.refused.items()},
-                'pauses': len(self.pauses)}
+                'pauses': len(self.pauses), 'plans': self.step,
+                'unreachable_targets': self.unreachable}
 
     def publish_diagnostics(self) -> None:
         """/diagnostics every status_period; an ERROR is kept for the summary."""
@@ -583,7 +614,7 @@ class FollowerEstimatorNode(Node):
         elif level == 'WARN' and self.worst == 'OK':
             self.worst = 'WARN'
         values: dict[str, object] = {
-            **self._reported, 'stops': self.stops, 'unreachable_targets': self.unreachable,
+            **self._reported, 'stops': self.stops,
             'weighted_trace_m2': self.estimator.weighted_trace(),
             **{f'age_{s}_s': 'never' if a is None else round(a, 3)
                for s, a in self.ages().items()}}
