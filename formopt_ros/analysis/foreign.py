@@ -24,8 +24,10 @@ has truth, else [|p| = the first range along -x, 0].
 """
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,6 +35,7 @@ import numpy as np
 from formopt_ros.bag import BagError
 from formopt_ros.bag.reader import Bag
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
+from formopt_ros.core.consistency import ERROR
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
 from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
@@ -136,6 +139,9 @@ class ForeignResult:
         nees, errors: per range with truth: NEES of [x, y, phi], position error (m).
         counters: the asynchronous estimator's counters.
         bias: the final range-bias estimate (m), None without a bias state.
+        consistency: the consistency watch over every range's NIS and, with truth, NEES
+            (:meth:`~formopt_ros.core.consistency.ConsistencyWatch.summary`); its latched
+            ERROR makes the re-estimate not ok.
     """
 
     stamps: list[int]
@@ -145,11 +151,15 @@ class ForeignResult:
     errors: list[float]
     counters: dict[str, int]
     bias: float | None
+    consistency: dict[str, Any] = field(default_factory=dict)
 
     def summary(self, skip: int = 0) -> dict[str, Any]:
-        """Mean NEES and RMS error over the ranges after the first ``skip``."""
+        """Mean NEES and RMS error over the ranges after the first ``skip``, the consistency
+        verdict and ``ok`` (no latched ERROR)."""
         nees, errors = self.nees[skip:], self.errors[skip:]
-        return {'ranges': len(self.stamps), 'evaluated': len(nees),
+        return {'ok': self.consistency.get('worst', {}).get('level') != ERROR,
+                'consistency': self.consistency,
+                'ranges': len(self.stamps), 'evaluated': len(nees),
                 'mean_nees': float(np.mean(nees)) if nees else None,
                 'rmse_m': float(np.sqrt(np.mean(np.square(errors)))) if errors else None,
                 'final_bias_m': self.bias, 'counters': self.counters}
@@ -177,25 +187,48 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
                     [(t, 1, 'range', (z, None, None)) for t, z in data.ranges],
                     key=lambda item: item[:2])
     result = ForeignResult([], [], [], [], [], {}, None)
+
+    def record(applied: Any) -> None:
+        result.stamps.append(applied.stamp_ns)
+        result.estimates.append(applied.x)
+        result.covariances.append(applied.P)
+        truth = data.relative_truth(applied.stamp_ns)
+        if truth is not None:
+            nees = normalized_estimation_error(truth, applied.x, applied.P)
+            result.nees.append(nees)
+            result.errors.append(float(np.hypot(*state_difference(truth, applied.x)[:2])))
+            tracker.watch.add_nees(nees, len(result.stamps))
+
     for t, _, kind, values in inputs:
         if kind == 'range':
             tracker.add_measurement(t, values[0], s['range_sigma'] ** 2)
         else:
             tracker.add_odometry(kind, t, *values)
         for applied in tracker.advance(t):
-            result.stamps.append(applied.stamp_ns)
-            result.estimates.append(applied.x)
-            result.covariances.append(applied.P)
-            truth = data.relative_truth(applied.stamp_ns)
-            if truth is not None:
-                result.nees.append(normalized_estimation_error(truth, applied.x, applied.P))
-                result.errors.append(float(np.hypot(*state_difference(truth, applied.x)[:2])))
+            record(applied)
     for applied in tracker.advance(inputs[-1][0] + 10**10):     # the last ones, lag passed
-        result.stamps.append(applied.stamp_ns)
+        record(applied)
+    result.consistency = tracker.watch.summary()
     result.counters = {**tracker.counters.as_dict(),
                        **{f'refused_{k}': v for k, v in data.refused.items()}}
     result.bias = float(filter_.state[3]) if filter_.state.size == 4 else None
     return result
+
+
+#: The columns of :func:`write_estimates`.
+ESTIMATE_COLUMNS = ('stamp_ns', 'x_m', 'y_m', 'phi_rad', 'var_x', 'cov_xy', 'cov_xphi', 'var_y',
+                    'cov_yphi', 'var_phi')
+
+
+def write_estimates(path: Path, result: ForeignResult) -> None:
+    """The estimate at every applied range as CSV (:data:`ESTIMATE_COLUMNS`): the follower's
+    pose in the leader's frame (m, rad) and its covariance's upper triangle."""
+    rows = [(stamp, *x[:3], P[0, 0], P[0, 1], P[0, 2], P[1, 1], P[1, 2], P[2, 2])
+            for stamp, x, P in zip(result.stamps, result.estimates, result.covariances)]
+    with open(path, 'w', newline='') as handle:
+        writer = csv.writer(handle)
+        writer.writerow(ESTIMATE_COLUMNS)
+        writer.writerows([stamp, *(repr(float(v)) for v in values)] for stamp, *values in rows)
 
 
 def tracking_errors(bag: Bag, estimate_topic: str, truth_topic: str,
@@ -222,4 +255,5 @@ def tracking_errors(bag: Bag, estimate_topic: str, truth_topic: str,
             'rms_position_error_m': float(np.sqrt(np.mean(np.square(errors))))}
 
 
-__all__ = ['ForeignData', 'ForeignResult', 'estimate_foreign', 'read_foreign', 'tracking_errors']
+__all__ = ['ESTIMATE_COLUMNS', 'ForeignData', 'ForeignResult', 'estimate_foreign', 'read_foreign',
+           'tracking_errors', 'write_estimates']

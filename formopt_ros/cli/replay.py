@@ -87,7 +87,11 @@ def build_parser() -> ArgumentParser:
                        help='a bag of standard types (another robot, a data set): which topic is '
                        'which input and the filter settings (YAML, see '
                        'formopt_ros/analysis/foreign.py); re-estimates it with the planner off '
-                       'and reports NEES and RMS error against its ground truth')
+                       'and reports its consistency, and NEES and RMS error against its ground '
+                       'truth; exit 1 when the filter is inconsistent')
+    flags.add_argument('--estimates', type=new_file, metavar='CSV',
+                       help='--topic-map: write the estimate at every range here (a new CSV '
+                       'file: stamp, pose in the leader frame, covariance)')
     flags.add_argument('--skip', type=integer(0, 10**9),
                        help='--topic-map: ranges left out of the evaluation at the start '
                        f'(default {SKIP})')
@@ -95,17 +99,19 @@ def build_parser() -> ArgumentParser:
 
 
 def foreign_main(args: Any) -> int:
-    """``replay BAG --offline --topic-map MAP``: print the evaluation; exit 2 on errors."""
-    from formopt_ros.analysis.foreign import estimate_foreign, read_foreign
+    """``replay BAG --offline --topic-map MAP``: print the evaluation; exit 1 when the filter
+    is inconsistent, 2 on errors."""
+    from formopt_ros.analysis.foreign import estimate_foreign, read_foreign, write_estimates
     from formopt_ros.wire.topic_map import TopicMap
     try:
         topics = TopicMap.load(args.topic_map)
         data = read_foreign(read_bag(args.bag), topics)
         if not data.ranges:
             fail(PROG, f'{args.bag}: no valid message on {topics.range}')
-        summary = estimate_foreign(data, topics.estimator).summary(args.skip)
+        result = estimate_foreign(data, topics.estimator)
     except (BagError, ValueError) as error:
         fail(PROG, str(error))
+    summary = result.summary(args.skip)
     counters = summary['counters']
     dropped = {k: v for k, v in counters.items() if v and k in (
         'late_odometry', 'late_measurements', 'duplicates', 'refused_not_finite',
@@ -115,6 +121,12 @@ def foreign_main(args: Any) -> int:
           f"gaps {counters['gaps']}, gated {counters['gated_measurements']}, down-weighted "
           f"{counters['downweighted_measurements']}"
           + ''.join(f', {k.replace("_", " ")} {v}' for k, v in dropped.items()) + ')')
+    worst = summary['consistency']['worst']
+    print('consistency of the re-estimate: ' + (
+        'ok' if worst['level'] == 'ok' else
+        f"{worst['level'].upper()} at range {worst['step']}: {worst['reason']}"))
+    if args.estimates:
+        write_estimates(args.estimates, result)
     if summary['mean_nees'] is None:
         if topics.leader_truth and topics.follower_truth:
             print(f'no applied range lies within the ground truth\'s time span (after the '
@@ -130,7 +142,7 @@ def foreign_main(args: Any) -> int:
     if args.json:
         write_json(args.json, {'bag': str(args.bag), 'topic_map': str(args.topic_map),
                                **summary})
-    return 0
+    return 0 if summary['ok'] else 1
 
 
 def offline_main(args: Any) -> int:
@@ -204,7 +216,7 @@ def offline_main(args: Any) -> int:
 #: types offline (--topic-map).
 PLAYBACK_FLAGS = ('rate', 'fast', 'topics', 'wait_subscribers')
 RECORDED_FLAGS = ('follower', 'strategy', 'strategy_option', 'seed', 'trial', 'tolerance')
-TOPIC_MAP_FLAGS = ('topic_map', 'skip')
+TOPIC_MAP_FLAGS = ('topic_map', 'skip', 'estimates')
 
 
 def refuse_unused_flags(options: argparse.Namespace) -> None:
@@ -222,7 +234,7 @@ def refuse_unused_flags(options: argparse.Namespace) -> None:
     stray = given(PLAYBACK_FLAGS)
     if stray:
         fail(PROG, f'{stray[0]} applies to playback on ROS topics, not to --offline')
-    stray = given(RECORDED_FLAGS) if options.topic_map else given(('skip',))
+    stray = given(RECORDED_FLAGS) if options.topic_map else given(('skip', 'estimates'))
     if stray:
         fail(PROG, f'{stray[0]} applies to ' + (
             'a recorded formopt_ros run, not to --topic-map' if options.topic_map

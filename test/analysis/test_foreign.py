@@ -102,14 +102,26 @@ def test_ten_hertz_odometry_does_not_diverge(data: ForeignData) -> None:
 
 @pytest.mark.slow
 def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
-    """The command prints the evaluation and writes it as JSON; a map naming a topic the bag
-    lacks, or with an unknown key, is refused in one line with exit code 2."""
-    out = tmp_path / 'result.json'
+    """The command prints the evaluation and the consistency verdict, writes them as JSON and
+    the estimate at every range as CSV; a filter ten times overconfident (range_sigma 0.01 m)
+    is an ERROR and exit code 1; a map naming a topic the bag lacks, or with an unknown key, is
+    refused in one line with exit code 2."""
+    out, estimates = tmp_path / 'result.json', tmp_path / 'estimates.csv'
     done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG), '--offline',
-                           '--topic-map', str(MAP), '--json', str(out)],
-                          capture_output=True, text=True, timeout=120)
+                           '--topic-map', str(MAP), '--json', str(out), '--estimates',
+                           str(estimates)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert 'mean NEES' in done.stdout and json.loads(out.read_text())['ranges'] == 924
+    result = json.loads(out.read_text())
+    assert 'mean NEES' in done.stdout and result['ranges'] == 924 and result['ok']
+    rows = estimates.read_text().splitlines()
+    assert rows[0].startswith('stamp_ns,x_m,y_m,phi_rad,var_x') and len(rows) == 925
+    overconfident = tmp_path / 'overconfident.yaml'
+    overconfident.write_text(MAP.read_text().replace('range_sigma: 0.1', 'range_sigma: 0.01'))
+    done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG), '--offline',
+                           '--topic-map', str(overconfident)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and 'consistency of the re-estimate: ERROR' in done.stdout, \
+        done.stdout
     for text, word in (('leader_odometry: /nope\nfollower_odometry: /follower/odom\n'
                         'range: /uwb/range\n', '/nope'),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nlidar: /d\n',
