@@ -189,6 +189,43 @@ def unknown_parameters(argv: Sequence[str], specs: Sequence[Param]) -> list[str]
     return [name for name in names if name not in known]
 
 
+def ros_arguments(argv: Sequence[str], flags: tuple[str, ...]) -> list[str]:
+    """The values following any of ``flags`` inside --ros-args sections of ``argv``."""
+    values, inside, previous = [], False, ''
+    for arg in argv:
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--':
+            inside = False
+        elif inside and previous in flags:
+            values.append(arg)
+        previous = arg
+    return values
+
+
+def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
+    """The --params-file files (path, their node sections) with no section for this node:
+    its name (``program``, or the ``__node`` remapping) as the last part of a key such as
+    ``/f1/follower_estimator``, or a wildcard (``/**``). Files rcl cannot read are left to
+    rcl's own error."""
+    import yaml
+    name = program
+    for rule in ros_arguments(argv, ('-r', '--remap')):
+        target, _, value = rule.partition(':=')
+        if target.rpartition(':')[2] == '__node':
+            name = value
+    out = []
+    for path in ros_arguments(argv, ('--params-file',)):
+        try:
+            sections = list(yaml.safe_load(Path(path).read_text()) or {})
+        except (OSError, yaml.YAMLError, TypeError):
+            continue
+        if not any(str(key).rstrip('/').rpartition('/')[2] in (name, '*', '**')
+                   for key in sections):
+            out.append((path, [str(key) for key in sections]))
+    return out
+
+
 def node_main(factory: Callable[[], Node], program: str, summary: str,
               specs: Sequence[Param], args: list[str] | None = None) -> int:
     """Run one node process; returns the exit code.
@@ -221,6 +258,15 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
         print(f'{program}: error: unknown parameter {unknown[0]!r} for {program}{hint} (see '
               '--help for its parameters)', file=sys.stderr)
         return 2
+    for path, sections in foreign_params_files(argv, program):
+        names = [key.rstrip('/').rpartition('/')[2] for key in sections]
+        close = difflib.get_close_matches(program, names, n=1, cutoff=0.8)
+        if close:
+            print(f'{program}: error: params file {path}: section {close[0]!r} is not this node '
+                  f'{program!r} (a typo? its values would not apply)', file=sys.stderr)
+            return 2
+        print(f'{program}: warning: params file {path} has no section for {program} (it has '
+              f"{', '.join(sections) or 'none'}): none of its values apply", file=sys.stderr)
     fast_announcements()
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)

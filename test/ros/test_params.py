@@ -90,6 +90,25 @@ def test_a_params_file_of_the_users_own_is_read_whole(node_process, tmp_path) ->
     assert 'deviation_fraction 0.9: a follower that measures bearings' in process.stderr
 
 
+def test_a_params_file_for_another_node_is_named(node_process, tmp_path) -> None:
+    """A params file whose only section is a near miss of the node's name (a typo) is refused
+    with exit code 2 naming the section; one for other nodes only is a warning (a file shared
+    by several nodes), and the node runs on."""
+    typo, other = tmp_path / 'typo.yaml', tmp_path / 'other.yaml'
+    typo.write_text('follower_estimater:\n  ros__parameters:\n    max_speed: 0.5\n')
+    other.write_text('/f1/leader_sim:\n  ros__parameters:\n    speed: 0.5\n')
+    process = node_process('follower_estimator', {'summary_path': str(tmp_path / 't.json')},
+                           extra=['--params-file', str(typo)])
+    assert process.wait(timeout=60.0) == 2, process.stderr
+    assert "section 'follower_estimater' is not this node" in process.stderr
+    process = node_process('follower_estimator', {'summary_path': str(tmp_path / 'o.json'),
+                                                  'duration': 0.2},
+                           extra=['--params-file', str(other)])
+    assert process.wait(timeout=60.0) == 0, process.stderr
+    assert f'params file {other} has no section for follower_estimator (it has ' \
+        '/f1/leader_sim)' in process.stderr
+
+
 def test_help_does_not_start_the_node(node_process) -> None:
     """--help prints every parameter and exits 0 without starting a node."""
     process = node_process('estimator_planner', {}, extra=['--help'])

@@ -280,7 +280,8 @@ class FollowerEstimatorNode(Node):
             # the filter starts at its first input's stamp: an old one would be integrated over
             self._refuse('before_start', stream, f'{stream} stamped {behind / NS_PER_S:.3f} s '
                          'behind this clock: the filter starts only at an input stamped within '
-                         'stale_timeout of it (a stamp of 0, or clocks not synchronised?)')
+                         'stale_timeout of it (clocks not synchronised, or a bag played back? '
+                         'replay --offline re-estimates a bag)')
             return False
         self.first_input_ns = self.first_input_ns or now
         wall = time.monotonic()
@@ -530,7 +531,7 @@ class FollowerEstimatorNode(Node):
                           'stamp them')
         if new.get('refused_before_start') and self.tracker is None:    # nothing started it
             errors.append('first inputs stamped more than stale_timeout behind this clock are '
-                          'refused: stamps of 0, or clocks not synchronised')
+                          'refused: clocks not synchronised, or a bag played back')
         lag = self.params['reorder_lag']
         slow, spikes = delayed_streams(self.delays, lag)
         late = new.get('late_odometry', 0) + new.get('late_measurements', 0)
