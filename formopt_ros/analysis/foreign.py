@@ -8,7 +8,7 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
     follower_odometry: /follower/odom    # nav_msgs/Odometry of the follower
     range: /uwb/range                    # sensor_msgs/Range between them
     leader_truth: /leader/mocap          # optional geometry_msgs/PoseStamped, a fixed frame
-    follower_truth: /follower/mocap      # optional, the same fixed frame
+    follower_truth: /follower/mocap      # with leader_truth or neither: the same fixed frame
     estimator:                           # optional: the filter's settings (defaults below)
       sigma_v: 0.05                      # both robots' odometry speed noise, m/s
       sigma_omega: 0.05                  # both robots' odometry yaw-rate noise, rad/s

@@ -6,6 +6,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from formopt_ros.core.checks import InvalidInput
+from formopt_ros.core.estimator import RealNoise
+from formopt_ros.core.scenario import Scenario
 from formopt_ros.wire.formation import read_yaml
 
 TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
@@ -49,7 +52,33 @@ class TopicMap:
         for key in TOPIC_KEYS:
             if not isinstance(data.get(key, ''), str):
                 raise ValueError(f'{path}: {key} must be a topic name, got {data[key]!r}')
+        if bool(data.get('leader_truth')) != bool(data.get('follower_truth')):
+            given, absent = ('leader_truth', 'follower_truth') if data.get('leader_truth') \
+                else ('follower_truth', 'leader_truth')
+            raise ValueError(f'{path}: {given} without {absent}: the evaluation needs both '
+                             "robots' truth in one fixed frame (or neither)")
+        check_settings(path, settings)
         return cls(**{key: data.get(key, '') for key in TOPIC_KEYS}, estimator=settings)
+
+
+#: The topic map's names of the fields the filter's settings check.
+SETTING_OF = {'sigma': 'range_sigma', 'sigma_v_leader': 'sigma_v',
+              'sigma_omega_leader': 'sigma_omega'}
+
+
+def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
+    """The filter's settings checked by the rules of the estimator they build (Scenario and
+    RealNoise); ValueError naming the file and the map's key."""
+    s = settings
+    try:
+        Scenario('range', (-1.0, 0.0), 0.1, s['range_sigma'], sigma_v=s['sigma_v'],
+                 sigma_omega=s['sigma_omega'], sigma_v_leader=s['sigma_v'],
+                 sigma_omega_leader=s['sigma_omega'],
+                 initial_covariance=s['initial_covariance'])
+        RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'])
+    except InvalidInput as error:
+        raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
+                         f'{error.reason}') from None
 
 
 __all__ = ['ESTIMATOR_DEFAULTS', 'TOPIC_KEYS', 'TopicMap']

@@ -104,8 +104,9 @@ def test_ten_hertz_odometry_does_not_diverge(data: ForeignData) -> None:
 def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
     """The command prints the evaluation and the consistency verdict, writes them as JSON and
     the estimate at every range as CSV; a filter ten times overconfident (range_sigma 0.01 m)
-    is an ERROR and exit code 1; a map naming a topic the bag lacks, or with an unknown key, is
-    refused in one line with exit code 2."""
+    is an ERROR and exit code 1; a map naming a topic the bag lacks, with an unknown key, a
+    setting out of its range or one robot's truth only is refused in one line with exit code
+    2."""
     out, estimates = tmp_path / 'result.json', tmp_path / 'estimates.csv'
     done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG), '--offline',
                            '--topic-map', str(MAP), '--json', str(out), '--estimates',
@@ -125,7 +126,11 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
     for text, word in (('leader_odometry: /nope\nfollower_odometry: /follower/odom\n'
                         'range: /uwb/range\n', '/nope'),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nlidar: /d\n',
-                        'lidar')):
+                        'lidar'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nestimator:\n'
+                        '  range_sigma: -0.1\n', 'estimator: range_sigma must be'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'
+                        'leader_truth: /t\n', 'leader_truth without follower_truth')):
         bad = tmp_path / 'map.yaml'
         bad.write_text(text)
         done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG),
