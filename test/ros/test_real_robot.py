@@ -171,7 +171,8 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
 def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: the follower's odometry and a range come
     first: a WARN names the stream awaited, and the filter waits for the leader's odometry
-    (its motion before that is unknown); a range from a driver that leaves min_range and
+    (its motion before that is unknown); an input stamped before the filter's start is refused
+    as such, not dropped as late; a range from a driver that leaves min_range and
     max_range at 0 is used, a negative or NaN one refused, counted and a WARN; a stream used
     again is no longer labelled with its old refusal; most targets of a status period beyond
     the base's reach are a WARN. Remapping leader_odom onto the
@@ -198,13 +199,18 @@ def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path)
             '/leader_odom', text
         node.on_odometry('leader_odom', stamped(Odometry()))
         assert node.tracker is not None
+        early = Odometry()                          # in flight when the filter started
+        early.header.stamp = stamp(node.started_at_ns - 10_000_000)
+        node.on_odometry('odom', early)
+        assert node.refused['before_start'] == 1
+        assert node.tracker.counters.as_dict()['late_odometry'] == 0
         node.on_range(stamped(Range(range=-0.5)))
         node.on_range(stamped(Range(range=float('nan'))))
         assert node.refused['out_of_range'] == node.refused['not_finite'] == 1
         assert 'not finite' in node.stream_label('range')
         (level, text), = node.health()
-        assert level == 'WARN' and text.startswith('inputs refused: out_of_range 1, '
-                                                   'not_finite 1'), text
+        assert level == 'WARN' and text.startswith('inputs refused: before_start 1, '
+                                                   'out_of_range 1, not_finite 1'), text
         node.on_range(stamped(Range(range=2.2)))
         assert node.stream_label('range') == 'range on /range'
         node.publish_diagnostics()                  # the refusals are reported

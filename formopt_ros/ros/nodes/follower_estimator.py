@@ -158,6 +158,7 @@ class FollowerEstimatorNode(Node):
         self.settings = AsyncSettings(int(p['reorder_lag'] * NS_PER_S),
                                       int(p['max_gap'] * NS_PER_S))
         self.tracker: AsyncEstimator | None = None         # starts with the first message
+        self.started_at_ns = 0                              # the filter's start, ns
         self.variance = (p['range_variance'] if sensor == 'range' else 0.0) or \
             scenario.sigma ** 2
         #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
@@ -283,6 +284,11 @@ class FollowerEstimatorNode(Node):
                          'stale_timeout of it (clocks not synchronised, or a bag played back? '
                          'replay --offline re-estimates a bag)')
             return False
+        if self.tracker is not None and stamp <= self.started_at_ns:
+            self._refuse('before_start', stream, f'{stream} stamped '
+                         f'{(self.started_at_ns - stamp) / NS_PER_S:.3f} s before the filter '
+                         "started (at another stream's first input)")
+            return False
         self.first_input_ns = self.first_input_ns or now
         wall = time.monotonic()
         pause = wall - (self._last_input_s or wall)
@@ -300,7 +306,8 @@ class FollowerEstimatorNode(Node):
         if self.tracker is None:
             if any(self.newest[s] is None for s in ODOMETRY_STREAMS):
                 return False        # the leader's motion before its first odometry is unknown
-            self.tracker = AsyncEstimator(self.estimator, stamp - 1, self.settings)
+            self.started_at_ns = stamp - 1
+            self.tracker = AsyncEstimator(self.estimator, self.started_at_ns, self.settings)
         return True
 
     def catching_up(self) -> bool:
@@ -536,11 +543,14 @@ class FollowerEstimatorNode(Node):
         slow, spikes = delayed_streams(self.delays, lag)
         late = new.get('late_odometry', 0) + new.get('late_measurements', 0)
         inputs = late + new.get('odometry', 0) + new.get('measurements', 0)
-        if slow or late > LATE_FRACTION * inputs:
+        if slow:
             errors.append(f'inputs arrive later than reorder_lag ({lag:g} s) after their '
-                          'stamps: a clock behind this one or a slow link'
-                          + (f" ({', '.join(slow)})" if slow else '')
+                          f"stamps: a clock behind this one or a slow link ({', '.join(slow)})"
                           + f'; {late} of {inputs} dropped as late')
+        elif late > LATE_FRACTION * inputs:
+            errors.append(f'{late} of {inputs} inputs dropped as late (stamped before inputs '
+                          'the filter had applied, by more than reorder_lag: the robots\' clocks '
+                          'apart, or a slow link)')
         ages, limit = self.ages(), self.params['stale_timeout']
         if self.first_input_ns is None:
             return [('ERROR', e) for e in errors] or \
