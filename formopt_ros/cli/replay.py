@@ -66,6 +66,9 @@ def build_parser() -> ArgumentParser:
     out.add_argument('--topics', nargs='+', help='topics to replay (default: all)')
     out.add_argument('--wait-subscribers', type=integer(0, 1000),
                      help='wait for this many subscribers per topic before starting')
+    out.add_argument('--clock', action='store_true',
+                     help="publish /clock at the recorded time (nodes with use_sim_time:=true "
+                     "then take the bag's stamps as current)")
     flags = out.add_argument_group('offline mode (no ROS needed)')
     flags.add_argument('--offline', action='store_true',
                        help="re-run a follower's estimator from the core over the bag instead")
@@ -214,7 +217,7 @@ def offline_main(args: Any) -> int:
 
 #: The flags of each mode: playback (ROS), a recorded formopt run offline, a bag of standard
 #: types offline (--topic-map).
-PLAYBACK_FLAGS = ('rate', 'fast', 'topics', 'wait_subscribers')
+PLAYBACK_FLAGS = ('rate', 'fast', 'topics', 'wait_subscribers', 'clock')
 RECORDED_FLAGS = ('follower', 'strategy', 'strategy_option', 'seed', 'trial', 'tolerance')
 TOPIC_MAP_FLAGS = ('topic_map', 'skip', 'estimates')
 
@@ -273,6 +276,8 @@ def main(args: list[str] | None = None) -> None:
         extra += ['-p', f'topics:={json.dumps(options.topics)}']
     if options.wait_subscribers is not None:
         extra += ['-p', f'wait_subscribers:={options.wait_subscribers}']
+    if options.clock:
+        extra += ['-p', 'clock:=true']
     ros_args = (ros or ['--ros-args']) + extra if (ros or extra) else []
     made: list[Replay] = []
 

@@ -176,16 +176,8 @@ def unknown_parameters(argv: Sequence[str], specs: Sequence[Param]) -> list[str]
     A parameters file may carry other nodes' parameters (``/**``): those are only warned about
     (see :func:`~formopt_ros.ros.params.declare`)."""
     known = {spec.name for spec in specs} | ROS_PARAMETERS
-    names, inside, previous = [], False, ''
-    for arg in argv:
-        if arg == '--ros-args':
-            inside = True
-        elif arg == '--':
-            inside = False
-        elif inside and previous in ('-p', '--param') and ':=' in arg:
-            name = arg.split(':=', 1)[0]
-            names.append(name.rpartition(':')[2])       # 'node:name' -> 'name'
-        previous = arg
+    names = [arg.split(':=', 1)[0].rpartition(':')[2]          # 'node:name' -> 'name'
+             for arg in ros_arguments(argv, ('-p', '--param')) if ':=' in arg]
     return [name for name in names if name not in known]
 
 
@@ -206,8 +198,9 @@ def ros_arguments(argv: Sequence[str], flags: tuple[str, ...]) -> list[str]:
 def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
     """The --params-file files (path, their node sections) with no section for this node:
     its name (``program``, or the ``__node`` remapping) as the last part of a key such as
-    ``/f1/follower_estimator``, or a wildcard (``/**``). Files rcl cannot read are left to
-    rcl's own error."""
+    ``/f1/follower_estimator``, or a wildcard (``/**``). The scripts pass config/<node>.yaml,
+    keyed by ``program``, to renamed nodes too (it restates the defaults). Files rcl cannot
+    read are left to rcl's own error."""
     import yaml
     name = program
     for rule in ros_arguments(argv, ('-r', '--remap')):
@@ -220,7 +213,7 @@ def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, l
             sections = list(yaml.safe_load(Path(path).read_text()) or {})
         except (OSError, yaml.YAMLError, TypeError):
             continue
-        if not any(str(key).rstrip('/').rpartition('/')[2] in (name, '*', '**')
+        if not any(str(key).rstrip('/').rpartition('/')[2] in (name, program, '*', '**')
                    for key in sections):
             out.append((path, [str(key) for key in sections]))
     return out

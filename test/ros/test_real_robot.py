@@ -486,3 +486,32 @@ def test_a_camera_follower_reads_its_mount_from_tf_static(
     # bearings that arrive before /tf_static's transient-local mount are refused and counted
     assert summary['ok'] and summary['refused']['no_mount'] <= 3, summary
     assert summary['counters']['measurements'] == len(probe.estimates) > 120
+
+
+def test_a_recorded_bag_played_back_with_its_clock(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """A bag of standard messages recorded in 2023 (the TIERS UWB run of test/data) played by
+    ``replay --clock`` at four times its speed into follower_estimator with use_sim_time
+    (reorder_lag 0.5 s of the bag's time: 0.125 s of a loaded machine's), started at the
+    run's true relative pose: its inputs are current by the bag's clock (none refused
+    as old, none late), 12 s of it are estimated and the run is ok."""
+    import sys
+    bag = Path(__file__).parents[1] / 'data' / 'tiers_uwb_case4_test3.mcap'
+    summary_path = tmp_path / 'summary.json'
+    estimator = node_process(
+        'follower_estimator', {'use_sim_time': True, 'summary_path': str(summary_path),
+                               'duration': 12.0, 'initial_pose': [5.717, 0.611, -1.3456],
+                               'reorder_lag': 0.5},
+        extra=['-r', 'odom:=/follower/odom', '-r', 'leader_odom:=/leader/odom', '-r',
+               'range:=/uwb/range'])
+    player = subprocess.run(
+        [sys.executable, '-m', 'formopt_ros.cli.replay', str(bag), '--clock', '--rate', '4',
+         '--topics', '/follower/odom', '/leader/odom', '/uwb/range', '--wait-subscribers', '1'],
+        capture_output=True, text=True, timeout=120)
+    assert player.returncode == 0, player.stderr
+    assert estimator.wait(timeout=60.0) == 0, estimator.stderr
+    summary = json.loads(summary_path.read_text())
+    assert summary['ok'], summary['errors']
+    assert not any(summary['refused'].values()), summary['refused']
+    counters = summary['counters']
+    assert counters['measurements'] > 100 and counters['late_measurements'] == 0, counters

@@ -282,7 +282,7 @@ class FollowerEstimatorNode(Node):
             self._refuse('before_start', stream, f'{stream} stamped {behind / NS_PER_S:.3f} s '
                          'behind this clock: the filter starts only at an input stamped within '
                          'stale_timeout of it (clocks not synchronised, or a bag played back? '
-                         'replay --offline re-estimates a bag)')
+                         'play it with replay --clock and use_sim_time:=true here)')
             return False
         if self.tracker is not None and stamp <= self.started_at_ns:
             self._refuse('before_start', stream, f'{stream} stamped '
@@ -636,7 +636,10 @@ class FollowerEstimatorNode(Node):
 
     def _check_duration(self) -> None:
         duration = self.params['duration']
-        if duration and (self.now_ns() - self.started_ns) / NS_PER_S >= duration:
+        now = self.now_ns()
+        if not self.started_ns:         # use_sim_time: the duration counts from the first /clock
+            self.started_ns = now
+        if duration and (now - self.started_ns) / NS_PER_S >= duration:
             self.finished = True
 
     def summary(self) -> dict[str, Any]:

@@ -6,10 +6,11 @@ from pathlib import Path
 
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 
 from formopt_ros import bag as bags
 from formopt_ros.ros import qos
-from formopt_ros.ros.conversions import message_class
+from formopt_ros.ros.conversions import clock, message_class
 from formopt_ros.ros.params import Param, ParameterError, declare
 
 PARAMS = [
@@ -24,6 +25,9 @@ PARAMS = [
           'subscribers', 0, 1000),
     Param('wait_timeout', 10.0, 'longest wait for subscribers before starting anyway, and for '
           'the last messages to be acknowledged, s', 0.0, 3600.0),
+    Param('clock', False, "publish /clock at the recorded log time of the messages sent, ahead "
+          "of them (as ros2 bag play --clock): nodes with use_sim_time run on the recording's "
+          'time, so its stamps are current to them'),
 ]
 
 
@@ -66,6 +70,12 @@ class Replay(Node):
                 message_class(self.bag.channels[topic].type, topic), topic,
                 qos.replay_profile(self.bag.channels[topic].qos))
             for topic in topics}
+        self.clock_pub = None
+        if p['clock']:
+            if '/clock' in self.publishers_:
+                raise ParameterError("parameter 'clock': the bag records /clock itself: replay "
+                                     "that (clock false), or leave /clock out with 'topics'")
+            self.clock_pub = self.create_publisher(Clock, '/clock', qos.profile('clock'))
         self.queue = [r for r in self.bag.messages if r.topic in self.publishers_]
         self.sent = 0
         self.counts = {topic: 0 for topic in topics}
@@ -101,6 +111,8 @@ class Replay(Node):
             end = self.sent
             while end < len(self.queue) and self.queue[end].log_time <= due:
                 end += 1
+        if self.clock_pub is not None and end > self.sent:
+            self.clock_pub.publish(clock(self.queue[end - 1].log_time))
         for record in self.queue[self.sent:end]:
             self.publishers_[record.topic].publish(record.data)
             self.counts[record.topic] += 1
