@@ -13,8 +13,9 @@ Start the nodes of follower ID on this computer, in the namespace /ID:
                       /ID/target and /diagnostics.
   field_sim (--sim)   a simulated base and radio for ID (and the leader, publishing
                       /LEADER/odom), to try the set-up without robots.
-NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom); with --sim
-its sensor:= and formation_slot:= go to field_sim too.
+NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom; a
+-r leader_odom:=TOPIC of yours replaces /LEADER/odom); with --sim its sensor:= and
+formation_slot:= go to field_sim too.
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
@@ -63,7 +64,9 @@ if [[ $sim -eq 1 ]]; then
     "${shared[@]}" &
   pids+=($!)
 fi
-"$here/follower_estimator.sh" -r "__ns:=/$robot" -r "leader_odom:=/$leader/odom" \
+leader_remap=(-r "leader_odom:=/$leader/odom")   # rcl takes the first remap: the user's wins
+for arg in "$@"; do [[ "$arg" == leader_odom:=* ]] && leader_remap=(); done
+"$here/follower_estimator.sh" -r "__ns:=/$robot" "${leader_remap[@]}" \
   -p "leader_frame:=$leader" "$@" &
 pids+=($!)
 set +e                                   # the first node to end decides the exit code

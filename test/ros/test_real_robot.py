@@ -225,6 +225,40 @@ def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path)
         rclpy.try_shutdown()
 
 
+def test_a_late_start_while_the_leader_drives_is_a_warning(tmp_path: Path) -> None:
+    """In one process: the leader's first odometry comes 1 s after the follower's (the first
+    input's time moved back by 1 s) with the leader at 1 m/s: the held follower has left its
+    slot, so the start is a WARN, reported once; the same with the leader standing is not."""
+    from nav_msgs.msg import Odometry
+    from formopt_ros.ros.conversions import stamp
+    from formopt_ros.ros.nodes.follower_estimator import FollowerEstimatorNode
+
+    def odometry(speed: float) -> Odometry:
+        message = Odometry()
+        message.header.stamp = stamp(node.now_ns())
+        message.twist.twist.linear.x = speed
+        return message
+
+    rclpy.init()
+    try:
+        for speed, warned in ((1.0, True), (0.0, False)):
+            node = FollowerEstimatorNode(cli_args=[
+                '--ros-args', '-p', f"summary_path:={tmp_path / f'{speed}.json'}"])
+            node.on_odometry('odom', odometry(0.0))
+            assert node.first_input_ns is not None
+            node.first_input_ns -= 1_000_000_000
+            node.on_odometry('leader_odom', odometry(speed))
+            assert node.tracker is not None
+            text = 'the filter started 1.0 s after the first input, with the leader driving ' \
+                'at 1.00 m/s'
+            assert any(text in t for _, t in node.health()) == warned, node.health()
+            node.publish_diagnostics()              # reported: not again
+            assert not any(text in t for _, t in node.health())
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: a first odometry and bearing stamped 0
     (ros2 topic pub without a header) are refused as unstamped, counted and an ERROR, an
@@ -515,3 +549,23 @@ def test_a_recorded_bag_played_back_with_its_clock(
     assert not any(summary['refused'].values()), summary['refused']
     counters = summary['counters']
     assert counters['measurements'] > 100 and counters['late_measurements'] == 0, counters
+
+
+def test_robot_sh_takes_the_users_leader_topic(tmp_path: Path) -> None:
+    """scripts/robot.sh remaps the leader's odometry to /LEADER/odom unless the node arguments
+    remap it themselves (rcl takes the first rule, so the user's was ignored); naming the
+    robot itself as its leader is refused (exit 2, one line)."""
+    script = Path(__file__).parents[2] / 'scripts' / 'robot.sh'
+    mine = subprocess.run(
+        [str(script), '--robot', 'f1', '--leader', 'leader', '--', '-r',
+         'leader_odom:=/mine/odom', '-p', 'duration:=0.3', '-p',
+         f"summary_path:={tmp_path / 'mine.json'}"],
+        capture_output=True, text=True, timeout=60)
+    assert mine.returncode == 0 and 'inputs /f1/odom, /mine/odom, /f1/range' in mine.stderr, \
+        mine.stderr
+    itself = subprocess.run(
+        [str(script), '--robot', 'f1', '--leader', 'f1', '--', '-p',
+         f"summary_path:={tmp_path / 'itself.json'}"], capture_output=True, text=True,
+        timeout=60)
+    assert itself.returncode == 2 and 'odom and leader_odom both resolve to /f1/odom' in \
+        itself.stderr, itself.stderr

@@ -47,6 +47,9 @@ LATE_FRACTION = 0.1
 
 #: The odometry streams: the filter starts once both robots' odometry has come.
 ODOMETRY_STREAMS = ('odom', 'leader_odom')
+#: The filter starting this long (s) after the first input while the leader drives faster than
+#: START_SPEED (m/s) is a WARN: the held follower left its slot meanwhile.
+LATE_START_S, START_SPEED = 0.5, 0.05
 #: More than this share of a status period's plans beyond the base's reach is a WARN.
 UNREACHABLE_FRACTION = 0.5
 #: The sensors a follower may carry (its measurement stream is named after the sensor).
@@ -159,6 +162,8 @@ class FollowerEstimatorNode(Node):
                                       int(p['max_gap'] * NS_PER_S))
         self.tracker: AsyncEstimator | None = None         # starts with the first message
         self.started_at_ns = 0                              # the filter's start, ns
+        self.leader_speed = 0.0                             # of its last odometry, m/s
+        self.start_warning = ''                             # a late start, until reported
         self.variance = (p['range_variance'] if sensor == 'range' else 0.0) or \
             scenario.sigma ** 2
         #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
@@ -264,6 +269,11 @@ class FollowerEstimatorNode(Node):
     def _accept(self, stream: str, stamp: int) -> bool:
         """Stamp rules shared by every input; counts and warns on refusal."""
         now = self.now_ns()
+        if self.tracker is None and now <= 0:
+            self._refuse('before_start', stream, f'{stream} before this clock started '
+                         '(use_sim_time and no /clock yet; a bag: replay --clock): the filter '
+                         'does not start on it')
+            return False
         if stamp > now + int(self.params['future_tolerance'] * NS_PER_S):
             self._refuse('future', stream, f'{stream} stamped {(stamp - now) / NS_PER_S:.3f} s '
                          'ahead of this clock: are the clocks synchronised?')
@@ -272,10 +282,6 @@ class FollowerEstimatorNode(Node):
         if stamp == 0 and behind > int(self.params['stale_timeout'] * NS_PER_S):
             self._refuse('unstamped', stream, f'{stream}: header stamp 0 (its driver does not '
                          'stamp its messages)')
-            return False
-        if self.tracker is None and now <= 0:
-            self._refuse('before_start', stream, f'{stream} before this clock started '
-                         '(use_sim_time and no /clock yet): the filter does not start on it')
             return False
         if self.tracker is None and behind > int(self.params['stale_timeout'] * NS_PER_S):
             # the filter starts at its first input's stamp: an old one would be integrated over
@@ -335,9 +341,20 @@ class FollowerEstimatorNode(Node):
             self._refuse('not_finite', stream, f'{stream}: twist is not finite')
             return
         stamp = header_ns(message)
+        if stream == 'leader_odom':
+            self.leader_speed = abs(v)
+        starting = self.tracker is None
         if not self._accept(stream, stamp):
             return
         assert self.tracker is not None
+        waited = (self.now_ns() - (self.first_input_ns or 0)) / NS_PER_S
+        if starting and waited > LATE_START_S and self.leader_speed > START_SPEED:
+            self.start_warning = (f'the filter started {waited:.1f} s after the first input, '
+                                  f'with the leader driving at {self.leader_speed:.2f} m/s: the '
+                                  'follower, held meanwhile, is off its slot, where the '
+                                  'estimate starts (start every driver before the leader '
+                                  'moves, or give initial_pose)')
+            self.get_logger().warning(self.start_warning)
         resets = self.tracker.counters.outage_resets
         x, y, yaw = (float(c) for c in pose_values(message.pose.pose))
         finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)
@@ -537,8 +554,9 @@ class FollowerEstimatorNode(Node):
             errors.append('messages with header stamp 0 are refused: their driver does not '
                           'stamp them')
         if new.get('refused_before_start') and self.tracker is None:    # nothing started it
-            errors.append('first inputs stamped more than stale_timeout behind this clock are '
-                          'refused: clocks not synchronised, or a bag played back')
+            errors.append('first inputs refused (stamped more than stale_timeout behind this '
+                          'clock, or before it started): clocks not synchronised, or a bag '
+                          'played back without replay --clock')
         lag = self.params['reorder_lag']
         slow, spikes = delayed_streams(self.delays, lag)
         late = new.get('late_odometry', 0) + new.get('late_measurements', 0)
@@ -566,6 +584,8 @@ class FollowerEstimatorNode(Node):
                           f"{limit:g} s: {', '.join(map(self.stream_label, refused))}")
         if errors:
             return [('ERROR', e) for e in errors]
+        if self.start_warning:
+            return [('WARN', self.start_warning)]
         never = [s for s, a in ages.items() if a is None]
         if never:       # a driver that comes up later: the base is held until it does
             return [('WARN', 'waiting for the first input: '
@@ -615,6 +635,7 @@ class FollowerEstimatorNode(Node):
         level, message = problems[0] if problems else (
             'OK', 'tracking' if self.tracker and self.tracker.applied else 'waiting for input')
         self._reported = self.counts()
+        self.start_warning = ''
         self.delays = {s: [] for s in self.streams}
         if level == 'ERROR':
             self.worst = 'ERROR'
