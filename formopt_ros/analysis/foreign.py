@@ -36,14 +36,13 @@ from formopt_ros.bag import BagError
 from formopt_ros.bag.reader import Bag
 from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
 from formopt_ros.core.consistency import ERROR
-from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
+from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
-from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
     estimate_values, header_ns, pose_values, range_problem, twist_noise)
-from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap
+from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap, filter_model
 
 
 @dataclass
@@ -173,13 +172,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
     if initial is None:
         initial = np.array([-data.ranges[0][1], 0.0, 0.0])
     slot = (float(initial[0]), float(initial[1]))
-    scenario = Scenario('range', slot, 0.1 * math.hypot(*slot), s['range_sigma'],
-                        sigma_v=s['sigma_v'], sigma_omega=s['sigma_omega'],
-                        sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
-                        initial_covariance=tuple(s['initial_covariance']))
-    filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None,
-                               RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'],
-                                         s['gate']))
+    scenario, noise = filter_model(s, slot)
+    filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None, noise)
     filter_.state[:3] = initial
     tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
     inputs = sorted([(t, 0, robot, (v, w, noise)) for robot, stream in data.odometry.items()

@@ -2,6 +2,7 @@
 filter's settings for it (the keys are documented in formopt_ros/analysis/foreign.py)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,19 +67,27 @@ SETTING_OF = {'sigma': 'range_sigma', 'sigma_v_leader': 'sigma_v',
               'sigma_omega_leader': 'sigma_omega'}
 
 
-def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
-    """The filter's settings checked by the rules of the estimator they build (Scenario and
-    RealNoise); ValueError naming the file and the map's key."""
+def filter_model(settings: dict[str, Any], slot: tuple[float, float]
+                 ) -> tuple[Scenario, RealNoise]:
+    """The range scenario (its disc 0.1 |slot| about ``slot``, m, where the estimate starts;
+    both robots' odometry noise ``sigma_v``, ``sigma_omega``) and the noise handling a topic
+    map's filter settings (ESTIMATOR_DEFAULTS' keys) make; InvalidInput naming the field."""
     s = settings
+    scenario = Scenario('range', slot, 0.1 * math.hypot(*slot), s['range_sigma'],
+                        sigma_v=s['sigma_v'], sigma_omega=s['sigma_omega'],
+                        sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
+                        initial_covariance=s['initial_covariance'])
+    return scenario, RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'])
+
+
+def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
+    """The filter's settings checked by the rules of the estimator they build
+    (:func:`filter_model`); ValueError naming the file and the map's key."""
     try:
-        Scenario('range', (-1.0, 0.0), 0.1, s['range_sigma'], sigma_v=s['sigma_v'],
-                 sigma_omega=s['sigma_omega'], sigma_v_leader=s['sigma_v'],
-                 sigma_omega_leader=s['sigma_omega'],
-                 initial_covariance=s['initial_covariance'])
-        RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'])
+        filter_model(settings, (-1.0, 0.0))
     except InvalidInput as error:
         raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
                          f'{error.reason}') from None
 
 
-__all__ = ['ESTIMATOR_DEFAULTS', 'TOPIC_KEYS', 'TopicMap']
+__all__ = ['ESTIMATOR_DEFAULTS', 'TOPIC_KEYS', 'TopicMap', 'filter_model']
