@@ -6,6 +6,7 @@ import faulthandler
 import functools
 import math
 import os
+import re
 import signal
 import sys
 import textwrap
@@ -195,28 +196,64 @@ def ros_arguments(argv: Sequence[str], flags: tuple[str, ...]) -> list[str]:
     return values
 
 
-def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
-    """The --params-file files (path, their node sections) with no section for this node:
-    its name (``program``, or the ``__node`` remapping) as the last part of a key such as
-    ``/f1/follower_estimator``, or a wildcard (``/**``). The scripts pass config/<node>.yaml,
-    keyed by ``program``, to renamed nodes too (it restates the defaults). Files rcl cannot
-    read are left to rcl's own error."""
-    import yaml
-    name = program
+def section_applies(key: str, node: str) -> bool:
+    """Whether a params file's section ``key`` applies to the node with fully qualified name
+    ``node`` (e.g. ``/f1/follower_estimator``), by rcl's rule (checked against rclpy): a key
+    without a leading ``/`` is in the root namespace, ``*`` is one name and ``/**`` any number
+    of namespaces."""
+    pattern = ''.join('(/[^/]+)*' if part == '**' else '/[^/]+' if part == '*' else
+                      '/' + re.escape(part) for part in key.strip('/').split('/'))
+    return re.fullmatch(pattern, node) is not None
+
+
+def node_names(argv: Sequence[str], program: str) -> tuple[str, str]:
+    """(namespace, name) of the node: ``/`` and ``program`` unless ``-r __ns:=`` or
+    ``-r __node:=`` remap them (the first of each, as rcl)."""
+    found: dict[str, str] = {}
     for rule in ros_arguments(argv, ('-r', '--remap')):
         target, _, value = rule.partition(':=')
-        if target.rpartition(':')[2] == '__node':
-            name = value
+        found.setdefault(target.rpartition(':')[2], value)     # rcl takes the first rule
+    return '/' + found.get('__ns', '').strip('/'), found.get('__node', program)
+
+
+def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
+    """The --params-file files (path, their node sections) with no section that applies to
+    this node (:func:`section_applies`). The scripts pass config/<node>.yaml, keyed
+    ``/**/program``, to renamed nodes too (it restates the defaults): a section for
+    ``program`` in the node's namespace counts as the node's. Files rcl cannot read are left
+    to rcl's own error."""
+    import yaml
+    namespace, name = node_names(argv, program)
+    nodes = [f"{namespace.rstrip('/')}/{n}" for n in (name, program)]
     out = []
     for path in ros_arguments(argv, ('--params-file',)):
         try:
-            sections = list(yaml.safe_load(Path(path).read_text()) or {})
+            sections = [str(key) for key in yaml.safe_load(Path(path).read_text()) or {}]
         except (OSError, yaml.YAMLError, TypeError):
             continue
-        if not any(str(key).rstrip('/').rpartition('/')[2] in (name, program, '*', '**')
-                   for key in sections):
-            out.append((path, [str(key) for key in sections]))
+        if not any(section_applies(key, node) for key in sections for node in nodes):
+            out.append((path, sections))
     return out
+
+
+def params_file_problem(path: str, sections: Sequence[str], argv: Sequence[str],
+                        program: str) -> str | None:
+    """The error for a params file none of whose sections applies to this node, when a
+    section was meant for it: one keyed by its name in another namespace, or a near miss of
+    its name (a typo); None when the file is for other nodes only."""
+    namespace, name = node_names(argv, program)
+    node = f"{namespace.rstrip('/')}/{name}"
+    for key in sections:
+        if key.rstrip('/').rpartition('/')[2] in (name, program):
+            return (f'params file {path}: section {key!r} does not apply to node {node} (a '
+                    "key without a leading '/' is the root namespace's; '/**/"
+                    f"{name}' applies in any namespace): its values would not apply")
+    names = [key.rstrip('/').rpartition('/')[2] for key in sections]
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.8)
+    if close:
+        return (f'params file {path}: section {close[0]!r} is not this node {name!r} (a '
+                'typo? its values would not apply)')
+    return None
 
 
 def node_main(factory: Callable[[], Node], program: str, summary: str,
@@ -252,11 +289,9 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
               '--help for its parameters)', file=sys.stderr)
         return 2
     for path, sections in foreign_params_files(argv, program):
-        names = [key.rstrip('/').rpartition('/')[2] for key in sections]
-        close = difflib.get_close_matches(program, names, n=1, cutoff=0.8)
-        if close:
-            print(f'{program}: error: params file {path}: section {close[0]!r} is not this node '
-                  f'{program!r} (a typo? its values would not apply)', file=sys.stderr)
+        problem = params_file_problem(path, sections, argv, program)
+        if problem:
+            print(f'{program}: error: {problem}', file=sys.stderr)
             return 2
         print(f'{program}: warning: params file {path} has no section for {program} (it has '
               f"{', '.join(sections) or 'none'}): none of its values apply", file=sys.stderr)
