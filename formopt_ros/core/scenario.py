@@ -25,11 +25,13 @@ PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
 #: described (:class:`Scenario`, :class:`LeaderPath`, :class:`Formation`); the node parameters
 #: and the commands' flags take their ranges from here. Each keeps a margin to the range of the
 #: solvers (cost.SIGMA_RANGE, cost.SLOT_DISTANCE_RANGE), so a run that passes them never fails
-#: deeper (test_boundary.py runs each bound). The bearing noise is an angle, at most pi; a range
-#: noise below 1 mm (3e-4 m measured) makes the periodic strategy's covariance maps singular.
+#: deeper (test_boundary.py runs each bound). A bearing noise above 1 rad (57 deg) is no bearing
+#: sensor: a value meant in degrees (2 for 2 deg) is refused; a range noise below 1 mm (3e-4 m
+#: measured) makes the periodic strategy's covariance maps singular. A base's yaw rate above
+#: 20 rad/s is one meant in deg/s (45 for 45 deg/s).
 RANGES: dict[str, tuple[float, float, str]] = {
     'range_sigma': (1e-3, 1e3, 'm'),
-    'bearing_sigma': (1e-6, math.pi, 'rad'),
+    'bearing_sigma': (1e-6, 1.0, 'rad'),
     'dt': (1e-3, 10.0, 's'),
     'slot': (-1e4, 1e4, 'm'),
     'deviation': (MIN_DEVIATION, MAX_DEVIATION, '|p_o|'),
@@ -46,6 +48,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     'seed': (0, 2**31 - 1, ''),
     'trial': (0, 2**31 - 1, ''),
     'max_speed': (1e-3, 1e3, 'm/s'),
+    'max_yaw_rate': (1e-3, 20.0, 'rad/s'),
     'safety_distance': (0.0, 1e4, 'm'),
 }
 

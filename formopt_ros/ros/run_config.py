@@ -23,7 +23,7 @@ from formopt_ros.wire.formation import load_formation
 from formopt_ros.wire.topics import DEFAULT_FOLLOWER, DEFAULT_LEADER
 
 
-def _range(key: str) -> tuple[float, float]:
+def value_range(key: str) -> tuple[float, float]:
     """(low, high) of a number of a run (core.scenario.RANGES)."""
     low, high, _ = RANGES[key]
     return low, high
@@ -39,47 +39,49 @@ LEADER_ID = Param('leader_id', DEFAULT_LEADER, 'id of the leader: its namespace 
                   "node's) and frame", identifier=True)
 MODE = Param('mode', 'lockstep', 'lockstep: act on the awaited message, deterministic; '
              'realtime: timers at 1/dt', choices=MODES)
-DT = Param('dt', 0.05, 'sub-step length, s', *_range('dt'))
+DT = Param('dt', 0.05, 'sub-step length, s', *value_range('dt'))
 MEASUREMENT = Param('measurement', 'range', 'the follower sensor: range, bearing, or both at '
                     'each step (range-bearing: two Measurement messages per step; the bearing '
                     'every bearing_every steps)', choices=(*MEASUREMENT_KINDS, RANGE_BEARING))
 BEARING_EVERY = Param('bearing_every', 1, 'range-bearing: the bearing comes at every k-th step, '
                       'the range at every step', 1, 10**6)
 SEED = Param('seed', 0, 'seed of the random streams (same as formopt-montecarlo)',
-             *_range('seed'))
+             *value_range('seed'))
 TRIAL = Param('trial', 0, 'trial index: the streams are seeded by (seed, trial)',
-              *_range('trial'))
-SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', *_range('sigma_v'))
+              *value_range('trial'))
+SIGMA_V = Param('sigma_v', 0.2, 'follower linear velocity noise std, m/s', *value_range('sigma_v'))
 SIGMA_OMEGA = Param('sigma_omega', 0.1, 'follower angular velocity noise std, rad/s',
-                    *_range('sigma_omega'))
+                    *value_range('sigma_omega'))
 SIGMA_V_LEADER = Param('sigma_v_leader', 0.0, "noise std of the leader's odometry speed as the "
                        'estimator receives it, m/s (0: exact, as in the paper)',
-                       *_range('sigma_v_leader'))
+                       *value_range('sigma_v_leader'))
 SIGMA_OMEGA_LEADER = Param('sigma_omega_leader', 0.0, "noise std of the leader's odometry yaw "
-                           'rate, rad/s (0: exact)', *_range('sigma_omega_leader'))
+                           'rate, rad/s (0: exact)', *value_range('sigma_omega_leader'))
 KINEMATICS = Param('kinematics', EXACT, 'motion model of the truth and the EKF: exact (arcs of '
                    "constant velocities) or euler (the paper's eq. 9, as its Sec. V simulates)",
                    choices=MOTION_MODELS)
-RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', *_range('range_sigma'))
-BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad', *_range('bearing_sigma'))
+RANGE_SIGMA = Param('range_sigma', 0.1, 'range noise std, m', *value_range('range_sigma'))
+BEARING_SIGMA = Param('bearing_sigma', 0.02, 'bearing noise std, rad',
+                      *value_range('bearing_sigma'))
 SLOT = Param('formation_slot', [0.0], 'formation slot p_o [x, y] in the leader frame, m; '
-             '[0.0] means the paper default for the measurement kind', *_range('slot'))
+             '[0.0] means the paper default for the measurement kind', *value_range('slot'))
 DEVIATION = Param('deviation_fraction', 0.1, 'allowed deviation r as a fraction of |p_o|',
-                  *_range('deviation'))
+                  *value_range('deviation'))
 PATH = Param('path', 'straight', "the leader's path: straight (v_leader), arc (v_leader, "
              'omega_leader), s-curve (v_leader, yaw rate amplitude * sin(2 pi t / period)) or '
              'segments (the segment_* lists)', choices=PATH_KINDS)
-V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', *_range('speed'))
+V_LEADER = Param('v_leader', 1.0, 'leader forward speed, m/s', *value_range('speed'))
 OMEGA_LEADER = Param('omega_leader', 0.0, "leader yaw rate of an arc, rad/s (with path "
-                     "'straight', a value other than 0 makes it an arc)", *_range('yaw_rate'))
-AMPLITUDE = Param('amplitude', 0.0, 'peak yaw rate of an s-curve, rad/s', *_range('amplitude'))
-PERIOD = Param('period', 10.0, 'period of an s-curve, s', *_range('period'))
+                     "'straight', a value other than 0 makes it an arc)", *value_range('yaw_rate'))
+AMPLITUDE = Param('amplitude', 0.0, 'peak yaw rate of an s-curve, rad/s',
+                  *value_range('amplitude'))
+PERIOD = Param('period', 10.0, 'period of an s-curve, s', *value_range('period'))
 SEGMENT_DURATIONS = Param('segment_durations', [1.0], 'segments: duration of each, s',
-                          *_range('duration'))
+                          *value_range('duration'))
 SEGMENT_SPEEDS = Param('segment_speeds', [1.0], 'segments: forward speed of each, m/s',
-                       *_range('speed'))
+                       *value_range('speed'))
 SEGMENT_YAW_RATES = Param('segment_yaw_rates', [0.0], 'segments: yaw rate of each, rad/s',
-                          *_range('yaw_rate'))
+                          *value_range('yaw_rate'))
 REPEAT = Param('repeat_segments', False, 'segments: repeat the list instead of holding the '
                'last segment')
 RUN_ID = Param('run_id', '', 'identity of the run: messages and peers of another run are '
@@ -103,12 +105,12 @@ PATH_PARAMS = [PATH, V_LEADER, OMEGA_LEADER, AMPLITUDE, PERIOD, SEGMENT_DURATION
                SEGMENT_SPEEDS, SEGMENT_YAW_RATES, REPEAT]
 INITIAL_COVARIANCE = Param(
     'initial_covariance', [0.1, 0.1, 4e-4], 'diagonal of P_1|1 [x m^2, y m^2, phi rad^2]; the '
-    'truth starts at N([p_o, 0], P_1|1)', *_range('initial_covariance'))
+    'truth starts at N([p_o, 0], P_1|1)', *value_range('initial_covariance'))
 MAX_SPEED = Param('max_speed', 0.0, "speed limit of the follower's planned motion: mean "
                   'world-frame speed over a measurement step, m/s (0: none, the paper\'s '
-                  'protocol)', 0.0, _range('max_speed')[1])
+                  'protocol)', 0.0, value_range('max_speed')[1])
 SAFETY_DISTANCE = Param('safety_distance', 0.0, 'distance from the leader no planned point '
-                        "comes within, m (0: none)", *_range('safety_distance'))
+                        "comes within, m (0: none)", *value_range('safety_distance'))
 SCENARIO_PARAMS = [MEASUREMENT, DT, SIGMA_V, SIGMA_OMEGA, SIGMA_V_LEADER, SIGMA_OMEGA_LEADER,
                    KINEMATICS, RANGE_SIGMA, BEARING_SIGMA, SLOT, DEVIATION,
                    INITIAL_COVARIANCE, MAX_SPEED, SAFETY_DISTANCE, BEARING_EVERY] + PATH_PARAMS

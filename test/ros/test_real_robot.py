@@ -291,7 +291,7 @@ def test_a_mount_chain_and_an_old_first_stamp(tmp_path: Path) -> None:
         node.on_bearing(Vector3Stamped(vector=Vector3(x=1.0)))    # stamped 0, frame ''
         assert node.refused['unstamped'] == 2 and node.tracker is None
         assert node.sensor_frame is None                      # a refused one fixes nothing
-        assert any(level == 'ERROR' and 'header stamp 0' in text
+        assert any(level == 'ERROR' and 'on bearing, odom with header stamp 0' in text
                    for level, text in node.health()), node.health()
         old = Odometry()                                      # stamped before stale_timeout
         old.header.stamp = stamp(node.now_ns() - 2_000_000_000)   # 2 s

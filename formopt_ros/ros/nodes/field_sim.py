@@ -23,7 +23,7 @@ from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
-    INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from)
+    INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from, value_range)
 from formopt_ros.ros.runtime import check_output_path, node_main, write_summary
 from formopt_ros.wire.topics import ODOM_FRAME
 
@@ -62,13 +62,15 @@ PARAMS = [
           0.0, 1.0),
     Param('dropout_rate', 0.01, 'share of measurements not sent', 0.0, 1.0),
     Param('bearing_rate', 15.0, 'camera rate, Hz', 0.1, 1000.0),
-    Param('bearing_sigma', 0.02, 'camera bearing noise std, rad', 0.0, 3.2),
+    Param('bearing_sigma', 0.02, 'camera bearing noise std, rad', 0.0,
+          value_range('bearing_sigma')[1]),
     Param('camera_mount', [0.1, 0.0, 0.0], "the camera's pose on the base, [x m, y m, yaw rad]",
           -100.0, 100.0),
     Param('latency', 0.02, 'delay between a cmd_vel message and the base executing it, s', 0.0,
           1.0),
     Param('max_speed', 2.5, 'largest forward speed of the base, m/s', 1e-3, 100.0),
-    Param('max_yaw_rate', 4.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
+    Param('max_yaw_rate', 4.0, 'largest yaw rate of the base, rad/s',
+          *value_range('max_yaw_rate')),
     Param('max_acceleration', 4.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
     Param('max_yaw_acceleration', 20.0, 'largest yaw acceleration, rad/s^2', 1e-3, 1e4),
     Param('leader_clock_offset', 0.0, "added to the leader's stamps: a leader clock out of sync, "

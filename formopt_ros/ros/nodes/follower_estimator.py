@@ -30,7 +30,7 @@ from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
     BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SAFETY_DISTANCE,
     SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
-    strategy_options, strategy_params)
+    strategy_options, strategy_params, value_range)
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import header_ns, pose_values, range_problem, twist_noise
@@ -104,7 +104,8 @@ PARAMS = [
           'max_speed (false: anywhere in the disc, as the paper, and the controller clips; '
           'docs/real_robots.md compares the two)'),
     SAFETY_DISTANCE,
-    Param('max_yaw_rate', 3.0, 'largest yaw rate of the base, rad/s', 1e-3, 100.0),
+    Param('max_yaw_rate', 3.0, 'largest yaw rate of the base, rad/s',
+          *value_range('max_yaw_rate')),
     Param('max_acceleration', 2.0, 'largest acceleration of the base, m/s^2', 1e-3, 1000.0),
     Param('max_yaw_acceleration', 10.0, 'largest yaw acceleration of the base, rad/s^2', 1e-3,
           1e4),
@@ -182,6 +183,7 @@ class FollowerEstimatorNode(Node):
         self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
         self.delays: dict[str, list[float]] = {s: [] for s in self.streams}  # this period, s
         self.refusal: dict[str, str] = {}      # per stream, its refusal since it was last used
+        self.unstamped: set[str] = set()       # streams that sent a header stamp 0
         self.first_input_ns: int | None = None
         # a pause of every input longer than reorder_lag (this process stalled, or every link
         # at once): until _catch_up_until (monotonic s), or until each stream in _draining
@@ -282,6 +284,7 @@ class FollowerEstimatorNode(Node):
         if stamp == 0 and behind > int(self.params['stale_timeout'] * NS_PER_S):
             self._refuse('unstamped', stream, f'{stream}: header stamp 0 (its driver does not '
                          'stamp its messages)')
+            self.unstamped.add(stream)
             return False
         if self.tracker is None and behind > int(self.params['stale_timeout'] * NS_PER_S):
             # the filter starts at its first input's stamp: an old one would be integrated over
@@ -551,8 +554,8 @@ class FollowerEstimatorNode(Node):
         if new.get('refused_future'):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
         if new.get('refused_unstamped'):
-            errors.append('messages with header stamp 0 are refused: their driver does not '
-                          'stamp them')
+            errors.append(f"messages on {', '.join(sorted(self.unstamped))} with header stamp 0 "
+                          'are refused: their driver does not stamp them')
         if new.get('refused_before_start') and self.tracker is None:    # nothing started it
             errors.append('first inputs refused (stamped more than stale_timeout behind this '
                           'clock, or before it started): clocks not synchronised, or a bag '
