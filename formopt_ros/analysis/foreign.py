@@ -12,7 +12,9 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
     estimator:                           # optional: the filter's settings (defaults below)
       sigma_v: 0.05                      # both robots' odometry speed noise, m/s
       sigma_omega: 0.05                  # both robots' odometry yaw-rate noise, rad/s
-      range_sigma: 0.1                   # range noise, m
+      range_sigma: 0.1                   # range noise, m (where a message has no variance)
+      range_variance: 0.0                # every range's variance, m^2 (0: the message's when
+                                         # in (0, 100], else range_sigma^2), as the live node
       bias_sigma: 0.0                    # range-bias state (0: none), m
       bias_walk: 0.0                     # m / sqrt(s)
       huber: 0.0                         # Huber threshold, standard deviations (0: off)
@@ -41,7 +43,7 @@ from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
-    estimate_values, header_ns, pose_values, range_problem, twist_noise)
+    estimate_values, header_ns, message_variance, pose_values, range_problem, twist_noise)
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap, filter_model
 
 
@@ -52,14 +54,14 @@ class ForeignData:
     Attributes:
         odometry: per robot ('follower', 'leader'), (stamp, v m/s, omega rad/s, its own noise
             (sigma_v, sigma_omega) from the twist covariance, or None).
-        ranges: (stamp, range m).
+        ranges: (stamp, range m, the message's variance m^2 or None when unknown).
         truth: per robot, (stamp, x m, y m, yaw rad) in a fixed frame (empty without truth).
         refused: messages dropped as the live node drops them: {'not_finite': n,
             'out_of_range': n}.
     """
 
     odometry: dict[str, list[tuple[int, float, float, tuple[float, float] | None]]]
-    ranges: list[tuple[int, float]]
+    ranges: list[tuple[int, float, float | None]]
     truth: dict[str, np.ndarray]
     refused: dict[str, int] = field(default_factory=lambda: {'not_finite': 0,
                                                              'out_of_range': 0})
@@ -110,7 +112,7 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
         if (problem := range_problem(m)) is not None:
             refused[problem[0]] += 1
         else:
-            ranges.append((header_ns(m), float(m.range)))
+            ranges.append((header_ns(m), float(m.range), message_variance(m.variance)))
     for name, stamps in (('follower_odometry', [o[0] for o in odometry['follower']]),
                          ('leader_odometry', [o[0] for o in odometry['leader']]),
                          ('range', [r[0] for r in ranges])):
@@ -178,7 +180,7 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
     tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
     inputs = sorted([(t, 0, robot, (v, w, noise)) for robot, stream in data.odometry.items()
                      for t, v, w, noise in stream if t > first - 1] +
-                    [(t, 1, 'range', (z, None, None)) for t, z in data.ranges],
+                    [(t, 1, 'range', (z, variance, None)) for t, z, variance in data.ranges],
                     key=lambda item: item[:2])
     result = ForeignResult([], [], [], [], [], {}, None)
 
@@ -195,7 +197,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
 
     for t, _, kind, values in inputs:
         if kind == 'range':
-            tracker.add_measurement(t, values[0], s['range_sigma'] ** 2)
+            tracker.add_measurement(t, values[0], s['range_variance'] or values[1]
+                                    or s['range_sigma'] ** 2)
         else:
             tracker.add_odometry(kind, t, *values)
         for applied in tracker.advance(t):

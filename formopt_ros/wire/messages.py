@@ -50,19 +50,24 @@ def pose_values(pose: Any) -> np.ndarray:
     return np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)])
 
 
-#: Largest twist variance taken from a message, (m/s)^2 or (rad/s)^2: drivers write 1e3 to 1e6
-#: (or -1) for 'unknown', which would be read as sigma = 30-1000 m/s.
-TWIST_VARIANCE_BOUND = 100.0
+#: Largest variance taken from a message, (m/s)^2, (rad/s)^2 or m^2: drivers write 1e3 to 1e6
+#: (or -1, or 0) for 'unknown', which would be read as sigma = 30-1000 m/s.
+VARIANCE_BOUND = 100.0
+
+
+def message_variance(value: float) -> float | None:
+    """A variance a message carries, when it is in (0, VARIANCE_BOUND]; None ('unknown': use
+    the configured noise) otherwise."""
+    return float(value) if 0.0 < value <= VARIANCE_BOUND else None
 
 
 def twist_noise(msg: Any) -> tuple[float, float] | None:
     """(sigma_v m/s, sigma_omega rad/s) of an Odometry's twist covariance (entries 0 and 35)
-    when both are in (0, TWIST_VARIANCE_BOUND]; None (use the configured noise) otherwise."""
+    when both are known (:func:`message_variance`); None (use the configured noise)
+    otherwise."""
     covariance = msg.twist.covariance
-    v, omega = float(covariance[0]), float(covariance[35])
-    if 0.0 < v <= TWIST_VARIANCE_BOUND and 0.0 < omega <= TWIST_VARIANCE_BOUND:
-        return math.sqrt(v), math.sqrt(omega)
-    return None
+    v, omega = message_variance(covariance[0]), message_variance(covariance[35])
+    return None if v is None or omega is None else (math.sqrt(v), math.sqrt(omega))
 
 
 def odometry_values(msg: Any) -> tuple[float, float, float, float]:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from formopt_ros.core.checks import InvalidInput
+from formopt_ros.core.checks import InvalidInput, as_real
 from formopt_ros.core.estimator import RealNoise
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.wire.formation import read_yaml
@@ -15,7 +15,8 @@ from formopt_ros.wire.formation import read_yaml
 TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
               'follower_truth')
 ESTIMATOR_DEFAULTS: dict[str, Any] = {
-    'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'bias_sigma': 0.0,
+    'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'range_variance': 0.0,
+    'bias_sigma': 0.0,
     'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01]}
 
 
@@ -85,6 +86,7 @@ def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
     (:func:`filter_model`); ValueError naming the file and the map's key."""
     try:
         filter_model(settings, (-1.0, 0.0))
+        as_real('range_variance', settings['range_variance'], 0.0, 1e6, unit='m^2')
     except InvalidInput as error:
         raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
                          f'{error.reason}') from None

@@ -14,6 +14,7 @@ import pytest
 from formopt_ros.analysis.foreign import ForeignData, estimate_foreign, read_foreign
 from formopt_ros.bag import read_bag
 from formopt_ros.core.model import propagate_state
+from formopt_ros.wire.messages import message_variance
 from formopt_ros.wire.topic_map import TopicMap
 
 DATA = Path(__file__).resolve().parents[1] / 'data'
@@ -36,7 +37,7 @@ def reference_rmse(data: ForeignData, sigma: float = 0.05, range_sigma: float = 
     twist = {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}
     events = sorted([(t, robot, (v, w)) for robot, stream in data.odometry.items()
                      for t, v, w, _ in stream if t > start] +
-                    [(t, 'range', (z,)) for t, z in data.ranges])
+                    [(t, 'range', (z,)) for t, z, _ in data.ranges])
 
     def step(x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         return np.append(propagate_state(x[:3], u[0], u[1], dt, u[2], u[3]), x[3])
@@ -77,7 +78,7 @@ def test_real_uwb_data_is_consistent_with_the_bias_state(data: ForeignData) -> N
     position error no worse than the independent plain EKF's; without the bias state the
     filter is overconfident by two orders of magnitude. The ranges' mean error against the
     motion-capture distance is 0.35 m; the bias state ends at 0.53 m (docs/real_robots.md)."""
-    errors = [r - math.hypot(*truth[:2]) for t, r in data.ranges
+    errors = [r - math.hypot(*truth[:2]) for t, r, _ in data.ranges
               if (truth := data.relative_truth(t)) is not None]
     assert np.mean(errors) == pytest.approx(0.35, abs=0.005)
     settings = TopicMap.load(MAP).estimator
@@ -98,6 +99,26 @@ def test_ten_hertz_odometry_does_not_diverge(data: ForeignData) -> None:
     result = estimate_foreign(slow, TopicMap.load(MAP).estimator).summary(SKIP)
     assert result['mean_nees'] <= 5.0 and result['rmse_m'] < 0.2, result
     assert result['rmse_m'] <= reference_rmse(slow)
+
+
+def test_a_range_variance_in_the_messages_is_used(data: ForeignData) -> None:
+    """Ranges whose messages carry a variance of 0.09 m^2 are weighed by it, as with
+    range_variance 0.09 and no variance in the messages; range_variance overrides the
+    messages'; a variance of 'unknown' (0, -1, 1e6) falls back to range_sigma^2."""
+    settings = TopicMap.load(MAP).estimator
+
+    def with_variance(variance: float | None) -> ForeignData:
+        ranges = [(t, z, variance) for t, z, _ in data.ranges]
+        return ForeignData(data.odometry, ranges, data.truth)
+
+    def nees(data: ForeignData, **overrides: float) -> float:
+        return estimate_foreign(data, {**settings, **overrides}).summary(SKIP)['mean_nees']
+
+    plain, given = nees(data), nees(with_variance(0.09))
+    assert given == nees(data, range_variance=0.09) != plain
+    assert nees(with_variance(0.09), range_variance=0.01) == nees(data, range_variance=0.01)
+    assert read_foreign(read_bag(BAG), TopicMap.load(MAP)).ranges[0][2] is None
+    assert [message_variance(v) for v in (0.0, -1.0, 1e6, 0.09)] == [None, None, None, 0.09]
 
 
 @pytest.mark.slow

@@ -33,7 +33,8 @@ from formopt_ros.ros.run_config import (
     strategy_options, strategy_params, value_range)
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
-from formopt_ros.wire.messages import header_ns, pose_values, range_problem, twist_noise
+from formopt_ros.wire.messages import (
+    header_ns, message_variance, pose_values, range_problem, twist_noise)
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -70,8 +71,8 @@ PARAMS = [
           "('': any)"),
     Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
     SLOT, DEVIATION, RANGE_SIGMA, BEARING_SIGMA,
-    Param('range_variance', 0.0, 'variance of a range message, m^2 (0: range_sigma^2)', 0.0,
-          1e6),
+    Param('range_variance', 0.0, 'variance of every range, m^2 (0: the message\'s variance '
+          'when in (0, 100], else range_sigma^2)', 0.0, 1e6),
     SIGMA_V, SIGMA_OMEGA,
     # a leader's odometry reaches a follower with noise (the simulated leader's is exact)
     dataclasses.replace(SIGMA_V_LEADER, default=0.05),
@@ -165,8 +166,9 @@ class FollowerEstimatorNode(Node):
         self.started_at_ns = 0                              # the filter's start, ns
         self.leader_speed = 0.0                             # of its last odometry, m/s
         self.start_warning = ''                             # a late start, until reported
-        self.variance = (p['range_variance'] if sensor == 'range' else 0.0) or \
-            scenario.sigma ** 2
+        # a range's variance: this, else its message's when known, else this
+        self.variance = p['range_variance'] if sensor == 'range' else 0.0
+        self.default_variance = scenario.sigma ** 2
         #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
         self.static: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
         self.mounts: dict[str, tuple[tuple[float, float], np.ndarray]] = {}   # frame -> mount
@@ -380,7 +382,8 @@ class FollowerEstimatorNode(Node):
         mount = self._mount('range', frame)
         if mount is None:
             return
-        self._measure('range', header_ns(message), value, frame, mount[0])
+        variance = self.variance or message_variance(message.variance) or self.default_variance
+        self._measure('range', header_ns(message), value, frame, mount[0], variance)
 
     def on_bearing(self, message: Vector3Stamped) -> None:
         """A direction toward the leader in the sensor frame (any length), turned into a
@@ -398,7 +401,8 @@ class FollowerEstimatorNode(Node):
             self._refuse('out_of_range', 'bearing', 'bearing: the direction is vertical in the '
                          'body frame (no bearing)')
             return
-        self._measure('bearing', header_ns(message), value, frame, mount[0])
+        self._measure('bearing', header_ns(message), value, frame, mount[0],
+                      self.default_variance)
 
     def on_tf_static(self, message: TFMessage) -> None:
         """Static transforms, kept by child frame, and the mount of every frame they connect to
@@ -454,9 +458,9 @@ class FollowerEstimatorNode(Node):
         return mount
 
     def _measure(self, stream: str, stamp: int, value: float, frame: str,
-                 offset: tuple[float, float]) -> None:
-        """Buffer a measurement its stamp rules accept; the first one accepted fixes the
-        sensor frame and its lever arm ``offset`` (m)."""
+                 offset: tuple[float, float], variance: float) -> None:
+        """Buffer a measurement (its ``variance``, m^2 or rad^2) its stamp rules accept; the
+        first one accepted fixes the sensor frame and its lever arm ``offset`` (m)."""
         started = time.perf_counter()
         if not self._accept(stream, stamp):
             return
@@ -464,7 +468,7 @@ class FollowerEstimatorNode(Node):
             self.sensor_frame = frame
             self.estimator.sensor_offset = None if offset == (0.0, 0.0) else offset
         assert self.tracker is not None
-        self.tracker.add_measurement(stamp, value, self.variance)
+        self.tracker.add_measurement(stamp, value, variance)
         self._advance(started)
 
     def _advance(self, started: float) -> None:
