@@ -24,7 +24,7 @@ from formopt_ros.core.estimator import INNOVATION_GATE, INNOVATION_GATE_2
 from formopt_ros.core.model import EULER, KINEMATICS, MEASUREMENT_KINDS, RANGE_BEARING, \
     SENSOR_KINDS
 from formopt_ros.core.protocol import SUBSTEPS
-from formopt_ros.core.scenario import PATH_FIELDS, LeaderPath, Scenario
+from formopt_ros.core.scenario import PATH_FIELDS, RANGES, LeaderPath, Scenario
 from formopt_ros.core.simulation import leader_poses
 from formopt_ros.core.solver import OutsideTheDisc
 from formopt_ros.core.strategies import STRATEGIES
@@ -337,13 +337,13 @@ def add_scenario_options(parser: ArgumentParser) -> None:
     paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
                        default='straight', help='straight, arc (--leader-yaw-rate) or s-curve '
                        '(--leader-amplitude, --leader-period)')
-    paths.add_argument('--leader-speed', type=number(-100.0, 100.0), default=1.0,
+    paths.add_argument('--leader-speed', type=number(*RANGES['speed'][:2]), default=1.0,
                        help='leader speed, m/s (default 1)')
-    paths.add_argument('--leader-yaw-rate', type=number(-100.0, 100.0), default=None,
+    paths.add_argument('--leader-yaw-rate', type=number(*RANGES['yaw_rate'][:2]), default=None,
                        help='arc: yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--leader-amplitude', type=number(-100.0, 100.0), default=None,
+    paths.add_argument('--leader-amplitude', type=number(*RANGES['amplitude'][:2]), default=None,
                        help='s-curve: peak yaw rate, rad/s (default 0.5)')
-    paths.add_argument('--leader-period', type=number(1e-3, 1e6), default=None,
+    paths.add_argument('--leader-period', type=number(*RANGES['period'][:2]), default=None,
                        help='s-curve: period, s (default 10)')
 
 

@@ -28,7 +28,8 @@ PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
 #: deeper (test_boundary.py runs each bound). A bearing noise above 1 rad (57 deg) is no bearing
 #: sensor: a value meant in degrees (2 for 2 deg) is refused; a range noise below 1 mm (3e-4 m
 #: measured) makes the periodic strategy's covariance maps singular. A base's yaw rate above
-#: 20 rad/s is one meant in deg/s (45 for 45 deg/s).
+#: 20 rad/s, a leader's above 10 rad/s (a 10 cm circle at 1 m/s), is one meant in deg/s (45 for
+#: 45 deg/s).
 RANGES: dict[str, tuple[float, float, str]] = {
     'range_sigma': (1e-3, 1e3, 'm'),
     'bearing_sigma': (1e-6, 1.0, 'rad'),
@@ -41,8 +42,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     'sigma_v_leader': (0.0, 100.0, 'm/s'),
     'sigma_omega_leader': (0.0, 100.0, 'rad/s'),
     'speed': (-100.0, 100.0, 'm/s'),
-    'yaw_rate': (-100.0, 100.0, 'rad/s'),
-    'amplitude': (-100.0, 100.0, 'rad/s'),
+    'yaw_rate': (-10.0, 10.0, 'rad/s'),
+    'amplitude': (-10.0, 10.0, 'rad/s'),
     'period': (1e-3, 1e6, 's'),
     'duration': (1e-3, 1e6, 's'),
     'seed': (0, 2**31 - 1, ''),

@@ -96,14 +96,18 @@ def test_a_path_setting_its_kind_does_not_use_is_refused(path: dict, field: str)
 
 def test_euler_kinematics_refuses_a_leader_turning_too_fast_for_it() -> None:
     """The paper's Euler step scales |p| by sqrt(1 + (omega dt)^2) per sub-step: a leader
-    turning more than 0.5 rad per dt (a rate typed in deg/s) is refused naming the rate;
-    exact kinematics take it, and 0.5 rad per dt passes."""
-    fast = LeaderPath('s-curve', amplitude=28.6)
+    turning more than 0.5 rad per dt is refused naming the rate; exact kinematics take it, and
+    0.5 rad per dt passes. A leader's yaw rate above 10 rad/s (28.6 meant as deg/s) is refused
+    with either."""
+    fast = LeaderPath('s-curve', amplitude=8.0)
     with pytest.raises(InvalidInput) as refused:
-        Scenario.paper('range', leader=fast)
+        Scenario.paper('range', leader=fast, dt=0.1)
     assert refused.value.name == 'leader amplitude'
-    assert Scenario.paper('range', leader=fast, kinematics='exact').leader == fast
+    assert Scenario.paper('range', leader=fast, dt=0.1, kinematics='exact').leader == fast
     Scenario.paper('range', leader=LeaderPath('arc', yaw_rate=10.0))       # dt 0.05 s
+    for path in ({'kind': 's-curve', 'amplitude': 28.6}, {'kind': 'arc', 'yaw_rate': -45.0}):
+        with pytest.raises(InvalidInput, match='rad/s'):
+            Scenario.paper('range', leader=path, kinematics='exact')
 
 
 @pytest.mark.parametrize('value, rule', [
