@@ -298,3 +298,22 @@ def test_a_rosbag2_folder_is_read_through_its_mcap_files(
     with pytest.raises(SystemExit) as stop:
         bag.main(['info', str(folder)])
     assert stop.value.code == 2 and 'a sqlite3 bag' in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_commands_numbers_do_not_depend_on_the_blas_threads() -> None:
+    """PERIODIC's design behind an S-curve (SLSQP ends at digits that depend on the BLAS thread
+    count): a process that loads the commands first, with no thread count set, designs the
+    cycle a Dask worker (one thread) designs, to the last digit; so --jobs 1 and --jobs 2 give
+    one study."""
+    from formopt_ros import BLAS_THREAD_VARIABLES
+    code = ('import formopt_ros.cli\n'
+            'from formopt_ros.core.scenario import Scenario\n'
+            'from formopt_ros.core.strategies.phase_locked import design_phase_locked\n'
+            "print(repr(design_phase_locked(Scenario.paper('range', leader={'kind': 's-curve', "
+            "'amplitude': 0.5})).steady_cost))\n")
+    unset = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARIABLES}
+    costs = [subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            env=env, timeout=300, check=True).stdout
+             for env in (unset, {**unset, **dict.fromkeys(BLAS_THREAD_VARIABLES, '1')})]
+    assert costs[0] == costs[1] and float(costs[0]) > 0.0, costs
