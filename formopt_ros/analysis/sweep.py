@@ -333,8 +333,9 @@ def gain_grid(rows: Sequence[dict[str, Any]], strategy: str, x_axis: str,
 def winners(rows: Sequence[dict[str, Any]], x_axis: str, y_axis: str
             ) -> tuple[list[Any], list[Any], list[list[str]]]:
     """(x values, y values, winner per (y, x)): the strategy that is best at the most points
-    of that (x, y) over the other axes (``best_at_point``; ties: the first strategy in row
-    order; '' when no strategy is consistent there)."""
+    of that (x, y) over the other axes (``best_at_point``; a tie at a point counts for none,
+    a tie of tallies goes to the first strategy in row order; '' when no strategy is
+    consistent there)."""
     xs, ys = _levels(rows, x_axis), _levels(rows, y_axis)
     order = list(dict.fromkeys(row['strategy'] for row in rows))
     tallies: dict[tuple[int, int], dict[str, int]] = {}

@@ -56,6 +56,9 @@ RESULT_COLUMNS = ('strategy', 'options', 'trials', 'steps', 'seed', 'steady_trac
                   'decision_time_ms', 'decision_time_median_ms')
 #: Columns :func:`with_gains` adds: relative to RAM at the same point, and the winner there.
 GAIN_COLUMNS = ('gain_over_ram_pct', 'mean_gain_over_ram_pct', 'best_at_point')
+#: Steady traces within this relative difference of the least at a point tie (RAM and RQ
+#: find the same optimum to about 1e-14).
+TIE_TOLERANCE = 1e-9
 #: Columns that hold wall-clock time (excluded when comparing runs).
 TIMING_COLUMNS = ('decision_time_ms', 'decision_time_median_ms')
 
@@ -234,7 +237,8 @@ def with_gains(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The rows with :data:`GAIN_COLUMNS`: 100 (1 - x / x_RAM) for the steady and the
     whole-run weighted trace (positive: lower than RAM's at that point; None where the point
     has no RAM row) and the strategy with the lowest steady trace among the consistent ones
-    at the point (ties: the first in row order; '' when none is consistent)."""
+    at the point (ties within TIE_TOLERANCE: their names joined by '=', e.g. 'ram=rq', which
+    count as a win for none; '' when none is consistent)."""
     by_point: dict[str, list[dict[str, Any]]] = {}
     for row in rows:
         by_point.setdefault(point_label(row), []).append(row)
@@ -243,8 +247,9 @@ def with_gains(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         peers = by_point[point_label(row)]
         ram = next((r for r in peers if r['strategy'] == 'ram'), None)
         consistent = [r for r in peers if r['consistent']]
-        best = min(consistent, key=lambda r: r['steady_trace'])['strategy'] \
-            if consistent else ''
+        least = min((r['steady_trace'] for r in consistent), default=0.0)
+        best = '='.join(r['strategy'] for r in consistent
+                        if r['steady_trace'] <= least * (1.0 + TIE_TOLERANCE))
         out.append({**row,
                     'gain_over_ram_pct': None if ram is None else
                     100.0 * (1.0 - row['steady_trace'] / ram['steady_trace']),
