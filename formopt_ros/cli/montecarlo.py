@@ -248,6 +248,7 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
     """
     lo, hi = summary['nees_band']
     flagged = summary.get('consistency', {}).get('flagged', {})
+    growing = summary.get('growing', {})
     scenario = summary['scenario']
     lines = [f"# Monte Carlo, {TITLES.get(summary['measurement'], summary['measurement'])}",
              '',
@@ -280,7 +281,8 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
         return text + ' (inconsistent)' if doubtful else text
 
     for name, row in summary['strategies'].items():
-        lines.append(f"| {name.upper()} | {row['steady_trace']:.6g} | "
+        lines.append(f"| {name.upper()} | {row['steady_trace']:.6g}"
+                     f"{' (grows)' if name in growing else ''} | "
                      f"{versus(name, row, 'steady_trace')} | {row['steady_trace_std']:.3g} | "
                      f"{row['mean_trace']:.6g} | {versus(name, row, 'mean_trace')} | "
                      f"{row['nees_mean']:.3f} | {100 * row['nees_in_band']:.1f} % | "
@@ -311,6 +313,10 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
                   + ("printed but compares an inconsistent filter's covariance:"
                      if allow_inconsistent else 'withheld (--allow-inconsistent prints it):')]
         lines += [f'- {name.upper()}: {reason}' for name, reason in flagged.items()]
+    if growing:
+        lines += ['', 'No steady state, marked (grows): its "steady" value is where the run '
+                  'stopped, not a limit:']
+        lines += [f'- {name.upper()}: {reason}' for name, reason in growing.items()]
     return '\n'.join(lines) + '\n'
 
 
@@ -329,10 +335,13 @@ def add_scenario_options(parser: ArgumentParser) -> None:
     parser.add_argument('--max-speed', type=number(1e-3, 1e3), default=None,
                         help="bound on the follower's mean world-frame speed over a measurement "
                              'step, m/s: every strategy plans inside the disc it can reach '
-                             '(default: none, the paper)')
-    parser.add_argument('--safety-distance', type=number(0.0, 1e4), default=None,
-                        help='distance every planned point keeps from the leader, m (default: '
+                             "(the paper's protocol rotates, then drives: the driving sub-step "
+                             'runs at up to twice this, the rotation is not limited; default: '
                              'none, the paper)')
+    parser.add_argument('--safety-distance', type=number(0.0, 1e4), default=None,
+                        help='distance every planned point keeps from the leader, m (the true '
+                             'follower can come closer by its estimate error; default: none, '
+                             'the paper)')
     paths = parser.add_argument_group('leader path (default: straight at 1 m/s, the paper)')
     paths.add_argument('--leader-path', choices=('straight', 'arc', 's-curve'),
                        default='straight', help='straight, arc (--leader-yaw-rate) or s-curve '
@@ -590,6 +599,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{parser.prog}: warning: {result.config.measurement}: "
                   f"{', '.join(n.upper() for n in flagged)} flagged inconsistent (the filter's "
                   'NEES left its band; see report.md)', file=sys.stderr)
+        if summary['growing']:
+            print(f"{parser.prog}: warning: {result.config.measurement}: "
+                  f"{', '.join(n.upper() for n in summary['growing'])}: tr(W P W) still "
+                  'growing at the end of the run, no steady state (see report.md)',
+                  file=sys.stderr)
     for line in comparison_lines(args.out / COMPARISON_FOLDER) if comparison else ():
         print(line)
     print(f'wall time: {time.perf_counter() - start:.1f} s '

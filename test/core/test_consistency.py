@@ -254,8 +254,8 @@ def test_domain_rules_refuse_with_the_field_and_the_reason() -> None:
     check_input_domain(Scenario.paper('range', p_o=(-0.006, 0.0), r=0.0006, **sure))
     with pytest.raises(ValueError, match='yaw rate'):
         from formopt_ros.core.scenario import LeaderPath
-        check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 50.0),
-                                          dt=1.0, kinematics='exact'))
+        check_input_domain(Scenario.paper('range', leader=LeaderPath('arc', 1.0, 9.0),
+                                          dt=5.0, kinematics='exact'))
 
 
 def test_offline_replay_reports_the_watch(capsys: pytest.CaptureFixture) -> None:
@@ -303,3 +303,32 @@ def test_montecarlo_command_refuses_the_domain_unless_told(
     row = next(line for line in (tmp_path / 'bearing' / 'report.md').read_text().splitlines()
                if line.startswith('| RQ |'))
     assert row.count('% (inconsistent) |') == 2, row
+
+
+def test_a_covariance_that_grows_is_no_steady_state() -> None:
+    """Range behind an arc at 0.3 rad/s, r = 0.5 |p_o|, 3 m/s: greedy (RQ) holds the front of
+    its disc, where the tangential direction stays unobserved, and its tr(W P W) grows (71 %
+    over the last 100 of 300 steps against the 100 before): marked as no steady state, its
+    filter consistent all the same. PERIODIC's design starts a cycle at the slot too and plays
+    one 8x below RQ, steady; holding the slot (MTF) is steady."""
+    from formopt_ros.core.scenario import LeaderPath
+    config = StudyConfig('range', trials=4, steps=300, seed=0,
+                         strategies=('mtf', 'rq', 'periodic'),
+                         scenario={'max_speed': 3.0, 'r': 0.5 * math.hypot(1.0, 2.0),
+                                   'leader': LeaderPath('arc', 1.0, 0.3)})
+    summary = summarize(run_study(config, jobs=1))
+    rows = summary['strategies']
+    assert list(summary['growing']) == ['rq'] and '71 % higher' in summary['growing']['rq']
+    assert summary['consistency']['flagged'] == {}
+    assert rows['periodic']['steady_trace'] < rows['rq']['steady_trace'] / 8.0
+    assert rows['periodic']['steady_growth'] == pytest.approx(0.0, abs=0.01)
+
+
+def test_a_flag_from_the_start_says_so() -> None:
+    """The paper's range study cut at 45 steps (50 trials): RAM is flagged (40 % of the steps
+    out of the band), and the reason says that 16 of its 18 steps out of the band are among
+    the first 30, the filter's start from the broad initial prior."""
+    config = StudyConfig('range', trials=50, steps=45, seed=0, strategies=('ram',))
+    reason = summarize(run_study(config, jobs=1))['consistency']['flagged']['ram']
+    assert 'on 40.0 % of the steps' in reason
+    assert '16 of its 18 steps out of the band are among the first 30' in reason
