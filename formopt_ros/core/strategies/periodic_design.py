@@ -841,8 +841,12 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
     REACH_LONGEST_LOOP), REACH_SAMPLED points sampled along it and a slower lap of
     REACH_STRETCH K points sampled along it are refined by SLSQP on the exact periodic steady
     state (:func:`evaluate_cycles`, its gradient by :class:`CycleObjective`) under the margins
-    of :func:`cycle_margins`. A local method: it improves on greedy's loop (docs/lookahead.md,
-    "PERIODIC within reach"), it does not prove the best cycle.
+    of :func:`cycle_margins`. Where greedy holds one point or never repeats (K < 2 or none),
+    REACH_SAMPLED points at the slot are refined too: greedy may hold a point where its
+    covariance grows without bound (a range follower at the front of its disc behind an arc),
+    and its own targets then start no cycle that beats holding the slot. A local method: it
+    improves on greedy's loop (docs/lookahead.md, "PERIODIC within reach"), it does not prove
+    the best cycle.
     """
     start_time = time.perf_counter()
     c = conditions
@@ -854,6 +858,8 @@ def design_within_reach(conditions: SteadyConditions) -> PatternDesign | None:
         {REACH_SAMPLED, round(REACH_STRETCH * period)} - {period}
     starts += [cycle[np.linspace(0, len(cycle), length, endpoint=False).astype(int)]
                for length in sorted(lengths)]
+    if period is None or period < 2:
+        starts.append(np.repeat([c.p_o], REACH_SAMPLED, axis=0))
     cost = CycleObjective(c)
     best = min((refine_cycle(start, cost) for start in starts), key=lambda found: found[0],
                default=(math.inf, np.empty((0, 2))))
