@@ -391,7 +391,8 @@ def summarize(result: StudyResult) -> dict[str, Any]:
         strategies[name] = {
             'steady_trace': float(steady.mean()),
             'steady_trace_std': float(steady.std(ddof=1)) if config.trials > 1 else 0.0,
-            'steady_growth': steady_growth(record.weighted_trace, window),
+            'steady_growth': steady_growth(record.weighted_trace,
+                                           growth_window(result.scenario, window)),
             'mean_trace': float(record.weighted_trace.mean()),
             'nees_mean': float(record.nees.mean()),
             'nees_in_band': float(1.0 - out_of_band.mean()),
@@ -406,8 +407,9 @@ def summarize(result: StudyResult) -> dict[str, Any]:
         }
     flagged = {name: reason + fallback_note(result.scenario, row, config.trials * config.steps)
                for name, row in strategies.items() if (reason := inconsistency(row, (lo, hi)))}
+    span = growth_window(result.scenario, window)
     growing = {name: f"its tr(W P W) is {100 * row['steady_growth']:.0f} % higher over the "
-                     f'last {window} steps than over the {window} before: no steady state (its '
+                     f'last {span} steps than over the {span} before: no steady state (its '
                      'covariance grows; a longer run grows further)'
                for name, row in strategies.items() if row['steady_growth'] > STEADY_GROWTH}
     return {'measurement': config.measurement, 'trials': config.trials, 'steps': config.steps,
@@ -417,6 +419,19 @@ def summarize(result: StudyResult) -> dict[str, Any]:
             'nees_band': [lo, hi], 'steady_window': window, 'strategies': strategies,
             'notes': dict(result.notes), 'ok': not flagged,
             'consistency': {'rule': FLAG_RULE, 'flagged': flagged}, 'growing': growing}
+
+
+def growth_window(scenario: Scenario, window: int) -> int:
+    """Steps compared by :func:`steady_growth`: the steady ``window``, or behind a leader whose
+    motion repeats (an S-curve, repeated segments) the whole periods that fit in it (at least
+    one): the trace follows the path's phase, and windows of other lengths hold other phases."""
+    path = scenario.leader
+    duration = path.period if path.kind == 's-curve' and path.amplitude != 0.0 else \
+        sum(piece.duration for piece in path.segments) if path.repeat else None
+    if duration is None:
+        return window
+    period = duration / (SUBSTEPS * scenario.dt)
+    return max(1, round(max(1, window // period) * period))
 
 
 def steady_growth(weighted_trace: np.ndarray, window: int) -> float:

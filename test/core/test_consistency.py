@@ -332,3 +332,19 @@ def test_a_flag_from_the_start_says_so() -> None:
     reason = summarize(run_study(config, jobs=1))['consistency']['flagged']['ram']
     assert 'on 40.0 % of the steps' in reason
     assert '16 of its 18 steps out of the band are among the first 30' in reason
+
+
+def test_a_trace_that_follows_the_path_is_steady() -> None:
+    """Behind an S-curve of 100 steps the trace follows the path's phase: windows of 133 steps
+    hold other phases (bearing RQ: +19 % between the last two), whole periods do not; a
+    study's growth compares whole periods (within 3 % here, 3 trials x 400 steps)."""
+    from formopt_ros.core.scenario import LeaderPath
+    from formopt_ros.core.study import growth_window, steady_growth
+    config = StudyConfig('bearing', trials=3, steps=400, seed=0, strategies=('rq',),
+                         scenario={'leader': LeaderPath('s-curve', 1.0, amplitude=0.5)})
+    result = run_study(config, jobs=1)
+    assert growth_window(result.scenario, 133) == 100
+    trace = result.records['rq'].weighted_trace
+    assert steady_growth(trace, 133) > 0.15
+    summary = summarize(result)
+    assert abs(summary['strategies']['rq']['steady_growth']) < 0.03 and not summary['growing']
