@@ -291,12 +291,19 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
                      f"{1e3 * row['decision_time_median_s']:.3f} | {row['fallback_steps']} |")
     moving = {name: row for name, row in summary['strategies'].items() if 'mean_speed' in row}
     if moving:
+        safety = scenario.get('safety_distance', 0.0)
+        inside = ' inside the safety distance |' if safety else ''
         lines += ['', 'True follower motion (world frame; speed = distance between consecutive '
-                  'measurements / 2 dt; distance to the leader at the measurements):', '',
+                  'measurements / 2 dt; distance to the leader at the measurements'
+                  + (f'; the safety distance {safety:g} m bounds the planned points, the true '
+                     'follower comes closer by its estimate error' if safety else '') + '):', '',
                   '| strategy | mean speed [m/s] | steady mean speed [m/s] | peak speed [m/s] | '
-                  'min distance to leader [m] |', '|---|---|---|---|---|']
+                  'min distance to leader [m] |' + inside,
+                  '|---|---|---|---|---|' + ('---|' if safety else '')]
         lines += [f"| {name.upper()} | {row['mean_speed']:.3f} | {row['steady_mean_speed']:.3f} "
                   f"| {row['peak_speed']:.3f} | {row['min_leader_distance']:.3f} |"
+                  + (f" {100 * row['inside_safety_share']:.1f} % of the measurements |"
+                     if safety else '')
                   for name, row in moving.items()]
     rows = summary['strategies'].values()
     updates = summary['trials'] * summary['steps'] * len(summary['strategies'])

@@ -144,6 +144,8 @@ class StrategyRecord:
     speed: np.ndarray | None = None
     #: (trials,) least true distance to the leader at the measurements, m
     min_distance: np.ndarray | None = None
+    #: (trials,) measurements at which the true follower was inside the safety distance
+    inside_safety: np.ndarray | None = None
 
 
 @dataclass
@@ -339,8 +341,11 @@ def _collect(results: list[StudyResult],
         if record.speed is None:
             record.speed = np.full((config.trials, len(speed)), np.nan)
             record.min_distance = np.full(config.trials, np.nan)
-        assert record.min_distance is not None
+            record.inside_safety = np.zeros(config.trials, dtype=int)
+        assert record.min_distance is not None and record.inside_safety is not None
         record.speed[trial], record.min_distance[trial] = speed, distance.min()
+        record.inside_safety[trial] = np.count_nonzero(
+            distance < result.scenario.safety_distance)
         if trial == 0:
             record.example = out
     if progress:
@@ -461,14 +466,19 @@ def fallback_note(scenario: Scenario, row: dict[str, Any], decisions: int) -> st
 
 
 def _motion_summary(record: StrategyRecord, window: int) -> dict[str, float]:
-    """Mean, steady mean and peak true follower speed (m/s) and the least distance to the
-    leader (m) of a record (:func:`follower_motion`); empty without tracks."""
+    """Mean, steady mean and peak true follower speed (m/s), the least distance to the
+    leader (m) and the share of measurements at which the true follower was inside the safety
+    distance (which bounds the planned point, not the follower) of a record
+    (:func:`follower_motion`); empty without tracks."""
     if record.speed is None or record.min_distance is None or not record.speed.size:
         return {}
+    assert record.inside_safety is not None
     return {'mean_speed': float(np.nanmean(record.speed)),
             'steady_mean_speed': float(np.nanmean(record.speed[:, -window:])),
             'peak_speed': float(np.nanmax(record.speed)),
-            'min_leader_distance': float(np.nanmin(record.min_distance))}
+            'min_leader_distance': float(np.nanmin(record.min_distance)),
+            'inside_safety_share': float(record.inside_safety.sum()
+                                         / (record.speed.shape[0] * (record.speed.shape[1] + 1)))}
 
 
 def inconsistency(row: dict[str, Any], band: tuple[float, float]) -> str:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -203,7 +204,7 @@ def test_command_writes_outputs_and_figures(tmp_path, capsys: pytest.CaptureFixt
                                                  'max_innovation_nis', 'gated_updates',
                                                  'fallback_steps', 'mean_speed',
                                                  'steady_mean_speed', 'peak_speed',
-                                                 'min_leader_distance'}
+                                                 'min_leader_distance', 'inside_safety_share'}
     assert summary['strategies']['ram']['gated_updates'] == 0
     assert summary['scenario']['r'] == pytest.approx(0.1 * 5 ** 0.5, rel=1e-12)
     assert len((out / 'steps.csv').read_text().splitlines()) == 31
@@ -305,3 +306,14 @@ def test_report_shows_a_last_bit_difference_as_plus_zero() -> None:
     row = next(line for line in report_markdown(summary).splitlines()
                if line.startswith('| RQ |'))
     assert row.count('| +0.0 % |') == 2 and '-0.0' not in row, row
+
+
+def test_the_study_counts_the_true_follower_inside_the_safety_distance() -> None:
+    """The safety distance bounds the planned points: bearing, r = 0.5 |p_o|, 1.6 m, RQ, 3
+    trials x 300 steps: every waypoint keeps 1.6 m, the true follower comes to 1.33 m and is
+    inside on 17.7 % of the measurements, which the summary counts."""
+    config = StudyConfig('bearing', trials=3, steps=300, seed=0, strategies=('rq',),
+                         scenario={'r': 0.5 * math.hypot(1.0, 2.0), 'safety_distance': 1.6})
+    row = summarize(run_study(config, jobs=1))['strategies']['rq']
+    assert row['min_leader_distance'] == pytest.approx(1.330, abs=5e-4)
+    assert row['inside_safety_share'] == pytest.approx(0.177, abs=5e-4)
