@@ -110,7 +110,10 @@ def build_parser() -> ArgumentParser:
              'odometry noise (0.2 m/s, 0.1 rad/s)', 'leader_path': 'straight, arc, s-curve',
              'leader_speed': 'm/s (1)', 'leader_yaw_rate': 'rad/s: arc yaw rate, s-curve '
              'peak (0.5)', 'leader_period': 's-curve period, s (10)', 'dt': 'sub-step length, '
-             's (0.05)', 'kinematics': 'euler (the paper, default) or exact'}
+             's (0.05)', 'kinematics': 'euler (the paper, default) or exact',
+             'max_speed': "the follower's speed limit, m/s (0: none, the paper; see "
+             'formopt-montecarlo --max-speed)', 'safety_distance': 'distance every planned '
+             'point keeps from the leader, m (0)'}
     for axis in AXES:
         axes.add_argument(f'--{axis.replace("_", "-")}', dest=axis, type=axis_values(axis),
                           default=None, metavar='VALUES', help=helps[axis])

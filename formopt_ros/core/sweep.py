@@ -35,6 +35,8 @@ DEFAULTS: dict[str, Any] = {
     'leader_period': 10.0,        # s: the s-curve's period
     'dt': 0.05,                   # sub-step length, s
     'kinematics': 'euler',        # the paper's eq. (9), as the study
+    'max_speed': 0.0,             # m/s: the follower's speed limit (0: none, the paper)
+    'safety_distance': 0.0,       # m: kept by every planned point from the leader
 }
 #: The scenario fields the scale axes set.
 SCALE_AXES = {'r': 'r_fraction', 'sigma': 'sigma_scale', 'sigma_v': 'odometry_scale',
@@ -109,7 +111,8 @@ def overrides_of(point: Point) -> dict[str, Any]:
     return {'r': point['r_fraction'] * paper.d_o, 'sigma': point['sigma_scale'] * paper.sigma,
             'sigma_v': point['odometry_scale'] * paper.sigma_v,
             'sigma_omega': point['odometry_scale'] * paper.sigma_omega,
-            'leader': leader_of(point), 'dt': point['dt'], 'kinematics': point['kinematics']}
+            'leader': leader_of(point), 'dt': point['dt'], 'kinematics': point['kinematics'],
+            'max_speed': point['max_speed'] or None, 'safety_distance': point['safety_distance']}
 
 
 def scenario_of(point: Point) -> Scenario:

@@ -39,12 +39,15 @@ def results(rows: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
 
 
 def test_a_cell_is_the_study_of_its_scenario() -> None:
-    """A cell's figures are those of formopt-montecarlo's study with every strategy together."""
+    """A cell's figures are those of formopt-montecarlo's study with every strategy together,
+    a speed limit and a safety distance included."""
     point = {'measurement': 'bearing', 'r_fraction': 0.15, 'sigma_scale': 2.0,
-             'odometry_scale': 0.5, 'leader_path': 'arc', 'leader_speed': 0.8, 'dt': 0.04}
+             'odometry_scale': 0.5, 'leader_path': 'arc', 'leader_speed': 0.8, 'dt': 0.04,
+             'max_speed': 2.5, 'safety_distance': 2.0}
     cells = [Cell.make(point, name, {}, 4, 50, 3) for name in ('ram', 'crm')]
     scenario = {'r': 0.15 * 5 ** 0.5, 'sigma': 0.04, 'sigma_v': 0.1, 'sigma_omega': 0.05,
-                'leader': LeaderPath('arc', 0.8, 0.5), 'dt': 0.04}
+                'leader': LeaderPath('arc', 0.8, 0.5), 'dt': 0.04, 'max_speed': 2.5,
+                'safety_distance': 2.0}
     together = summarize(run_study(StudyConfig('bearing', 4, 50, 3, ('ram', 'crm'),
                                                scenario=scenario), jobs=1))
     assert together['scenario'] == cells[0].config().make_scenario().to_dict()
@@ -82,7 +85,8 @@ def test_the_study_on_dask_equals_the_study_in_one_process() -> None:
 def test_gains_and_winners_follow_the_rows() -> None:
     base = {'measurement': 'range', 'r_fraction': 0.1, 'sigma_scale': 1.0,
             'odometry_scale': 1.0, 'leader_path': 'straight', 'leader_speed': 1.0,
-            'leader_yaw_rate': 0.5, 'leader_period': 10.0, 'dt': 0.05, 'kinematics': 'euler'}
+            'leader_yaw_rate': 0.5, 'leader_period': 10.0, 'dt': 0.05, 'kinematics': 'euler',
+            'max_speed': 0.0, 'safety_distance': 0.0}
     rows = [{**base, 'strategy': 'ram', 'steady_trace': 2.0, 'mean_trace': 4.0,
              'consistent': True},
             {**base, 'strategy': 'crm', 'steady_trace': 1.5, 'mean_trace': 5.0,
