@@ -106,7 +106,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--no-figures', action='store_true',
                         help='skip the PNG figures (faster, no matplotlib needed)')
     parser.add_argument('--allow-inconsistent', action='store_true',
-                        help='print the "vs RAM" percentages of strategies flagged inconsistent '
+                        help='print the "vs RAM" (or RQ) percentages of strategies flagged '
+                             'inconsistent '
                              f"({FLAG_RULE.replace('%', '%%')}), marked as such; without it "
                              'they are withheld '
                              '(summary.json flags them either way)')
@@ -242,11 +243,15 @@ def limits_text(scenario: dict[str, Any]) -> str:
 def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -> str:
     """A short Markdown report with the summary table.
 
-    A strategy flagged inconsistent (``summary['consistency']['flagged']``) is marked in the
-    table; its "vs RAM" percentages (and everyone's when RAM is flagged) read 'withheld'
-    unless ``allow_inconsistent``, then they are printed followed by '(inconsistent)'.
+    The percentages compare with RAM, or with RQ (the same greedy optimum, over the reachable
+    set under a limit) when RAM was not run. A strategy flagged inconsistent
+    (``summary['consistency']['flagged']``) is marked in the table; its percentages (and
+    everyone's when the reference is flagged) read 'withheld' unless ``allow_inconsistent``,
+    then they are printed followed by '(inconsistent)'.
     """
     lo, hi = summary['nees_band']
+    reference = next((n for n in ('ram', 'rq') if n in summary['strategies']), 'ram')
+    versus_label = f'vs {reference.upper()}'
     flagged = summary.get('consistency', {}).get('flagged', {})
     growing = summary.get('growing', {})
     scenario = summary['scenario']
@@ -261,19 +266,21 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
              f"{describe_path(scenario['leader'])}, {scenario['kinematics']} kinematics"
              f"{limits_text(scenario)}. Steady "
              f"value: mean over the last {summary['steady_window']} steps; mean: over all "
-             f'steps; vs RAM: relative difference. NEES band (95 %, 3 dof, trial mean): '
+             f'steps; {versus_label}: relative difference. NEES band (95 %, 3 dof, trial '
+             'mean): '
              f'[{lo:.3f}, {hi:.3f}].',
              '',
-             '| strategy | steady tr(W P W) [m^2] | vs RAM | std over trials | mean tr(W P W) '
-             '[m^2] | vs RAM | mean NEES | steps in NEES band | consistent | decision time '
+             f'| strategy | steady tr(W P W) [m^2] | {versus_label} | std over trials | mean '
+             f'tr(W P W) [m^2] | {versus_label} | mean NEES | steps in NEES band | consistent '
+             '| decision time '
              'mean / median [ms] | fallbacks |',
              '|---|---|---|---|---|---|---|---|---|---|---|']
-    ram = summary['strategies'].get('ram')
+    ram = summary['strategies'].get(reference)
 
     def versus(name: str, row: dict[str, float], key: str) -> str:
         if not ram:
             return '-'
-        doubtful = name in flagged or 'ram' in flagged
+        doubtful = name in flagged or reference in flagged
         if doubtful and not allow_inconsistent:
             return 'withheld'
         # rounded first and + 0.0: a difference in the last bits reads '+0.0 %', not '-0.0 %'
@@ -315,8 +322,8 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
               f'refused; largest normalised innovation squared {largest:.3g}.']
     lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
     if flagged:
-        lines += ['', f'Flagged inconsistent ({FLAG_RULE}); "vs RAM" of a flagged strategy, '
-                  'and of every strategy when RAM is flagged, is '
+        lines += ['', f'Flagged inconsistent ({FLAG_RULE}); "{versus_label}" of a flagged '
+                  f'strategy, and of every strategy when {reference.upper()} is flagged, is '
                   + ("printed but compares an inconsistent filter's covariance:"
                      if allow_inconsistent else 'withheld (--allow-inconsistent prints it):')]
         lines += [f'- {name.upper()}: {reason}' for name, reason in flagged.items()]
