@@ -334,8 +334,8 @@ def winners(rows: Sequence[dict[str, Any]], x_axis: str, y_axis: str
             ) -> tuple[list[Any], list[Any], list[list[str]]]:
     """(x values, y values, winner per (y, x)): the strategy that is best at the most points
     of that (x, y) over the other axes (``best_at_point``; a tie at a point counts for none,
-    a tie of tallies goes to the first strategy in row order; '' when no strategy is
-    consistent there)."""
+    a tie of tallies goes to the first strategy in row order; where every point is a tie, the
+    commonest tie, e.g. 'ram=rq'; '' when no strategy is consistent there)."""
     xs, ys = _levels(rows, x_axis), _levels(rows, y_axis)
     order = list(dict.fromkeys(row['strategy'] for row in rows))
     tallies: dict[tuple[int, int], dict[str, int]] = {}
@@ -351,7 +351,9 @@ def winners(rows: Sequence[dict[str, Any]], x_axis: str, y_axis: str
             tally[row['best_at_point']] = tally.get(row['best_at_point'], 0) + 1
     grid = [['' for _ in xs] for _ in ys]
     for (j, i), tally in tallies.items():
-        grid[j][i] = max(order, key=lambda name: (tally.get(name, 0), -order.index(name)))
+        outright = {name: count for name, count in tally.items() if name in order}
+        grid[j][i] = max(order, key=lambda name: (outright.get(name, 0), -order.index(name))) \
+            if outright else max(tally, key=lambda label: tally[label])     # ties only
     return xs, ys, grid
 
 
@@ -398,8 +400,8 @@ def sweep_figures(rows: Sequence[dict[str, Any]], x_axis: str, y_axis: str,
         xs, ys, grid = winners(part, x_axis, y_axis)
         order = list(dict.fromkeys(r['strategy'] for r in part))
         palette = plt.get_cmap('tab10')
-        codes = np.array([[order.index(name) if name else -1 for name in line] for line in grid],
-                         dtype=float)
+        codes = np.array([[order.index(name) if name in order else -1 for name in line]
+                          for line in grid], dtype=float)       # a tie: no colour
         codes[codes < 0] = np.nan
         figure, axis = plt.subplots(figsize=(5.2, 4.0), layout='constrained')
         axis.imshow(codes, origin='lower', aspect='auto', vmin=-0.5, vmax=9.5,

@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip('dask.distributed')
 
 from formopt_ros.analysis.sweep import (  # noqa: E402
-    CellCache, dask_executor, read_table, run_cells, table_rows, write_table)
+    CellCache, dask_executor, read_table, run_cells, table_rows, winners, write_table)
 from formopt_ros.cli import sweep as cli  # noqa: E402
 from formopt_ros.core.scenario import LeaderPath  # noqa: E402
 from formopt_ros.core.study import (  # noqa: E402
@@ -99,7 +99,9 @@ def test_gains_and_winners_follow_the_rows() -> None:
     assert {r['best_at_point'] for r in out} == {'crm'}      # MTF is flagged
     rq = {**base, 'strategy': 'rq', 'steady_trace': 1.5 * (1 + 1e-14), 'mean_trace': 5.0,
           'consistent': True}                                # RQ ties CRM: a win for none
-    assert {r['best_at_point'] for r in with_gains(rows + [rq])} == {'crm=rq'}
+    tied = with_gains(rows + [rq])
+    assert {r['best_at_point'] for r in tied} == {'crm=rq'}
+    assert winners(tied, 'r_fraction', 'measurement')[2] == [['crm=rq']]
     rq['steady_trace'] = 1.5 * (1 - 1e-6)
     assert {r['best_at_point'] for r in with_gains(rows + [rq])} == {'rq'}
 
