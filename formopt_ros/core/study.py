@@ -48,14 +48,11 @@ MAX_STEPS_OUT_OF_BAND = 0.25
 FLAG_RULE = (f'the trial-mean NEES outside the 95 % band on more than '
              f'{100 * MAX_STEPS_OUT_OF_BAND:g} % of the steps, or its mean over all trials '
              'and steps above the band')
-#: From the paper's broad initial prior the EKF is overconfident over its first steps (the
-#: linearisation at a poor estimate; range: trial-mean NEES about 4 over the first 30 steps of
-#: the paper's study): a flag whose out-of-band steps lie mostly among the first START_STEPS
-#: says so.
+#: From the paper's broad prior the EKF is overconfident over about its first 30 steps (range:
+#: trial-mean NEES ~4): a flag whose out-of-band steps lie mostly there says so.
 START_STEPS = 30
-#: A strategy whose trial-mean tr(W P W) over the steady window is more than STEADY_GROWTH
-#: above its mean over the window before has no steady state: its covariance grows (greedy
-#: under a speed limit can hold a point where a direction stays unobserved).
+#: A trial-mean tr(W P W) over the steady window more than this above the window before: no
+#: steady state (greedy under a speed limit can hold a point where a direction is unobserved).
 STEADY_GROWTH = 0.2
 
 
@@ -433,10 +430,8 @@ def growth_window(scenario: Scenario, window: int) -> int:
     path = scenario.leader
     duration = path.period if path.kind == 's-curve' and path.amplitude != 0.0 else \
         sum(piece.duration for piece in path.segments) if path.repeat else None
-    if duration is None:
-        return window
-    period = duration / (SUBSTEPS * scenario.dt)
-    return max(1, round(max(1, window // period) * period))
+    period = None if duration is None else duration / (SUBSTEPS * scenario.dt)
+    return window if period is None else max(1, round(max(1, window // period) * period))
 
 
 def steady_growth(weighted_trace: np.ndarray, window: int) -> float:
