@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import functools
+import hashlib
 import json
 import logging
 import math
@@ -41,11 +43,23 @@ def package_version() -> str:
         return 'unknown'
 
 
+@functools.cache
+def core_digest() -> str:
+    """A hash of the source of formopt_ros/core, where every number of a cell is computed:
+    the version alone stays the same across changes of the algorithms."""
+    digest = hashlib.sha256()
+    core = Path(__file__).resolve().parents[1] / 'core'
+    for path in sorted(core.rglob('*.py')):
+        digest.update(path.relative_to(core).as_posix().encode() + b'\0' + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def versions_of(strategy: str) -> str:
-    """The code versions a cell of ``strategy`` depends on: this package's and, for a plugin,
-    its distribution's."""
+    """The code versions a cell of ``strategy`` depends on: this package's (its version and
+    :func:`core_digest`) and, for a plugin, its distribution's."""
     origin = STRATEGIES.origin(strategy)
-    return f'formopt_ros {package_version()}' + (f'; {origin}' if origin else '')
+    return f'formopt_ros {package_version()} core {core_digest()}' + \
+        (f'; {origin}' if origin else '')
 
 
 class CellCache:

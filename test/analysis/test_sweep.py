@@ -97,13 +97,15 @@ def test_gains_and_winners_follow_the_rows() -> None:
     assert [r['gain_over_ram_pct'] for r in out] == [0.0, 25.0, 50.0]
     assert [r['mean_gain_over_ram_pct'] for r in out] == [0.0, -25.0, 75.0]
     assert {r['best_at_point'] for r in out} == {'crm'}      # MTF is flagged
-    rq = {**base, 'strategy': 'rq', 'steady_trace': 1.5 * (1 + 1e-14), 'mean_trace': 5.0,
+    rq = {**base, 'strategy': 'rq', 'steady_trace': 1.5 * (1 + 2e-9), 'mean_trace': 5.0,
           'consistent': True}                                # RQ ties CRM: a win for none
     tied = with_gains(rows + [rq])
     assert {r['best_at_point'] for r in tied} == {'crm=rq'}
     assert winners(tied, 'r_fraction', 'measurement')[2] == [['crm=rq']]
-    rq['steady_trace'] = 1.5 * (1 - 1e-6)
+    rq['steady_trace'] = 1.5 * (1 - 1e-5)
     assert {r['best_at_point'] for r in with_gains(rows + [rq])} == {'rq'}
+    rq['steady'] = False                                     # its trace grows: not a winner
+    assert {r['best_at_point'] for r in with_gains(rows + [rq])} == {'crm'}
 
 
 @pytest.mark.slow

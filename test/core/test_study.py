@@ -199,6 +199,7 @@ def test_command_writes_outputs_and_figures(tmp_path, capsys: pytest.CaptureFixt
     assert set(summary['strategies']['ram']) == {'steady_trace', 'steady_trace_std',
                                                  'steady_growth', 'nees_out_of_band_steps',
                                                  'nees_out_of_band_at_start',
+                                                 'nees_in_band_after_start',
                                                  'mean_trace', 'nees_mean', 'nees_in_band',
                                                  'decision_time_s', 'decision_time_median_s',
                                                  'max_innovation_nis', 'gated_updates',
