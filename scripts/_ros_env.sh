@@ -11,7 +11,9 @@
 # is not passed when ARGS set formation_file (the formation file then decides the scenario, and
 # the config's values would conflict with it) or give a --params-file of their own (CONFIG only
 # restates the node's defaults, and where two files give one parameter values of different
-# types, e.g. "0.5" and 0.5, rcl keeps the first file's and the user's is lost without a word).
+# types, e.g. "0.5" and 0.5, rcl keeps the first file's and the user's is lost without a word),
+# or rename the node (-r __node:=NAME: CONFIG's section is keyed by NODE, which rcl would not
+# apply to NAME).
 # The process replaces the shell (exec), so signals reach the node directly.
 
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
@@ -51,8 +53,8 @@ formopt_run_node() {
   local node="$1"; shift
   local config="${FORMOPT_CONFIG_DIR:-$_formopt_scripts/../config}/$node.yaml"
   local params=()
-  [[ -f "$config" && " $* " != *" formation_file:="* && " $* " != *" --params-file "* ]] &&
-    params=(--params-file "$config")
+  [[ -f "$config" && " $* " != *" formation_file:="* && " $* " != *" --params-file "* &&
+     " $* " != *"__node:="* ]] && params=(--params-file "$config")
   if formopt_ros2_knows_package; then
     exec ros2 run formopt_ros "$node" --ros-args "${params[@]}" "$@"
   fi

@@ -81,7 +81,9 @@ def build_parser() -> ArgumentParser:
     parser.add_argument('--jobs', type=integer(1, 256), default=os.cpu_count() or 1,
                         help='processes of the local Dask cluster the study runs on; 1 runs '
                              'in this process without Dask (unless a scheduler is given); '
-                             'results do not depend on it (default: all cores)')
+                             'results do not depend on it (default: all cores; the commands '
+                             'run NumPy on one BLAS thread unless OPENBLAS_NUM_THREADS / '
+                             'OMP_NUM_THREADS set a count, which changes last digits)')
     parser.add_argument('--scheduler', default=None, metavar='ADDRESS',
                         help='address of an existing Dask scheduler to run on, e.g. '
                              'tcp://host:8786, --jobs ignored (default: '
@@ -363,9 +365,9 @@ def add_scenario_options(parser: ArgumentParser) -> None:
     paths.add_argument('--leader-speed', type=number(*RANGES['speed'][:2]), default=1.0,
                        help='leader speed, m/s (default 1)')
     paths.add_argument('--leader-yaw-rate', type=number(*RANGES['yaw_rate'][:2]), default=None,
-                       help='arc: yaw rate, rad/s (default 0.5)')
+                       help='arc: yaw rate, rad/s, in [-10, 10] (default 0.5)')
     paths.add_argument('--leader-amplitude', type=number(*RANGES['amplitude'][:2]), default=None,
-                       help='s-curve: peak yaw rate, rad/s (default 0.5)')
+                       help='s-curve: peak yaw rate, rad/s, in [-10, 10] (default 0.5)')
     paths.add_argument('--leader-period', type=number(*RANGES['period'][:2]), default=None,
                        help='s-curve: period, s (default 10)')
 

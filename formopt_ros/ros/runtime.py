@@ -218,20 +218,18 @@ def node_names(argv: Sequence[str], program: str) -> tuple[str, str]:
 
 def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
     """The --params-file files (path, their node sections) with no section that applies to
-    this node (:func:`section_applies`). The scripts pass config/<node>.yaml, keyed
-    ``/**/program``, to renamed nodes too (it restates the defaults): a section for
-    ``program`` in the node's namespace counts as the node's. Files rcl cannot read are left
-    to rcl's own error."""
+    this node (:func:`section_applies`). Files rcl cannot read are left to rcl's own
+    error."""
     import yaml
     namespace, name = node_names(argv, program)
-    nodes = [f"{namespace.rstrip('/')}/{n}" for n in (name, program)]
+    node = f"{namespace.rstrip('/')}/{name}"
     out = []
     for path in ros_arguments(argv, ('--params-file',)):
         try:
             sections = [str(key) for key in yaml.safe_load(Path(path).read_text()) or {}]
         except (OSError, yaml.YAMLError, TypeError):
             continue
-        if not any(section_applies(key, node) for key in sections for node in nodes):
+        if not any(section_applies(key, node) for key in sections):
             out.append((path, sections))
     return out
 
@@ -247,7 +245,8 @@ def params_file_problem(path: str, sections: Sequence[str], argv: Sequence[str],
         if key.rstrip('/').rpartition('/')[2] in (name, program):
             return (f'params file {path}: section {key!r} does not apply to node {node} (a '
                     "key without a leading '/' is the root namespace's; '/**/"
-                    f"{name}' applies in any namespace): its values would not apply")
+                    f"{name}' applies in any namespace, and a renamed node takes only its new "
+                    'name): its values would not apply')
     names = [key.rstrip('/').rpartition('/')[2] for key in sections]
     close = difflib.get_close_matches(name, names, n=1, cutoff=0.8)
     if close:

@@ -39,6 +39,9 @@ class TopicMap:
             raise ValueError(f'{path}: a topic map is a mapping of {TOPIC_KEYS}')
         unknown = sorted(set(data) - set(TOPIC_KEYS) - {'estimator'})
         missing = [k for k in TOPIC_KEYS[:3] if not data.get(k)]
+        if unknown and set(unknown) <= set(ESTIMATOR_DEFAULTS):
+            raise ValueError(f'{path}: {unknown} are filter settings: put them under '
+                             "'estimator:'")
         if unknown or missing:
             raise ValueError(f'{path}: unknown keys {unknown}, missing keys {missing}'
                              if unknown and missing else

@@ -148,6 +148,8 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
                         'range: /uwb/range\n', '/nope'),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nlidar: /d\n',
                         'lidar'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'
+                        'range_variance: 0.04\n', "under 'estimator:'"),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nestimator:\n'
                         '  range_sigma: -0.1\n', 'estimator: range_sigma must be'),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'

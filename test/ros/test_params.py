@@ -92,9 +92,9 @@ def test_a_params_file_of_the_users_own_is_read_whole(node_process, tmp_path) ->
 
 def test_a_params_file_for_another_node_is_named(node_process, tmp_path) -> None:
     """A params file whose only section is a near miss of the node's name (a typo), or its
-    name in another namespace (rcl takes a key without '/' as the root namespace's), is
-    refused with exit code 2 naming the section; one for other nodes only is a warning (a file
-    shared by several nodes), and the node runs on."""
+    name in another namespace (rcl takes a key without '/' as the root namespace's) or its
+    old name after a rename, is refused with exit code 2 naming the section; one for other
+    nodes only is a warning (a file shared by several nodes), and the node runs on."""
     typo, other = tmp_path / 'typo.yaml', tmp_path / 'other.yaml'
     root = tmp_path / 'root.yaml'
     typo.write_text('follower_estimater:\n  ros__parameters:\n    max_speed: 0.5\n')
@@ -103,6 +103,12 @@ def test_a_params_file_for_another_node_is_named(node_process, tmp_path) -> None
                            extra=['--params-file', str(root)])      # in a test namespace
     assert process.wait(timeout=60.0) == 2, process.stderr
     assert "section 'follower_estimator' does not apply to node /" in process.stderr
+    anywhere = tmp_path / 'anywhere.yaml'          # rcl does not apply it to a renamed node
+    anywhere.write_text('/**/follower_estimator:\n  ros__parameters:\n    max_speed: 0.5\n')
+    process = node_process('follower_estimator', {'summary_path': str(tmp_path / 'n.json')},
+                           extra=['-r', '__node:=est', '--params-file', str(anywhere)])
+    assert process.wait(timeout=60.0) == 2, process.stderr
+    assert "section '/**/follower_estimator' does not apply to node /" in process.stderr
     other.write_text('/f1/leader_sim:\n  ros__parameters:\n    speed: 0.5\n')
     process = node_process('follower_estimator', {'summary_path': str(tmp_path / 't.json')},
                            extra=['--params-file', str(typo)])
