@@ -170,13 +170,13 @@ def test_a_stall_is_told_apart_from_a_clock_behind() -> None:
 
 def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path) -> None:
     """In one process, through the node's callbacks: the follower's odometry and a range come
-    first: a WARN names the stream awaited, and the filter waits for the leader's odometry
-    (its motion before that is unknown); an input stamped before the filter's start is refused
-    as such, not dropped as late; a range from a driver that leaves min_range and
-    max_range at 0 is used, a negative or NaN one refused, counted and a WARN; a stream used
-    again is no longer labelled with its old refusal; most targets of a status period beyond
-    the base's reach are a WARN. Remapping leader_odom onto the
-    follower's odometry is refused at start."""
+    first: a WARN (also on the console) names the stream awaited, and the filter waits for the
+    leader's odometry (its motion before that is unknown); an input stamped before the
+    filter's start is refused as such, not dropped as late; a range from a driver that leaves
+    min_range and max_range at 0 is used, a negative or NaN one refused, counted and a WARN; a
+    stream used again is no longer labelled with its old refusal; most targets of a status
+    period beyond the base's reach are a WARN. Remapping leader_odom onto the follower's
+    odometry is refused at start."""
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Range
     from formopt_ros.ros.conversions import stamp
@@ -197,6 +197,8 @@ def test_a_leader_driver_started_later_and_ranges_without_bounds(tmp_path: Path)
         (level, text), = node.health()
         assert level == 'WARN' and text == 'waiting for the first input: leader_odom on ' \
             '/leader_odom', text
+        node.publish_diagnostics()                  # a WARN is on the console too
+        assert list(node.warnings_logged.last) == ['waiting for the first input']
         node.on_odometry('leader_odom', stamped(Odometry()))
         assert node.tracker is not None
         early = Odometry()                          # in flight when the filter started

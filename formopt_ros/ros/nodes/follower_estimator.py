@@ -208,6 +208,7 @@ class FollowerEstimatorNode(Node):
         # and their estimates published) and of each plan (with its target published), s
         self.handling: dict[str, list[float]] = {'input': [], 'plan': []}
         self.throttle = Throttle(self)
+        self.warnings_logged = Throttle(self, 10.0)     # /diagnostics WARNs, on the console
         self.started_ns = self.now_ns()
         self.finished = False
         frame = p['leader_frame']
@@ -652,6 +653,8 @@ class FollowerEstimatorNode(Node):
                     self.get_logger().error(error)
         elif level == 'WARN' and self.worst == 'OK':
             self.worst = 'WARN'
+        for _, text in (problems if level == 'WARN' else ()):
+            self.warnings_logged.warn(text.split(' (')[0].split(':')[0], text)
         values: dict[str, object] = {
             **self._reported, 'stops': self.stops,
             'weighted_trace_m2': self.estimator.weighted_trace(),
