@@ -43,7 +43,8 @@ from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import normalized_estimation_error, state_difference
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
-    estimate_values, header_ns, message_variance, pose_values, range_problem, twist_noise)
+    estimate_values, header_ns, message_variance, pose_values, range_problem, range_variance,
+    twist_noise)
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap, filter_model
 
 
@@ -197,8 +198,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
 
     for t, _, kind, values in inputs:
         if kind == 'range':
-            tracker.add_measurement(t, values[0], s['range_variance'] or values[1]
-                                    or s['range_sigma'] ** 2)
+            tracker.add_measurement(t, values[0], range_variance(
+                s['range_variance'], values[1], s['range_sigma'] ** 2))
         else:
             tracker.add_odometry(kind, t, *values)
         for applied in tracker.advance(t):

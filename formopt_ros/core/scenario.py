@@ -33,6 +33,7 @@ PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
 RANGES: dict[str, tuple[float, float, str]] = {
     'range_sigma': (1e-3, 1e3, 'm'),
     'bearing_sigma': (1e-6, 1.0, 'rad'),
+    'range_variance': (0.0, 1e6, 'm^2'),
     'dt': (1e-3, 10.0, 's'),
     'slot': (-1e4, 1e4, 'm'),
     'deviation': (MIN_DEVIATION, MAX_DEVIATION, '|p_o|'),

@@ -53,8 +53,7 @@ NAMED_AXES = {'measurement': MEASUREMENT_KINDS, 'leader_path': ('straight', 'arc
 #: only wall-clock figures; every other column depends on the cell alone).
 RESULT_COLUMNS = ('strategy', 'options', 'trials', 'steps', 'seed', 'steady_trace',
                   'steady_trace_std', 'steady_growth', 'steady', 'mean_trace', 'nees_mean',
-                  'nees_in_band',
-                  'nees_band_low', 'nees_band_high', 'consistent', 'flag_reason',
+                  'nees_in_band', 'nees_band_low', 'nees_band_high', 'consistent', 'flag_reason',
                   'max_innovation_nis', 'gated_updates', 'fallback_steps',
                   'decision_time_ms', 'decision_time_median_ms')
 #: Columns :func:`with_gains` adds: relative to RAM at the same point, and the winner there.

@@ -206,14 +206,15 @@ def section_applies(key: str, node: str) -> bool:
     return re.fullmatch(pattern, node) is not None
 
 
-def node_names(argv: Sequence[str], program: str) -> tuple[str, str]:
-    """(namespace, name) of the node: ``/`` and ``program`` unless ``-r __ns:=`` or
-    ``-r __node:=`` remap them (the first of each, as rcl)."""
+def node_path(argv: Sequence[str], program: str) -> str:
+    """The node's fully qualified name, e.g. ``/f1/follower_estimator``: ``/program`` unless
+    ``-r __ns:=`` or ``-r __node:=`` remap it (the first of each, as rcl)."""
     found: dict[str, str] = {}
     for rule in ros_arguments(argv, ('-r', '--remap')):
         target, _, value = rule.partition(':=')
         found.setdefault(target.rpartition(':')[2], value)     # rcl takes the first rule
-    return '/' + found.get('__ns', '').strip('/'), found.get('__node', program)
+    namespace = found.get('__ns', '').strip('/')
+    return f"{'/' + namespace if namespace else ''}/{found.get('__node', program)}"
 
 
 def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, list[str]]]:
@@ -221,8 +222,7 @@ def foreign_params_files(argv: Sequence[str], program: str) -> list[tuple[str, l
     this node (:func:`section_applies`). Files rcl cannot read are left to rcl's own
     error."""
     import yaml
-    namespace, name = node_names(argv, program)
-    node = f"{namespace.rstrip('/')}/{name}"
+    node = node_path(argv, program)
     out = []
     for path in ros_arguments(argv, ('--params-file',)):
         try:
@@ -239,8 +239,8 @@ def params_file_problem(path: str, sections: Sequence[str], argv: Sequence[str],
     """The error for a params file none of whose sections applies to this node, when a
     section was meant for it: one keyed by its name in another namespace, or a near miss of
     its name (a typo); None when the file is for other nodes only."""
-    namespace, name = node_names(argv, program)
-    node = f"{namespace.rstrip('/')}/{name}"
+    node = node_path(argv, program)
+    name = node.rpartition('/')[2]
     for key in sections:
         if key.rstrip('/').rpartition('/')[2] in (name, program):
             return (f'params file {path}: section {key!r} does not apply to node {node} (a '

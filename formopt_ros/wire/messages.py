@@ -61,6 +61,13 @@ def message_variance(value: float) -> float | None:
     return float(value) if 0.0 < value <= VARIANCE_BOUND else None
 
 
+def range_variance(configured: float, from_message: float | None, default: float) -> float:
+    """The variance of a range, m^2: ``configured`` (range_variance) when set, else its
+    message's when known (``from_message``, :func:`message_variance`), else ``default``
+    (range_sigma^2)."""
+    return configured or from_message or default
+
+
 def twist_noise(msg: Any) -> tuple[float, float] | None:
     """(sigma_v m/s, sigma_omega rad/s) of an Odometry's twist covariance (entries 0 and 35)
     when both are known (:func:`message_variance`); None (use the configured noise)

@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from formopt_ros.core.checks import InvalidInput, as_real
+from formopt_ros.core.checks import InvalidInput
 from formopt_ros.core.estimator import RealNoise
-from formopt_ros.core.scenario import Scenario
+from formopt_ros.core.scenario import Scenario, ranged
 from formopt_ros.wire.formation import read_yaml
 
 TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
@@ -89,7 +89,7 @@ def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
     (:func:`filter_model`); ValueError naming the file and the map's key."""
     try:
         filter_model(settings, (-1.0, 0.0))
-        as_real('range_variance', settings['range_variance'], 0.0, 1e6, unit='m^2')
+        ranged('range_variance', settings['range_variance'])
     except InvalidInput as error:
         raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
                          f'{error.reason}') from None

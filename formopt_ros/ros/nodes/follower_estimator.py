@@ -34,7 +34,7 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import (
-    header_ns, message_variance, pose_values, range_problem, twist_noise)
+    header_ns, message_variance, pose_values, range_problem, range_variance, twist_noise)
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -72,7 +72,7 @@ PARAMS = [
     Param('leader_child_frame', '', "child_frame_id the leader's odometry must carry ('': any)"),
     SLOT, DEVIATION, RANGE_SIGMA, BEARING_SIGMA,
     Param('range_variance', 0.0, 'variance of every range, m^2 (0: the message\'s variance '
-          'when in (0, 100], else range_sigma^2)', 0.0, 1e6),
+          'when in (0, 100], else range_sigma^2)', *value_range('range_variance')),
     SIGMA_V, SIGMA_OMEGA,
     # a leader's odometry reaches a follower with noise (the simulated leader's is exact)
     dataclasses.replace(SIGMA_V_LEADER, default=0.05),
@@ -166,9 +166,7 @@ class FollowerEstimatorNode(Node):
         self.started_at_ns = 0                              # the filter's start, ns
         self.leader_speed = 0.0                             # of its last odometry, m/s
         self.start_warning = ''                             # a late start, until reported
-        # a range's variance: this, else its message's when known, else this
-        self.variance = p['range_variance'] if sensor == 'range' else 0.0
-        self.default_variance = scenario.sigma ** 2
+        self.default_variance = scenario.sigma ** 2       # a measurement's, m^2 or rad^2
         #: /tf_static: child frame -> (parent frame, translation (3,) m, rotation (3, 3))
         self.static: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
         self.mounts: dict[str, tuple[tuple[float, float], np.ndarray]] = {}   # frame -> mount
@@ -383,8 +381,9 @@ class FollowerEstimatorNode(Node):
         mount = self._mount('range', frame)
         if mount is None:
             return
-        variance = self.variance or message_variance(message.variance) or self.default_variance
-        self._measure('range', header_ns(message), value, frame, mount[0], variance)
+        self._measure('range', header_ns(message), value, frame, mount[0], range_variance(
+            self.params['range_variance'], message_variance(message.variance),
+            self.default_variance))
 
     def on_bearing(self, message: Vector3Stamped) -> None:
         """A direction toward the leader in the sensor frame (any length), turned into a
