@@ -594,6 +594,17 @@ def test_an_arc_design_within_reach_with_exact_kinematics_runs() -> None:
     assert describe_design(scenario, {}).startswith('cycle of ')
 
 
+def test_a_cycle_that_repeats_itself_is_named_by_its_points() -> None:
+    """Range behind an arc at 0.1 rad/s without a limit: the best four-step cycle is two points
+    played twice ([a, b, a, b], 0.55 of greedy noise-free); the study's note names two points
+    and their two angles, not four."""
+    scenario = Scenario.paper('range', leader=LeaderPath('arc', 1.0, yaw_rate=0.1))
+    note = describe_design(scenario, {})
+    assert note.startswith('cycle of 2 boundary points at [')
+    angles = note.split('[')[1].split(']')[0].split(', ')
+    assert len(angles) == 2 and abs(float(angles[0]) - float(angles[1])) > 90.0
+
+
 @pytest.mark.parametrize('period, reason', [
     (7.25, 'not a whole number of steps of 0.1 s'), (0.5, 'outside the 10-400 steps')])
 def test_an_s_curve_without_a_locked_cycle_says_why(period: float, reason: str) -> None:

@@ -324,6 +324,14 @@ class PeriodicPattern(Strategy):
         return actual <= (1.0 + float(self.settings['tolerance'])) * expected
 
 
+def repeat_length(points: np.ndarray, scale: float) -> int:
+    """The least d dividing the number of points (m, 2) with point k + d equal to point k
+    (within 1e-9 ``scale``, m) for every k: m when the cycle does not repeat itself."""
+    m = len(points)
+    return next(d for d in range(1, m + 1) if m % d == 0 and np.allclose(
+        points, np.roll(points, -d, axis=0), rtol=0.0, atol=1e-9 * scale))
+
+
 def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     """One line on the cycle PERIODIC plays in ``scenario`` and the time its design took (from
     this process's cache: free after a run, designed now otherwise)."""
@@ -345,17 +353,18 @@ def describe_design(scenario: Scenario, options: dict[str, object]) -> str:
     design = cached_design(conditions, period)[0]
     if design is None:
         return f'{no_cycle_reason(conditions)} (greedy throughout)'
-    angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles))
+    shortest = repeat_length(design.points, conditions.r)    # [a, b, a, b] is a, b twice
+    angles = ', '.join(f'{a:.1f}' for a in np.degrees(design.angles[:shortest]))
     radii = np.hypot(*(design.points - conditions.slot).T)
     if not np.allclose(radii, conditions.r, rtol=1e-9):       # designed within reach
         held = 'within reach'
         if design.conditions.safety > conditions.safety:      # a range cycle held off
             held = f'{design.conditions.safety:.3g} m clear of the leader' + \
                 (' and within reach' if conditions.limited else '')
-        return (f'cycle of {design.period} points {held} (angles [{angles}] deg around '
+        return (f'cycle of {shortest} points {held} (angles [{angles}] deg around '
                 f'p_o), steady tr(W P W) {design.steady_cost:.6g} m^2, designed offline in '
                 f'{design.design_time_s:.2f} s (once per scenario and worker process)')
-    return (f'cycle of {period} boundary points at [{angles}] deg around p_o, steady '
+    return (f'cycle of {shortest} boundary points at [{angles}] deg around p_o, steady '
             f'tr(W P W) {design.steady_cost:.6g} m^2, settles in {design.horizon} steps; '
             f'designed offline in {design.design_time_s:.2f} s ({design.evaluations} cycles '
             'evaluated; once per scenario and worker process)')
