@@ -14,8 +14,8 @@ Start the nodes of follower ID on this computer, in the namespace /ID:
   field_sim (--sim)   a simulated base and radio for ID (and the leader, publishing
                       /LEADER/odom), to try the set-up without robots.
 NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom; a
--r leader_odom:=TOPIC of yours replaces /LEADER/odom); with --sim its sensor:= and
-formation_slot:= go to field_sim too.
+-r leader_odom:=TOPIC of yours replaces /LEADER/odom); with --sim field_sim simulates the
+sensor and slot follower_estimator runs with (from its parameters, however given).
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
@@ -56,12 +56,12 @@ pids=()
 stop() { kill -INT "${pids[@]}" 2>/dev/null; wait; }
 trap stop INT TERM HUP
 if [[ $sim -eq 1 ]]; then
-  shared=()                              # the simulated robot carries the estimator's sensor
-  for arg in "$@"; do
-    [[ "$arg" == sensor:=* || "$arg" == formation_slot:=* ]] && shared+=(-p "$arg")
+  estimator=follower_estimator          # the simulated robot carries the estimator's sensor
+  for arg in "$@"; do                   # rcl takes the first __node:= rule
+    if [[ "$arg" == __node:=* ]]; then estimator="${arg#__node:=}"; break; fi
   done
   "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" \
-    "${shared[@]}" &
+    -p "sensor_of:=/$robot/$estimator" &
   pids+=($!)
 fi
 leader_remap=(-r "leader_odom:=/$leader/odom")   # rcl takes the first remap: the user's wins

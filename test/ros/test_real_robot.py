@@ -571,3 +571,20 @@ def test_robot_sh_takes_the_users_leader_topic(tmp_path: Path) -> None:
         timeout=60)
     assert itself.returncode == 2 and 'odom and leader_odom both resolve to /f1/odom' in \
         itself.stderr, itself.stderr
+
+
+def test_robot_sh_sim_simulates_the_estimators_sensor(tmp_path: Path) -> None:
+    """scripts/robot.sh --sim with the estimator configured by a params file (a camera
+    follower at [-1, 2]): field_sim reads sensor and slot from the running estimator
+    (sensor_of), so bearings arrive; it simulated a radio before, and the estimator waited."""
+    params = tmp_path / 'camera.yaml'
+    summary = tmp_path / 'summary.json'
+    params.write_text(
+        '/**/follower_estimator:\n  ros__parameters:\n    sensor: bearing\n'
+        f'    formation_slot: [-1.0, 2.0]\n    duration: 6.0\n    summary_path: {summary}\n')
+    script = Path(__file__).parents[2] / 'scripts' / 'robot.sh'
+    run = subprocess.run([str(script), '--robot', 'f1', '--sim', '--', '--params-file',
+                          str(params)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(summary.read_text())
+    assert result['counters']['measurements'] > 20, result['counters']

@@ -6,12 +6,16 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+from time import monotonic
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, TransformStamped, Twist, Vector3Stamped
 from nav_msgs.msg import Odometry
+import rclpy
 from rclpy.node import Node
+from rclpy.parameter import parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
 from sensor_msgs.msg import Range
 from tf2_msgs.msg import TFMessage
 
@@ -24,17 +28,26 @@ from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
     INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from, value_range)
-from formopt_ros.ros.runtime import check_output_path, node_main, write_summary
+from formopt_ros.ros.runtime import (
+    STOP_SIGNALS, check_output_path, node_main, write_summary)
 from formopt_ros.wire.topics import ODOM_FRAME
 
 #: Limits of the UWB radio's Range messages, m.
 RANGE_LIMITS = (0.05, 50.0)
+#: Longest wait for the node named by sensor_of to answer, s (an estimator designing
+#: PERIODIC's cycle at start-up answers only when it spins).
+SENSOR_OF_TIMEOUT = 120.0
 
 PARAMS = [
     Param('sensor', 'range', 'the follower\'s sensor: range (a UWB radio, sensor_msgs/Range on '
           'range) or bearing (a camera, geometry_msgs/Vector3Stamped toward the leader on '
           'bearing)', choices=('range', 'bearing')),
-    SLOT, *PATH_PARAMS,
+    SLOT,
+    Param('sensor_of', '', "'': this node's sensor and formation_slot; a follower_estimator's "
+          'full name (e.g. /f1/follower_estimator): take both from that running node\'s '
+          'parameters, however it was configured (params file, -p), waiting for it up to '
+          f'{SENSOR_OF_TIMEOUT:g} s (scripts/robot.sh --sim sets it)'),
+    *PATH_PARAMS,
     dataclasses.replace(INITIAL_COVARIANCE, low=0.0, description='the true start pose is drawn '
                         'from N([slot, 0], diag(this)) [x m^2, y m^2, phi rad^2], as the '
                         "estimator's initial_covariance assumes ([0, 0, 0]: the slot itself)"),
@@ -98,6 +111,8 @@ class FieldSimNode(Node):
         super().__init__('field_sim', cli_args=cli_args)
         self.params = p = declare(self, PARAMS)
         check_output_path('summary_path', p['summary_path'], may_exist=False)
+        if p['sensor_of']:
+            p.update(self._settings_of(p['sensor_of']))
         slot = Scenario.paper(p['sensor']).p_o if p['formation_slot'] == [0.0] else \
             tuple(p['formation_slot'])
         if len(slot) != 2 or len(p['leader_outage']) != 2 or len(p['camera_mount']) != 3 or \
@@ -133,6 +148,28 @@ class FieldSimNode(Node):
         self.create_timer(0.002, self.tick)
         self.finished = False
         self.sent = {'odom': 0, 'leader_odom': 0, p['sensor']: 0, 'dropouts': 0}
+
+    def _settings_of(self, name: str) -> dict[str, Any]:
+        """sensor and formation_slot of the running node ``name``, read from its parameter
+        service (ParameterError when it does not answer or has no such parameters)."""
+        client = AsyncParameterClient(self, name)
+        self.get_logger().info(f'taking sensor and formation_slot from {name} (sensor_of): '
+                               'waiting for it')
+        deadline = monotonic() + SENSOR_OF_TIMEOUT
+        while not client.wait_for_services(timeout_sec=0.2):
+            if STOP_SIGNALS or monotonic() > deadline:
+                raise ParameterError(f"parameter 'sensor_of': no node {name} answered within "
+                                     f'{SENSOR_OF_TIMEOUT:g} s (start it, or check the name '
+                                     'with ros2 node list)')
+        future = client.get_parameters(['sensor', 'formation_slot'])
+        rclpy.spin_until_future_complete(self, future, timeout_sec=SENSOR_OF_TIMEOUT)
+        answer = future.result()
+        values = [parameter_value_to_python(value) for value in answer.values] if answer else []
+        if len(values) != 2 or values[0] not in ('range', 'bearing') or values[1] is None:
+            raise ParameterError(f"parameter 'sensor_of': {name} gave no sensor and "
+                                 f'formation_slot (got {values}); is it a follower_estimator?')
+        self.get_logger().info(f'{name}: sensor {values[0]}, formation_slot {list(values[1])}')
+        return {'sensor': values[0], 'formation_slot': list(values[1])}
 
     @staticmethod
     def _sensor(p: dict[str, Any]) -> Radio | Camera:
