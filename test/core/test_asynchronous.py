@@ -149,14 +149,16 @@ def field_trial(seed: int, leader: LeaderPath, noise: RealNoise, duration: float
                 sensor: Radio | Camera = Radio(),
                 offset: tuple[float, float] | None = None,
                 outage: tuple[float, float] | None = None,
-                poses: bool = False) -> tuple[np.ndarray, float, dict]:
+                poses: bool = False,
+                settings: AsyncSettings = AsyncSettings()) -> tuple[np.ndarray, float, dict]:
     """One simulated real run (odometry 50 Hz each; by default ranges 30 Hz, bias 0.1 m, 2 %
     outliers of +1-3 m, 1 % dropouts, +-5 ms jitter); the follower zigzags around its slot
     under speed and acceleration limits, steered on its true pose. With a camera the filter
     takes its bearings turned by the mount's yaw, at ``offset``. ``outage`` (start, end s):
     no leader odometry then; ``poses``: the odometry carries the robots' poses. Returns the
     NEES per applied measurement, the RMS position error (m) after the first 100, and the
-    counters (with 'stamps' and 'errors': each NEES's stamp, ns, and position error, m)."""
+    counters (with 'stamps' and 'errors': each NEES's stamp, ns, and position error, m, and
+    'watch_failed': whether the consistency watch raised its ERROR)."""
     rng = np.random.default_rng(seed)
     slot = np.array([-1.0, -2.0])
     kind = 'range' if isinstance(sensor, Radio) else 'bearing'
@@ -177,7 +179,7 @@ def field_trial(seed: int, leader: LeaderPath, noise: RealNoise, duration: float
                          Base(50.0, 0.0, scenario.sigma_v, scenario.sigma_omega),
                          Base(50.0, 0.007), sensor)
     tracker = AsyncEstimator(EstimatorPlanner(scenario, make_strategy('mtf'), noise=noise,
-                                              sensor_offset=offset), 0)
+                                              sensor_offset=offset), 0, settings)
     turn = sensor.mount[2] if isinstance(sensor, Camera) else 0.0
     lost = outage or (0.0, 0.0)
     inputs = [(s, 0, 'follower', (v, w)) for s, v, w in run.follower_odometry] + \
@@ -198,7 +200,8 @@ def field_trial(seed: int, leader: LeaderPath, noise: RealNoise, duration: float
             errors.append(np.hypot(*state_difference(truth, outcome.x)[:2]))
             stamps.append(outcome.stamp_ns)
     counters = tracker.counters.as_dict() | {'outliers': run.outliers, 'ranges': len(run.ranges),
-                                             'stamps': stamps, 'errors': np.array(errors)}
+                                             'stamps': stamps, 'errors': np.array(errors),
+                                             'watch_failed': tracker.watch.failed}
     return np.array(nees), float(np.sqrt(np.mean(np.square(errors[100:])))), counters
 
 
@@ -229,6 +232,24 @@ def test_real_uwb_noise_needs_the_bias_state_and_huber(leader: LeaderPath) -> No
         assert counters['downweighted_measurements'] + counters['gated_measurements'] >= \
             0.9 * counters['outliers']
         assert counters['late_measurements'] == counters['bridged'] == 0
+
+
+def test_gated_non_line_of_sight_ranges_are_no_inconsistency() -> None:
+    """10 % of the ranges non-line-of-sight (+1-3 m), the node's robust filter (bias state,
+    Huber, 5-sigma gate), four seeded 20 s runs: the gate refuses the outliers, the filter
+    stays consistent (mean NEES below 4) and the watch raises no ERROR; with the simulated
+    filter's rule (10 % gated share) it called runs inconsistent and stopped the base."""
+    noise = RealNoise(bias_sigma=0.3, bias_walk=0.002, huber=2.5, gate=5.0)
+    radio = Radio(outlier_rate=0.1)
+    runs = [field_trial(seed, LeaderPath(), noise, 20.0, radio) for seed in range(4)]
+    for _, _, counters in runs:
+        assert counters['gated_measurements'] >= 0.5 * counters['outliers'], counters
+        assert not counters['watch_failed'], counters
+    assert float(np.mean([np.mean(nees[150:]) for nees, _, _ in runs])) < 4.0
+    strict = [field_trial(seed, LeaderPath(), noise, 20.0, radio,
+                          settings=AsyncSettings(max_gated_share=0.1))[2]['watch_failed']
+              for seed in range(4)]
+    assert sum(strict) >= 2, strict
 
 
 def test_after_a_link_outage_the_odometry_poses_bridge_it() -> None:

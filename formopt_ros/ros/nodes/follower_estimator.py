@@ -87,6 +87,10 @@ PARAMS = [
           100.0),
     Param('gate', 5.0, 'innovation gate in standard deviations: a measurement further out is '
           "not used (0: 10, the simulated filter's)", 0.0, 100.0),
+    Param('max_gated_share', 0.5, 'share of the last measurements (up to 50) the innovation '
+          'gate may refuse before the filter counts as inconsistent (an ERROR; the base stops): '
+          'non-line-of-sight ranges are refused rightly, a diverged filter refuses most', 0.0,
+          1.0),
     Param('reorder_lag', 0.1, 'longest wait of a range for odometry and earlier ranges, s',
           0.0, 10.0),
     Param('max_gap', 0.5, 'odometry intervals longer than this count as gaps, s', 1e-3, 60.0),
@@ -161,7 +165,7 @@ class FollowerEstimatorNode(Node):
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
                              p['max_yaw_acceleration'])
         self.settings = AsyncSettings(int(p['reorder_lag'] * NS_PER_S),
-                                      int(p['max_gap'] * NS_PER_S))
+                                      int(p['max_gap'] * NS_PER_S), p['max_gated_share'])
         self.tracker: AsyncEstimator | None = None         # starts with the first message
         self.started_at_ns = 0                              # the filter's start, ns
         self.leader_speed = 0.0                             # of its last odometry, m/s
