@@ -588,3 +588,20 @@ def test_robot_sh_sim_simulates_the_estimators_sensor(tmp_path: Path) -> None:
     assert run.returncode == 0, run.stderr
     result = json.loads(summary.read_text())
     assert result['counters']['measurements'] > 20, result['counters']
+
+
+def test_a_second_leader_publisher_stops_the_base(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """A second field_sim (another robot's dry run, its leader on an S-curve) publishes on the
+    same leader odometry topic: within INTRUDER_GRACE (5 s) and a check the estimator raises an
+    ERROR naming both publishers, stops the base, and its summary is not ok."""
+    stray = node_process('field_sim', {'duration': 30.0, 'leader_odom_topic': LEADER_TOPIC,
+                                       'path': 's-curve', 'amplitude': 0.5}, robot='stray')
+    try:
+        probe, summary = run_pair(tmp_path, {}, 10.0, node_process)
+    finally:
+        os.killpg(stray.process.pid, signal.SIGINT)
+        stray.wait(timeout=20.0)
+    mixed = [e for e in summary['errors'] if e.startswith(f'2 publishers on {LEADER_TOPIC}')]
+    assert mixed and f'{PREFIX}/stray/field_sim' in mixed[0], summary['errors']
+    assert not summary['ok'] and probe.commands[-1] == (0.0, 0.0)

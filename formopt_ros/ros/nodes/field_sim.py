@@ -137,7 +137,8 @@ class FieldSimNode(Node):
         self.start_ns = int(p['start_time'] * NS_PER_S) or int(self.get_clock().now().nanoseconds)
         self.sensor_frame = p['sensor_frame'] or ('uwb' if p['sensor'] == 'range' else 'camera')
         self.odom_pub = self.create_publisher(Odometry, 'odom', 10)
-        self.leader_pub = self.create_publisher(Odometry, p['leader_odom_topic'], 10)
+        self.leader_pub = self.create_publisher(Odometry, p['leader_odom_topic'], 10) \
+            if p['publish_leader'] else None        # a silent publisher still counts as one
         if p['sensor'] == 'range':
             self.range_pub = self.create_publisher(Range, 'range', 10)
         else:
@@ -232,7 +233,7 @@ class FieldSimNode(Node):
             self.world.command = self._due_command(self.start_ns + stamp)
         elif what == 'leader':
             start, end = p['leader_outage']
-            if p['publish_leader'] and not start <= stamp / NS_PER_S < end:
+            if self.leader_pub is not None and not start <= stamp / NS_PER_S < end:
                 shifted = conversions.stamp(self.start_ns + stamp +
                                             int(p['leader_clock_offset'] * NS_PER_S))
                 self.leader_pub.publish(conversions.odometry(

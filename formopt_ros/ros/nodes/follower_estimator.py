@@ -26,6 +26,7 @@ from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
+from formopt_ros.ros.guard import RunGuard
 from formopt_ros.ros.params import Param, ParameterError, declare
 from formopt_ros.ros.run_config import (
     BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SAFETY_DISTANCE,
@@ -100,8 +101,9 @@ PARAMS = [
           'ERROR (half as long: WARN), and the base stops; the filter starts at the first input '
           'stamped within it of this clock, s', 0.05, 60.0),
     Param('stop_when_inconsistent', True, 'stop the base (zero cmd_vel) for the rest of the '
-          "run once the consistency watch raised its latched ERROR (false: keep driving on the "
-          'estimate; the run is not ok either way)'),
+          'run once the consistency watch raised its latched ERROR, or an input topic had a '
+          "second publisher for 5 s (another robot's messages mixed in) (false: keep driving on "
+          'the estimate; the run is not ok either way)'),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
     Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
@@ -234,6 +236,13 @@ class FollowerEstimatorNode(Node):
             raise ParameterError(f"odom and leader_odom both resolve to {self.topics['odom']}: "
                                  "the leader's odometry must come from the leader (check the "
                                  'robot and leader names, or the remappings)')
+        #: a second publisher on an input topic (another robot's driver or simulator in this
+        #: domain and namespace mixes its messages in): the guard's message, once
+        self.intruder = ''
+        self.guard = RunGuard(self, False, lambda failure: setattr(self, 'intruder',
+                                                                   failure.message))
+        for topic in self.topics.values():
+            self.guard.watch(topic)
         self.create_subscription(TFMessage, '/tf_static', self.on_tf_static,
                                  qos.TF_STATIC_READER)
         self.create_timer(2.0 * scenario.dt, self.plan)
@@ -523,10 +532,12 @@ class FollowerEstimatorNode(Node):
 
     def control(self) -> None:
         """cmd_vel toward the target within the limits; a stop while the target or an input
-        stream is stale, or once the filter is inconsistent with stop_when_inconsistent
-        (counted)."""
+        stream is stale, or once the filter is inconsistent or an input has a second publisher,
+        with stop_when_inconsistent (counted)."""
+        self.guard.check()
         if self.tracker is None or self.target is None or self.stale() or \
-                (self.params['stop_when_inconsistent'] and self.tracker.watch.failed):
+                (self.params['stop_when_inconsistent'] and
+                 (self.tracker.watch.failed or self.intruder)):
             self.stops += self.command != (0.0, 0.0)       # a moving base stopped
             self.command = (0.0, 0.0)
         else:
@@ -542,7 +553,8 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); stamps ahead of this clock, stamps of 0, or inputs
+        gating (the consistency watch, latched); a second publisher on an input topic for
+        INTRUDER_GRACE s (latched); stamps ahead of this clock, stamps of 0, or inputs
         stamped more than stale_timeout behind it while the filter has not started; more than
         LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
         (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or a
@@ -559,6 +571,8 @@ class FollowerEstimatorNode(Node):
         if self.tracker is not None and self.tracker.watch.failed:
             worst = self.tracker.watch.worst
             errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
+        if self.intruder:
+            errors.append(self.intruder)
         if new.get('refused_future'):
             errors.append('messages stamped ahead of this clock: clocks not synchronised')
         if new.get('refused_unstamped'):
