@@ -20,9 +20,13 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
       huber: 0.0                         # Huber threshold, standard deviations (0: off)
       gate: 0.0                          # innovation gate, standard deviations (0: 10)
       initial_covariance: [0.1, 0.1, 0.01]
+      initial_pose: []                   # [x m, y m, phi rad] in the leader frame at the
+                                         # first range, as the node's initial_pose or slot
 
-The initial estimate is the truth at the first range (with ``initial_covariance``) when the bag
-has truth, else [|p| = the first range along -x, 0].
+The initial estimate is ``initial_pose`` when given, else the truth at the first range when the
+bag has truth, else [|p| = the first range along -x, 0] (a range has no direction: a follower
+beside the leader starts mirrored or turned, metres off, unless initial_pose says where it
+was). Its uncertainty is ``initial_covariance``.
 """
 from __future__ import annotations
 
@@ -171,7 +175,8 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
     """Run the asynchronous estimator (planner off) over ``data`` in stamp order."""
     s = {**ESTIMATOR_DEFAULTS, **settings}
     first = data.ranges[0][0]
-    initial = data.relative_truth(first)
+    initial = np.array(s['initial_pose'], dtype=float) if len(s['initial_pose']) else \
+        data.relative_truth(first)
     if initial is None:
         initial = np.array([-data.ranges[0][1], 0.0, 0.0])
     slot = (float(initial[0]), float(initial[1]))

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from formopt_ros.core.checks import InvalidInput
+from formopt_ros.core.checks import InvalidInput, as_array
 from formopt_ros.core.estimator import RealNoise
 from formopt_ros.core.scenario import Scenario, ranged
 from formopt_ros.wire.formation import read_yaml
@@ -17,7 +17,8 @@ TOPIC_KEYS = ('leader_odometry', 'follower_odometry', 'range', 'leader_truth',
 ESTIMATOR_DEFAULTS: dict[str, Any] = {
     'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'range_variance': 0.0,
     'bias_sigma': 0.0,
-    'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01]}
+    'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01],
+    'initial_pose': []}
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,9 @@ def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
     try:
         filter_model(settings, (-1.0, 0.0))
         ranged('range_variance', settings['range_variance'])
+        if settings['initial_pose'] != []:
+            x, y, _ = as_array('initial_pose', settings['initial_pose'], (3,))
+            filter_model(settings, (float(x), float(y)))    # the slot's rules
     except InvalidInput as error:
         raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
                          f'{error.reason}') from None
