@@ -29,7 +29,7 @@ PATH_KINDS = ('straight', 'arc', 's-curve', 'segments')
 #: sensor: a value meant in degrees (2 for 2 deg) is refused; a range noise below 1 mm (3e-4 m
 #: measured) makes the periodic strategy's covariance maps singular. A base's yaw rate above
 #: 20 rad/s, a leader's above 10 rad/s (a 10 cm circle at 1 m/s), is one meant in deg/s (45 for
-#: 45 deg/s).
+#: 45 deg/s); an angle (a mount's, an initial heading) beyond one turn is one meant in degrees.
 RANGES: dict[str, tuple[float, float, str]] = {
     'range_sigma': (1e-3, 1e3, 'm'),
     'bearing_sigma': (1e-6, 1.0, 'rad'),
@@ -52,6 +52,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     'max_speed': (1e-3, 1e3, 'm/s'),
     'max_yaw_rate': (1e-3, 20.0, 'rad/s'),
     'safety_distance': (0.0, 1e4, 'm'),
+    'angle': (-2.0 * math.pi, 2.0 * math.pi, 'rad'),
 }
 
 

@@ -17,6 +17,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from formopt_ros.core.checks import InvalidInput, as_bool, as_choice, as_integer, as_real
+from formopt_ros.core.scenario import RANGES
 
 
 #: Parameters rclpy declares itself; never reported as unknown.
@@ -30,6 +31,17 @@ FIXED_WHILE_RUNNING = {
 
 class ParameterError(ValueError):
     """A parameter value outside its documented range (the node exits with code 2)."""
+
+
+def check_angles(name: str, angles: list[float]) -> None:
+    """Refuse (ParameterError naming ``name``) an angle of a list parameter outside the
+    'angle' range of RANGES, rad: one turn either way; beyond it a value meant in degrees."""
+    low, high, _ = RANGES['angle']
+    for angle in angles:
+        if not low <= angle <= high:
+            raise ParameterError(f"parameter '{name}': angles are in radians, within +-2 pi; "
+                                 f'got {angle:g} (meant in degrees? {angle:g} deg is '
+                                 f'{math.radians(angle):.4g} rad)')
 
 
 @dataclass(frozen=True)

@@ -92,8 +92,9 @@ def check_settings(path: str | Path, settings: dict[str, Any]) -> None:
         filter_model(settings, (-1.0, 0.0))
         ranged('range_variance', settings['range_variance'])
         if settings['initial_pose'] != []:
-            x, y, _ = as_array('initial_pose', settings['initial_pose'], (3,))
+            x, y, phi = as_array('initial_pose', settings['initial_pose'], (3,))
             filter_model(settings, (float(x), float(y)))    # the slot's rules
+            ranged('initial_pose', phi, 'angle')
     except InvalidInput as error:
         raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
                          f'{error.reason}') from None

@@ -52,6 +52,12 @@ MISUSE = [
     ('estimator_planner', ['-p', 'path:=s-curve', '-p', 'amplitude:=0.5', '-p',
                            'omega_leader:=0.3'], "parameter 'omega_leader' is not read by"),
     ('estimator_planner', ['-p', 'bearing_every:=5'], "parameter 'bearing_every' is for"),
+    ('follower_estimator', ['-p', 'sensor_mount:=[0.1, 0.0, 0.0, 0.0, 0.0, 90.0]'],
+     "parameter 'sensor_mount': angles are in radians"),
+    ('follower_estimator', ['-p', 'initial_pose:=[-1.0, -2.0, 45.0]'],
+     "parameter 'initial_pose': angles are in radians"),
+    ('field_sim', ['-p', 'camera_mount:=[0.1, 0.0, -90.0]'],
+     "parameter 'camera_mount': angles are in radians"),
 ]
 
 

@@ -25,7 +25,7 @@ from formopt_ros.core.model import rpy_quaternion
 from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.ros import conversions, qos
-from formopt_ros.ros.params import Param, ParameterError, declare
+from formopt_ros.ros.params import Param, ParameterError, check_angles, declare
 from formopt_ros.ros.run_config import (
     INITIAL_COVARIANCE, PATH_PARAMS, SLOT, SUMMARY_PATH, leader_path_from, value_range)
 from formopt_ros.ros.runtime import (
@@ -119,6 +119,7 @@ class FieldSimNode(Node):
                 len(p['initial_covariance']) != 3:
             raise ParameterError("parameters 'formation_slot' and 'leader_outage' take two "
                                  "numbers, 'camera_mount' and 'initial_covariance' three")
+        check_angles('camera_mount', p['camera_mount'][2:])
         path = leader_path_from(p)
         step = 1.0 / p['leader_odom_rate']
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],

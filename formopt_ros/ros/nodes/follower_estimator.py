@@ -27,7 +27,7 @@ from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.ros import conversions, qos
 from formopt_ros.ros.guard import RunGuard
-from formopt_ros.ros.params import Param, ParameterError, declare
+from formopt_ros.ros.params import Param, ParameterError, check_angles, declare
 from formopt_ros.ros.run_config import (
     BEARING_SIGMA, DEVIATION, DT, INITIAL_COVARIANCE, RANGE_SIGMA, SAFETY_DISTANCE,
     SIGMA_OMEGA, SIGMA_OMEGA_LEADER, SIGMA_V, SIGMA_V_LEADER, SLOT, SUMMARY_PATH,
@@ -163,6 +163,7 @@ class FollowerEstimatorNode(Node):
             if len(p['initial_pose']) != 3:
                 raise ParameterError("parameter 'initial_pose' must be [x, y, phi] or [0.0], "
                                      f"got {p['initial_pose']!r}")
+            check_angles('initial_pose', p['initial_pose'][2:])
             self.estimator.state[:3] = p['initial_pose']
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
                              p['max_yaw_acceleration'])
@@ -183,6 +184,7 @@ class FollowerEstimatorNode(Node):
                 raise ParameterError("parameter 'sensor_mount' must be [x, y, z, roll, pitch, "
                                      f"yaw] or [0.0], got {p['sensor_mount']!r}")
             x, y, _, *rpy = p['sensor_mount']
+            check_angles('sensor_mount', rpy)
             self.fixed_mount = ((x, y), rotation_matrix(rpy_quaternion(*rpy)))
         self.refused = {'frame': 0, 'future': 0, 'before_start': 0, 'unstamped': 0,
                         'out_of_range': 0, 'not_finite': 0, 'no_mount': 0}
