@@ -318,3 +318,13 @@ def test_the_study_counts_the_true_follower_inside_the_safety_distance() -> None
     row = summarize(run_study(config, jobs=1))['strategies']['rq']
     assert row['min_leader_distance'] == pytest.approx(1.330, abs=5e-4)
     assert row['inside_safety_share'] == pytest.approx(0.177, abs=5e-4)
+
+
+def test_the_report_says_why_ram_falls_back_under_a_limit() -> None:
+    """Range under 1.5 m/s, 2 trials x 100 steps: RAM's closed form lands out of reach on most
+    steps and falls back to RQ; the report says so and counts them (173 of 200)."""
+    from formopt_ros.cli.montecarlo import report_markdown
+    config = StudyConfig(RANGE, trials=2, steps=100, seed=0, strategies=('ram', 'rq'),
+                         scenario=dict(max_speed=1.5))
+    text = report_markdown(summarize(run_study(config, jobs=1)))
+    assert "RAM falls back to RQ over the reachable set: 173 of 200 decisions" in text, text
