@@ -1,14 +1,17 @@
 """Re-estimate a bag of standard message types (another team's robots, a real data set) through a
-topic map: the asynchronous estimator over its odometry and ranges, the planner off, evaluated
-against ground-truth poses when the bag has them.
+topic map: the asynchronous estimator over its odometry and ranges or bearings, the planner off,
+evaluated against ground-truth poses when the bag has them.
 
 A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
 
     leader_odometry: /leader/odom        # nav_msgs/Odometry of the leader (twist used)
     follower_odometry: /follower/odom    # nav_msgs/Odometry of the follower
-    range: /uwb/range                    # sensor_msgs/Range between them
+    range: /uwb/range                    # sensor_msgs/Range between them, or instead
+    # bearing: /f1/bearing               # geometry_msgs/Vector3Stamped toward the leader
     leader_truth: /leader/mocap          # optional geometry_msgs/PoseStamped, a fixed frame
     follower_truth: /follower/mocap      # with leader_truth or neither: the same fixed frame
+    # relative_truth: /f1/truth          # instead of both: PoseStamped of the follower in the
+                                         # leader's frame (field_sim's truth)
     estimator:                           # optional: the filter's settings (defaults below)
       sigma_v: 0.05                      # both robots' odometry speed noise, m/s
       sigma_omega: 0.05                  # both robots' odometry yaw-rate noise, rad/s
@@ -22,11 +25,16 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
       initial_covariance: [0.1, 0.1, 0.01]
       initial_pose: []                   # [x m, y m, phi rad] in the leader frame at the
                                          # first range, as the node's initial_pose or slot
+      bearing_sigma: 0.02                # bearing noise, rad
+      sensor_mount: []                   # bearings: the sensor frame on the follower, [x m,
+                                         # y m, z m, roll, pitch, yaw rad] (the node's
+                                         # sensor_mount); []: directions in the body frame
 
-The initial estimate is ``initial_pose`` when given, else the truth at the first range when the
-bag has truth, else [|p| = the first range along -x, 0] (a range has no direction: a follower
-beside the leader starts mirrored or turned, metres off, unless initial_pose says where it
-was). Its uncertainty is ``initial_covariance``.
+The initial estimate is ``initial_pose`` when given, else the truth at the first measurement
+when the bag has truth, else [|p| = the first range along -x, 0] (a range has no direction: a
+follower beside the leader starts mirrored or turned, metres off, unless initial_pose says where
+it was; a bearing follower without either starts along the first bearing at |p| = 2 m, a
+guess). Its uncertainty is ``initial_covariance``.
 """
 from __future__ import annotations
 
@@ -44,7 +52,9 @@ from formopt_ros.core.asynchronous import AsyncEstimator, AsyncSettings
 from formopt_ros.core.consistency import ERROR
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.field import relative_pose
-from formopt_ros.core.model import normalized_estimation_error, state_difference
+from formopt_ros.core.model import (
+    direction_bearing, normalized_estimation_error, rotation_matrix, rpy_quaternion,
+    state_difference)
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
     estimate_values, header_ns, message_variance, pose_values, range_problem, range_variance,
@@ -59,22 +69,35 @@ class ForeignData:
     Attributes:
         odometry: per robot ('follower', 'leader'), (stamp, v m/s, omega rad/s, its own noise
             (sigma_v, sigma_omega) from the twist covariance, or None).
-        ranges: (stamp, range m, the message's variance m^2 or None when unknown).
-        truth: per robot, (stamp, x m, y m, yaw rad) in a fixed frame (empty without truth).
+        measurements: (stamp, range m or bearing rad in the body frame's orientation, the
+            message's variance m^2 or None when unknown (bearings: None)).
+        kind: the follower's sensor, 'range' or 'bearing'.
+        offset: the sensor's lever arm on the follower (x, y) m (bearings; None: at its
+            centre).
+        truth: per robot, (stamp, x m, y m, yaw rad) in a fixed frame, or under 'relative'
+            the follower's pose in the leader's frame (empty without truth).
         refused: messages dropped as the live node drops them: {'not_finite': n,
             'out_of_range': n}.
     """
 
     odometry: dict[str, list[tuple[int, float, float, tuple[float, float] | None]]]
-    ranges: list[tuple[int, float, float | None]]
+    measurements: list[tuple[int, float, float | None]]
     truth: dict[str, np.ndarray]
     refused: dict[str, int] = field(default_factory=lambda: {'not_finite': 0,
                                                              'out_of_range': 0})
+    kind: str = 'range'
+    offset: tuple[float, float] | None = None
 
     def relative_truth(self, stamp: int) -> np.ndarray | None:
         """The follower's true pose in the leader's frame at ``stamp`` (poses interpolated
         linearly, yaw unwrapped), or None outside the truth's time span."""
         poses: list[tuple[float, float, float]] = []
+        if 'relative' in self.truth:
+            relative = self.truth['relative']
+            if not relative[0, 0] <= stamp <= relative[-1, 0]:
+                return None
+            return np.array([float(np.interp(stamp, relative[:, 0], relative[:, i]))
+                             for i in (1, 2, 3)])
         for robot in ('leader', 'follower'):
             samples = self.truth.get(robot)
             if samples is None or not len(samples) or not \
@@ -112,28 +135,44 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
                 refused['not_finite'] += 1
                 continue
             odometry[robot].append((header_ns(m), v, omega, twist_noise(m)))
-    ranges = []
-    for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
-        if (problem := range_problem(m)) is not None:
-            refused[problem[0]] += 1
-        else:
-            ranges.append((header_ns(m), float(m.range), message_variance(m.variance)))
+    measurements, offset = [], None
+    if topics.kind == 'range':
+        for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
+            if (problem := range_problem(m)) is not None:
+                refused[problem[0]] += 1
+            else:
+                measurements.append((header_ns(m), float(m.range),
+                                     message_variance(m.variance)))
+    else:
+        mount = topics.estimator['sensor_mount'] or [0.0] * 6
+        rotation = rotation_matrix(rpy_quaternion(*mount[3:]))
+        offset = None if mount[:2] == [0.0, 0.0] else (float(mount[0]), float(mount[1]))
+        for m in decoded(topics.bearing, 'geometry_msgs/msg/Vector3Stamped'):
+            direction = (m.vector.x, m.vector.y, m.vector.z)
+            if not all(math.isfinite(c) for c in direction):
+                refused['not_finite'] += 1
+            elif (value := direction_bearing(direction, rotation)) is None:
+                refused['out_of_range'] += 1           # vertical in the body frame
+            else:
+                measurements.append((header_ns(m), value, None))
     for name, stamps in (('follower_odometry', [o[0] for o in odometry['follower']]),
                          ('leader_odometry', [o[0] for o in odometry['leader']]),
-                         ('range', [r[0] for r in ranges])):
+                         (topics.kind, [r[0] for r in measurements])):
         if len(stamps) > 1 and min(stamps) == max(stamps):
             raise BagError(f'every message on {resolved(getattr(topics, name))!r} carries the '
                            f'header stamp {stamps[0]} ns: the estimator orders its inputs by '
                            'their stamps (record with the stamps set, e.g. by the driver)')
     truth = {}
-    if topics.leader_truth and topics.follower_truth:
-        for robot in ('leader', 'follower'):
-            rows = [(header_ns(m), *pose_values(m.pose)) for m in decoded(
-                getattr(topics, f'{robot}_truth'), 'geometry_msgs/msg/PoseStamped')]
-            samples = np.array(sorted(rows), dtype=float)
-            samples[:, 3] = np.unwrap(samples[:, 3])
-            truth[robot] = samples
-    return ForeignData(odometry, sorted(ranges), truth, refused)
+    sources = {'relative': topics.relative_truth} if topics.relative_truth else \
+        {robot: getattr(topics, f'{robot}_truth') for robot in ('leader', 'follower')
+         if topics.leader_truth and topics.follower_truth}
+    for key, topic in sources.items():
+        rows = [(header_ns(m), *pose_values(m.pose))
+                for m in decoded(topic, 'geometry_msgs/msg/PoseStamped')]
+        samples = np.array(sorted(rows), dtype=float)
+        samples[:, 3] = np.unwrap(samples[:, 3])
+        truth[key] = samples
+    return ForeignData(odometry, sorted(measurements), truth, refused, topics.kind, offset)
 
 
 @dataclass
@@ -141,11 +180,11 @@ class ForeignResult:
     """What the estimator made of a foreign bag.
 
     Attributes:
-        stamps, estimates, covariances: per applied range (ns, (3,), (3, 3)).
-        nees, errors: per range with truth: NEES of [x, y, phi], position error (m).
+        stamps, estimates, covariances: per applied measurement (ns, (3,), (3, 3)).
+        nees, errors: per measurement with truth: NEES of [x, y, phi], position error (m).
         counters: the asynchronous estimator's counters.
         bias: the final range-bias estimate (m), None without a bias state.
-        consistency: the consistency watch over every range's NIS and, with truth, NEES
+        consistency: the consistency watch over every measurement's NIS and, with truth, NEES
             (:meth:`~formopt_ros.core.consistency.ConsistencyWatch.summary`); its latched
             ERROR makes the re-estimate not ok.
     """
@@ -160,12 +199,12 @@ class ForeignResult:
     consistency: dict[str, Any] = field(default_factory=dict)
 
     def summary(self, skip: int = 0) -> dict[str, Any]:
-        """Mean NEES and RMS error over the ranges after the first ``skip``, the consistency
+        """Mean NEES and RMS error over the measurements after the first ``skip``, the consistency
         verdict and ``ok`` (no latched ERROR)."""
         nees, errors = self.nees[skip:], self.errors[skip:]
         return {'ok': self.consistency.get('worst', {}).get('level') != ERROR,
                 'consistency': self.consistency,
-                'ranges': len(self.stamps), 'evaluated': len(nees),
+                'measurements': len(self.stamps), 'evaluated': len(nees),
                 'mean_nees': float(np.mean(nees)) if nees else None,
                 'rmse_m': float(np.sqrt(np.mean(np.square(errors)))) if errors else None,
                 'final_bias_m': self.bias, 'counters': self.counters}
@@ -174,19 +213,21 @@ class ForeignResult:
 def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResult:
     """Run the asynchronous estimator (planner off) over ``data`` in stamp order."""
     s = {**ESTIMATOR_DEFAULTS, **settings}
-    first = data.ranges[0][0]
+    first, value = data.measurements[0][:2]
     initial = np.array(s['initial_pose'], dtype=float) if len(s['initial_pose']) else \
         data.relative_truth(first)
-    if initial is None:
-        initial = np.array([-data.ranges[0][1], 0.0, 0.0])
+    if initial is None:         # a range along -x; a bearing from the leader, 2 m out
+        initial = np.array([-value, 0.0, 0.0]) if data.kind == 'range' else \
+            np.array([-2.0 * math.cos(value), -2.0 * math.sin(value), 0.0])
     slot = (float(initial[0]), float(initial[1]))
-    scenario, noise = filter_model(s, slot)
-    filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None, noise)
+    scenario, noise = filter_model(s, slot, data.kind)
+    filter_ = EstimatorPlanner(scenario, make_strategy('mtf'), None, noise,
+                               sensor_offset=data.offset)
     filter_.state[:3] = initial
     tracker = AsyncEstimator(filter_, first - 1, AsyncSettings())
     inputs = sorted([(t, 0, robot, (v, w, noise)) for robot, stream in data.odometry.items()
                      for t, v, w, noise in stream if t > first - 1] +
-                    [(t, 1, 'range', (z, variance, None)) for t, z, variance in data.ranges],
+                    [(t, 1, 'z', (z, variance, None)) for t, z, variance in data.measurements],
                     key=lambda item: item[:2])
     result = ForeignResult([], [], [], [], [], {}, None)
 
@@ -202,9 +243,10 @@ def estimate_foreign(data: ForeignData, settings: dict[str, Any]) -> ForeignResu
             tracker.watch.add_nees(nees, len(result.stamps))
 
     for t, _, kind, values in inputs:
-        if kind == 'range':
+        if kind == 'z':
             tracker.add_measurement(t, values[0], range_variance(
-                s['range_variance'], values[1], s['range_sigma'] ** 2))
+                s['range_variance'], values[1], s['range_sigma'] ** 2)
+                if data.kind == 'range' else s['bearing_sigma'] ** 2)
         else:
             tracker.add_odometry(kind, t, *values)
         for applied in tracker.advance(t):
@@ -224,7 +266,7 @@ ESTIMATE_COLUMNS = ('stamp_ns', 'x_m', 'y_m', 'phi_rad', 'var_x', 'cov_xy', 'cov
 
 
 def write_estimates(path: Path, result: ForeignResult) -> None:
-    """The estimate at every applied range as CSV (:data:`ESTIMATE_COLUMNS`): the follower's
+    """The estimate at every applied measurement as CSV (:data:`ESTIMATE_COLUMNS`): the follower's
     pose in the leader's frame (m, rad) and its covariance's upper triangle."""
     rows = [(stamp, *x[:3], P[0, 0], P[0, 1], P[0, 2], P[1, 1], P[1, 2], P[2, 2])
             for stamp, x, P in zip(result.stamps, result.estimates, result.covariances)]

@@ -50,7 +50,8 @@ def option_value(text: str) -> tuple[str, Any]:
         return name, value
 
 
-#: Defaults of --tolerance (the largest admissible difference) and --skip (ranges left out).
+#: Defaults of --tolerance (the largest admissible difference) and --skip (measurements left
+#: out).
 TOLERANCE, SKIP = 1e-9, 30
 
 
@@ -93,10 +94,10 @@ def build_parser() -> ArgumentParser:
                        'and reports its consistency, and NEES and RMS error against its ground '
                        'truth; exit 1 when the filter is inconsistent')
     flags.add_argument('--estimates', type=new_file, metavar='CSV',
-                       help='--topic-map: write the estimate at every range here (a new CSV '
+                       help='--topic-map: write the estimate at every measurement here (a new CSV '
                        'file: stamp, pose in the leader frame, covariance)')
     flags.add_argument('--skip', type=integer(0, 10**9),
-                       help='--topic-map: ranges left out of the evaluation at the start '
+                       help='--topic-map: measurements left out of the evaluation at the start '
                        f'(default {SKIP})')
     return out
 
@@ -109,8 +110,8 @@ def foreign_main(args: Any) -> int:
     try:
         topics = TopicMap.load(args.topic_map)
         data = read_foreign(read_bag(args.bag), topics)
-        if not data.ranges:
-            fail(PROG, f'{args.bag}: no valid message on {topics.range}')
+        if not data.measurements:
+            fail(PROG, f'{args.bag}: no valid message on {topics.measurement}')
         result = estimate_foreign(data, topics.estimator)
     except (BagError, ValueError) as error:
         fail(PROG, str(error))
@@ -119,28 +120,30 @@ def foreign_main(args: Any) -> int:
     dropped = {k: v for k, v in counters.items() if v and k in (
         'late_odometry', 'late_measurements', 'duplicates', 'refused_not_finite',
         'refused_out_of_range')}
-    print(f"offline estimate of {args.bag} through {args.topic_map}: {summary['ranges']} "
-          f"ranges, {counters['odometry']} odometry messages (bridged {counters['bridged']}, "
-          f"gaps {counters['gaps']}, gated {counters['gated_measurements']}, down-weighted "
+    kind = f'{topics.kind}s'                     # 'ranges' or 'bearings'
+    print(f"offline estimate of {args.bag} through {args.topic_map}: "
+          f"{summary['measurements']} {kind}, {counters['odometry']} odometry messages "
+          f"(bridged {counters['bridged']}, gaps {counters['gaps']}, gated "
+          f"{counters['gated_measurements']}, down-weighted "
           f"{counters['downweighted_measurements']}"
           + ''.join(f', {k.replace("_", " ")} {v}' for k, v in dropped.items()) + ')')
     worst = summary['consistency']['worst']
     print('consistency of the re-estimate: ' + (
         'ok' if worst['level'] == 'ok' else
-        f"{worst['level'].upper()} at range {worst['step']}: {worst['reason']}"))
+        f"{worst['level'].upper()} at {topics.kind} {worst['step']}: {worst['reason']}"))
     if args.estimates:
         write_estimates(args.estimates, result)
     if summary['mean_nees'] is None:
-        if topics.leader_truth and topics.follower_truth:
-            print(f'no applied range lies within the ground truth\'s time span (after the '
-                  f'first {args.skip}): nothing evaluated', file=sys.stderr)
+        if topics.relative_truth or (topics.leader_truth and topics.follower_truth):
+            print(f'no applied {topics.kind} lies within the ground truth\'s time span (after '
+                  f'the first {args.skip}): nothing evaluated', file=sys.stderr)
             return 1
         print('the topic map names no ground truth of both robots: no evaluation')
     else:
         bias = summary['final_bias_m']
-        print(f"after {args.skip} ranges: mean NEES {summary['mean_nees']:.3f} (3 is "
+        print(f"after {args.skip} {kind}: mean NEES {summary['mean_nees']:.3f} (3 is "
               f"consistent), RMS position error {summary['rmse_m']:.3f} m over "
-              f"{summary['evaluated']} ranges" +
+              f"{summary['evaluated']} {kind}" +
               ('' if bias is None else f'; estimated range bias at the end {bias:.3f} m'))
     if args.json:
         write_json(args.json, {'bag': str(args.bag), 'topic_map': str(args.topic_map),

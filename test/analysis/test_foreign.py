@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from formopt_ros.analysis.foreign import ForeignData, estimate_foreign, read_for
 from formopt_ros.bag import read_bag
 from formopt_ros.core.model import propagate_state
 from formopt_ros.wire.messages import message_variance
-from formopt_ros.wire.topic_map import TopicMap
+from formopt_ros.wire.topic_map import TOPIC_KEYS, TopicMap
 
 DATA = Path(__file__).resolve().parents[1] / 'data'
 BAG, MAP = DATA / 'tiers_uwb_case4_test3.mcap', DATA / 'tiers_uwb_case4_test3.yaml'
@@ -31,13 +32,13 @@ def reference_rmse(data: ForeignData, sigma: float = 0.05, range_sigma: float = 
                    bias_sigma: float = 0.5) -> float:
     """A plain EKF written independently: each robot's latest twist held forward, the exact
     step, Jacobians by central differences, a range-bias state. RMS position error (m)."""
-    start = data.ranges[0][0]
+    start = data.measurements[0][0]
     x = np.append(data.relative_truth(start), 0.0)
     P = np.diag([0.1, 0.1, 0.01, bias_sigma ** 2])
     twist = {'follower': (0.0, 0.0), 'leader': (0.0, 0.0)}
     events = sorted([(t, robot, (v, w)) for robot, stream in data.odometry.items()
                      for t, v, w, _ in stream if t > start] +
-                    [(t, 'range', (z,)) for t, z, _ in data.ranges])
+                    [(t, 'range', (z,)) for t, z, _ in data.measurements])
 
     def step(x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         return np.append(propagate_state(x[:3], u[0], u[1], dt, u[2], u[3]), x[3])
@@ -69,7 +70,8 @@ def decimated(data: ForeignData, k: int) -> ForeignData:
         return [(stream[i][0], float(np.mean([s[1] for s in stream[i - k + 1:i + 1]])),
                  float(np.mean([s[2] for s in stream[i - k + 1:i + 1]])), None)
                 for i in range(k - 1, len(stream), k)]
-    return ForeignData({r: slow(s) for r, s in data.odometry.items()}, data.ranges, data.truth)
+    return ForeignData({r: slow(s) for r, s in data.odometry.items()}, data.measurements,
+                       data.truth)
 
 
 @pytest.mark.slow
@@ -78,14 +80,14 @@ def test_real_uwb_data_is_consistent_with_the_bias_state(data: ForeignData) -> N
     position error no worse than the independent plain EKF's; without the bias state the
     filter is overconfident by two orders of magnitude. The ranges' mean error against the
     motion-capture distance is 0.35 m; the bias state ends at 0.53 m (docs/real_robots.md)."""
-    errors = [r - math.hypot(*truth[:2]) for t, r, _ in data.ranges
+    errors = [r - math.hypot(*truth[:2]) for t, r, _ in data.measurements
               if (truth := data.relative_truth(t)) is not None]
     assert np.mean(errors) == pytest.approx(0.35, abs=0.005)
     settings = TopicMap.load(MAP).estimator
     result = estimate_foreign(data, settings).summary(SKIP)
     assert result['final_bias_m'] == pytest.approx(0.53, abs=0.005)
     reference = reference_rmse(data)
-    assert result['ranges'] == 924 and result['counters']['bridged'] == 0
+    assert result['measurements'] == 924 and result['counters']['bridged'] == 0
     assert 1.0 <= result['mean_nees'] <= 5.0, result
     assert result['rmse_m'] <= reference, (result['rmse_m'], reference)
     plain = estimate_foreign(data, {**settings, 'bias_sigma': 0.0}).summary(SKIP)
@@ -108,7 +110,7 @@ def test_a_range_variance_in_the_messages_is_used(data: ForeignData) -> None:
     settings = TopicMap.load(MAP).estimator
 
     def with_variance(variance: float | None) -> ForeignData:
-        ranges = [(t, z, variance) for t, z, _ in data.ranges]
+        ranges = [(t, z, variance) for t, z, _ in data.measurements]
         return ForeignData(data.odometry, ranges, data.truth)
 
     def nees(data: ForeignData, **overrides: float) -> float:
@@ -117,7 +119,7 @@ def test_a_range_variance_in_the_messages_is_used(data: ForeignData) -> None:
     plain, given = nees(data), nees(with_variance(0.09))
     assert given == nees(data, range_variance=0.09) != plain
     assert nees(with_variance(0.09), range_variance=0.01) == nees(data, range_variance=0.01)
-    assert read_foreign(read_bag(BAG), TopicMap.load(MAP)).ranges[0][2] is None
+    assert read_foreign(read_bag(BAG), TopicMap.load(MAP)).measurements[0][2] is None
     assert [message_variance(v) for v in (0.0, -1.0, 1e6, 0.09)] == [None, None, None, 0.09]
 
 
@@ -128,8 +130,8 @@ def test_without_truth_the_initial_pose_places_the_estimate(data: ForeignData,
     re-estimate stays metres away (RMS 5.2 m) and is not ok; with initial_pose (as the node's)
     it tracks as with the truth (RMS below 0.15 m). A bad initial_pose is refused naming it."""
     settings = TopicMap.load(MAP).estimator
-    blind = ForeignData(data.odometry, data.ranges, {})
-    start = data.relative_truth(data.ranges[0][0])
+    blind = ForeignData(data.odometry, data.measurements, {})
+    start = data.relative_truth(data.measurements[0][0])
 
     def rmse(initial_pose: list[float]) -> tuple[float, bool]:
         run = estimate_foreign(blind, {**settings, 'initial_pose': initial_pose})
@@ -151,15 +153,15 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
     """The command prints the evaluation and the consistency verdict, writes them as JSON and
     the estimate at every range as CSV; a filter ten times overconfident (range_sigma 0.01 m)
     is an ERROR and exit code 1; a map naming a topic the bag lacks, with an unknown key, a
-    setting out of its range or one robot's truth only is refused in one line with exit code
-    2."""
+    setting out of its range (a mount's yaw in degrees), one robot's truth only, both range
+    and bearing or both kinds of truth is refused in one line with exit code 2."""
     out, estimates = tmp_path / 'result.json', tmp_path / 'estimates.csv'
     done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG), '--offline',
                            '--topic-map', str(MAP), '--json', str(out), '--estimates',
                            str(estimates)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     result = json.loads(out.read_text())
-    assert 'mean NEES' in done.stdout and result['ranges'] == 924 and result['ok']
+    assert 'mean NEES' in done.stdout and result['measurements'] == 924 and result['ok']
     rows = estimates.read_text().splitlines()
     assert rows[0].startswith('stamp_ns,x_m,y_m,phi_rad,var_x') and len(rows) == 925
     overconfident = tmp_path / 'overconfident.yaml'
@@ -178,7 +180,15 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\nestimator:\n'
                         '  range_sigma: -0.1\n', 'estimator: range_sigma must be'),
                        ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'
-                        'leader_truth: /t\n', 'leader_truth without follower_truth')):
+                        'leader_truth: /t\n', 'leader_truth without follower_truth'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'
+                        'bearing: /d\n', 'exactly one of range and bearing'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nbearing: /c\nestimator:\n'
+                        '  sensor_mount: [0.1, 0.0, 0.0, 0.0, 0.0, 90.0]\n',
+                        'estimator: sensor_mount must be'),
+                       ('leader_odometry: /a\nfollower_odometry: /b\nrange: /c\n'
+                        'relative_truth: /t\nleader_truth: /u\nfollower_truth: /v\n',
+                        'relative_truth')):
         bad = tmp_path / 'map.yaml'
         bad.write_text(text)
         done = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(BAG),
@@ -193,11 +203,9 @@ def test_topic_names_resolve_as_the_bag_check_does(data: ForeignData) -> None:
     named as both robots' odometry is refused."""
     from formopt_ros.bag import BagError
     bag, full = read_bag(BAG), TopicMap.load(MAP)
-    short = TopicMap(*(name.lstrip('/') for name in (
-        full.leader_odometry, full.follower_odometry, full.range, full.leader_truth,
-        full.follower_truth)), full.estimator)
+    short = replace(full, **{key: getattr(full, key).lstrip('/') for key in TOPIC_KEYS})
     again = read_foreign(bag, short)
-    assert again.ranges == data.ranges and again.odometry == data.odometry
+    assert again.measurements == data.measurements and again.odometry == data.odometry
     twice = TopicMap(full.leader_odometry, 'leader/odom', full.range)
     with pytest.raises(BagError, match='as both leader_odometry and follower_odometry'):
         read_foreign(bag, twice)

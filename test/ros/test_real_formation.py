@@ -49,6 +49,21 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
                               str(out / 'run.mcap'), '--offline', '--follower', 'ranger'],
                              capture_output=True, text=True, timeout=120)
     assert offline.returncode == 2 and '--topic-map' in offline.stderr, offline.stderr
+    # the camera follower's bearings, re-estimated through one with its mount and truth
+    topic_map = tmp_path / 'seer.yaml'
+    topic_map.write_text(yaml.safe_dump({
+        'leader_odometry': '/leader/odom', 'follower_odometry': '/seer/odom',
+        'bearing': '/seer/bearing', 'relative_truth': '/seer/truth',
+        'estimator': {'sensor_mount': [0.2, 0.0, 0.0, 0.0, 0.0, 0.0], 'bearing_sigma': 0.02,
+                      'sigma_v': 0.1, 'sigma_omega': 0.05, 'gate': 5.0}}))
+    seer = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(out / 'run.mcap'),
+                           '--offline', '--topic-map', str(topic_map), '--json',
+                           str(tmp_path / 'seer.json')], capture_output=True, text=True,
+                          timeout=120)
+    assert seer.returncode == 0 and ' bearings, ' in seer.stdout, seer.stdout + seer.stderr
+    again = json.loads((tmp_path / 'seer.json').read_text())
+    assert again['measurements'] >= counts['/seer/bearing'] - 1 and again['evaluated'] > 40
+    assert again['mean_nees'] < 6.0 and again['rmse_m'] < 0.3, again
 
 
 @pytest.mark.parametrize('change, text', [
