@@ -605,3 +605,13 @@ def test_a_second_leader_publisher_stops_the_base(
     mixed = [e for e in summary['errors'] if e.startswith(f'2 publishers on {LEADER_TOPIC}')]
     assert mixed and f'{PREFIX}/stray/field_sim' in mixed[0], summary['errors']
     assert not summary['ok'] and probe.commands[-1] == (0.0, 0.0)
+
+
+def test_a_sensor_mismatch_is_named_while_waiting(
+        tmp_path: Path, node_process: Callable[..., NodeProcess]) -> None:
+    """The estimator set for bearings, the robot's radio publishing ranges: while it waits for
+    its first bearing, /diagnostics says the range topic beside it has a publisher."""
+    probe, summary = run_pair(tmp_path, {}, 4.0, node_process, {'sensor': 'bearing'})
+    hint = f'bearing on {PREFIX}/bearing ({PREFIX}/range has a publisher: is the sensor range?)'
+    assert any(hint in message for message in probe.messages), probe.messages
+    assert not summary['ok']

@@ -522,10 +522,17 @@ class FollowerEstimatorNode(Node):
                 if age is None or age > self.params['stale_timeout']]
 
     def stream_label(self, stream: str) -> str:
-        """'leader_odom on /f1/leader_odom', and why its messages are refused, if they are."""
-        return f'{stream} on {self.topics[stream]}' + (
-            f' (its messages are refused: {self.refusal[stream]})' if stream in self.refusal
-            else '')
+        """'leader_odom on /f1/leader_odom', and why its messages are refused, if they are, or
+        that the other sensor's topic beside it has a publisher while this one has none."""
+        label = f'{stream} on {self.topics[stream]}'
+        if stream in self.refusal:
+            return label + f' (its messages are refused: {self.refusal[stream]})'
+        if stream in SENSORS:
+            other = next(sensor for sensor in SENSORS if sensor != stream)
+            beside = self.topics[stream].rsplit('/', 1)[0] + '/' + other
+            if not self.count_publishers(self.topics[stream]) and self.count_publishers(beside):
+                label += f' ({beside} has a publisher: is the sensor {other}?)'
+        return label
 
     def ages(self) -> dict[str, float | None]:
         """Per stream, seconds since its newest stamp (None: nothing yet)."""
