@@ -132,6 +132,34 @@ def odometry_problem(msg: Any, frame_id: str, child_frame_id: str) -> str | None
     return None
 
 
+#: How far (m) an odometry pose may move while its twist stays exactly zero before the twist
+#: counts as missing (a driver that fills the pose only; the filter integrates the twist).
+STILL_TWIST_MOVE = 0.1
+
+
+class StillTwist:
+    """Watches one odometry stream for a twist that stays exactly zero while its pose moves.
+
+    Attributes:
+        moved: how far (m) the pose moved while the twist stayed zero, since it first did.
+    """
+
+    def __init__(self) -> None:
+        self.start: tuple[float, float] | None = None
+        self.moved = 0.0
+
+    def add(self, v: float, omega: float, x: float, y: float) -> bool:
+        """One message's twist (m/s, rad/s) and pose position (m, its odometry frame); True
+        once the pose moved more than STILL_TWIST_MOVE with every twist zero."""
+        if v != 0.0 or omega != 0.0 or not (math.isfinite(x) and math.isfinite(y)):
+            self.start, self.moved = None, 0.0
+            return False
+        if self.start is None:
+            self.start = (x, y)
+        self.moved = math.hypot(x - self.start[0], y - self.start[1])
+        return self.moved > STILL_TWIST_MOVE
+
+
 def range_problem(msg: Any) -> tuple[str, str] | None:
     """Why a sensor_msgs/Range must be refused, as (counter, text), or None when it is
     acceptable: a range that is not finite, negative, or outside [min_range, max_range)

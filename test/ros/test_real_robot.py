@@ -615,3 +615,38 @@ def test_a_sensor_mismatch_is_named_while_waiting(
     hint = f'bearing on {PREFIX}/bearing ({PREFIX}/range has a publisher: is the sensor range?)'
     assert any(hint in message for message in probe.messages), probe.messages
     assert not summary['ok']
+
+
+def test_an_odometry_without_twist_is_named(tmp_path: Path) -> None:
+    """In one process, through the node's callbacks: a leader driver that fills the pose and
+    leaves the twist at zero (the filter integrates the twist) is a WARN naming the stream
+    once its pose moved 0.1 m; a twist again clears it."""
+    from nav_msgs.msg import Odometry
+    from formopt_ros.ros.conversions import stamp
+    from formopt_ros.ros.nodes.follower_estimator import FollowerEstimatorNode
+
+    def odometry(x: float, v: float = 0.0) -> Any:
+        message = Odometry()
+        message.header.stamp = stamp(node.now_ns())
+        message.pose.pose.position.x, message.pose.pose.orientation.w = x, 1.0
+        message.twist.twist.linear.x = v
+        return message
+
+    rclpy.init()
+    try:
+        node = FollowerEstimatorNode(cli_args=[
+            '--ros-args', '-p', f"summary_path:={tmp_path / 'summary.json'}"])
+        for x in (0.0, 0.05, 0.1):
+            node.on_odometry('odom', odometry(0.0))
+            node.on_odometry('leader_odom', odometry(x))
+        waiting = node.health()                      # 0.1 m: not more than STILL_TWIST_MOVE
+        assert waiting[0][1].startswith('waiting for the first input: range'), waiting
+        node.on_odometry('leader_odom', odometry(0.15))
+        (level, text), = node.health()
+        assert level == 'WARN' and text.startswith(
+            'leader_odom on /leader_odom: its twist is zero while its pose moved 0.15 m'), text
+        node.on_odometry('leader_odom', odometry(0.2, v=1.0))
+        assert node.health() == waiting
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

@@ -35,7 +35,8 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import (
-    header_ns, message_variance, pose_values, range_problem, range_variance, twist_noise)
+    StillTwist, header_ns, message_variance, pose_values, range_problem, range_variance,
+    twist_noise)
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -238,6 +239,9 @@ class FollowerEstimatorNode(Node):
             raise ParameterError(f"odom and leader_odom both resolve to {self.topics['odom']}: "
                                  "the leader's odometry must come from the leader (check the "
                                  'robot and leader names, or the remappings)')
+        #: per odometry stream, a twist left zero by a driver that fills only the pose
+        self.still_twist = {stream: StillTwist() for stream in ('odom', 'leader_odom')}
+        self.twist_missing: dict[str, str] = {}          # stream -> why, while it lasts
         #: a second publisher on an input topic (another robot's driver or simulator in this
         #: domain and namespace mixes its messages in): the guard's message, once
         self.intruder = ''
@@ -377,6 +381,13 @@ class FollowerEstimatorNode(Node):
         resets = self.tracker.counters.outage_resets
         x, y, yaw = (float(c) for c in pose_values(message.pose.pose))
         finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw)
+        if not self.still_twist[stream].add(v, omega, x, y):
+            self.twist_missing.pop(stream, None)       # a twist again (or not moved yet)
+        elif stream not in self.twist_missing:
+            self.twist_missing[stream] = (
+                f'{stream} on {self.topics[stream]}: its twist is zero while its pose moved '
+                f'{self.still_twist[stream].moved:.2f} m: the driver does not fill the twist, '
+                'which the filter integrates')
         self.tracker.add_odometry('follower' if stream == 'odom' else 'leader', stamp, v, omega,
                                   twist_noise(message), (x, y, yaw) if finite else None)
         if self.tracker.counters.outage_resets > resets:
@@ -562,14 +573,17 @@ class FollowerEstimatorNode(Node):
     # --- health --------------------------------------------------------------------------------
     def health(self) -> list[tuple[str, str]]:
         """Every ERROR, worst first, or else the first WARN. ERROR: sustained inconsistency or
-        gating (the consistency watch, latched); a second publisher on an input topic for
-        INTRUDER_GRACE s (latched); stamps ahead of this clock, stamps of 0, or inputs
+        gating (the consistency watch, latched), with an odometry twist left zero while its
+        pose moved as its likely cause; a second publisher on an input topic for INTRUDER_GRACE
+        s (latched); stamps ahead of this clock, stamps of 0, or inputs
         stamped more than stale_timeout behind it while the filter has not started; more than
         LATE_FRACTION of the period's inputs dropped as late, or a stream whose median delay
         (arrival minus stamp) over the period exceeds reorder_lag (a clock behind this one, or a
         slow link); a stream silent, or stamped behind this clock, for stale_timeout after its last
         input, or whose every message was refused for stale_timeout since input began. WARN:
-        waiting for a stream's first input (a driver that comes up later), a stream older than half
+        waiting for a stream's first input (a driver that comes up later), an odometry twist left
+        zero while its pose moved STILL_TWIST_MOVE (a driver that fills only the pose; an
+        odometry reset while standing looks the same), a stream older than half
         the timeout, the consistency watch's current warning (a window outside its band), a delay
         spike beyond reorder_lag or fewer inputs dropped as late (the link stalled), inputs
         refused, more than UNREACHABLE_FRACTION of the plans beyond the base's reach, a pause of
@@ -580,6 +594,7 @@ class FollowerEstimatorNode(Node):
         if self.tracker is not None and self.tracker.watch.failed:
             worst = self.tracker.watch.worst
             errors.append(f'filter inconsistent at measurement {worst.step}: {worst.reason}')
+            errors += self.twist_missing.values()        # the likely cause
         if self.intruder:
             errors.append(self.intruder)
         if new.get('refused_future'):
@@ -620,6 +635,8 @@ class FollowerEstimatorNode(Node):
             return [('ERROR', e) for e in errors]
         if self.start_warning:
             return [('WARN', self.start_warning)]
+        if self.twist_missing:
+            return [('WARN', next(iter(self.twist_missing.values())))]
         never = [s for s, a in ages.items() if a is None]
         if never:       # a driver that comes up later: the base is held until it does
             return [('WARN', 'waiting for the first input: '
