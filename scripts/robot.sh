@@ -4,7 +4,7 @@ set -euo pipefail
 
 usage() {
   cat <<'EOF'
-Usage: scripts/robot.sh --robot ID [--leader ID] [--sim] [-- NODE ARGS...]
+Usage: scripts/robot.sh --robot ID [--leader ID] [--sim [--sim-params FILE]] [-- NODE ARGS...]
 
 Start the nodes of follower ID on this computer, in the namespace /ID:
   follower_estimator  reads /ID/odom (nav_msgs/Odometry of this base), /ID/range
@@ -15,7 +15,8 @@ Start the nodes of follower ID on this computer, in the namespace /ID:
                       /LEADER/odom), to try the set-up without robots.
 NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom; a
 -r leader_odom:=TOPIC of yours replaces /LEADER/odom); with --sim field_sim simulates the
-sensor and slot follower_estimator runs with (from its parameters, however given).
+sensor and slot follower_estimator runs with (from its parameters, however given);
+--sim-params FILE is a params file for field_sim (e.g. its leader's path, keyed /**/field_sim).
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet
 (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET is set unless given; for networks without multicast set
@@ -27,10 +28,10 @@ late message is a WARN: the link stalled).
 EOF
 }
 
-robot='' leader='leader' sim=0
+robot='' leader='leader' sim=0 sim_params=()
 while [[ $# -gt 0 ]]; do
   case "$1" in
-    --robot|--leader)
+    --robot|--leader|--sim-params)
       if [[ $# -lt 2 ]]; then
         echo "robot.sh: error: $1 needs a value (see --help)" >&2
         exit 2
@@ -38,6 +39,7 @@ while [[ $# -gt 0 ]]; do
     --robot) robot="$2"; shift 2 ;;
     --leader) leader="$2"; shift 2 ;;
     --sim) sim=1; shift ;;
+    --sim-params) sim_params=(--params-file "$2"); shift 2 ;;
     -h|--help) usage; exit 0 ;;
     --) shift; break ;;
     *) echo "robot.sh: error: unknown argument: $1 (see --help)" >&2; exit 2 ;;
@@ -50,6 +52,10 @@ for name in robot leader; do
     exit 2
   fi
 done
+if [[ ${#sim_params[@]} -gt 0 && $sim -eq 0 ]]; then
+  echo "robot.sh: error: --sim-params is for the simulated robot: give --sim too" >&2
+  exit 2
+fi
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-SUBNET}"
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 pids=()
@@ -61,7 +67,7 @@ if [[ $sim -eq 1 ]]; then
     if [[ "$arg" == __node:=* ]]; then estimator="${arg#__node:=}"; break; fi
   done
   "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" \
-    -p "sensor_of:=/$robot/$estimator" &
+    -p "sensor_of:=/$robot/$estimator" "${sim_params[@]}" &
   pids+=($!)
 fi
 leader_remap=(-r "leader_odom:=/$leader/odom")   # rcl takes the first remap: the user's wins

@@ -576,18 +576,28 @@ def test_robot_sh_takes_the_users_leader_topic(tmp_path: Path) -> None:
 def test_robot_sh_sim_simulates_the_estimators_sensor(tmp_path: Path) -> None:
     """scripts/robot.sh --sim with the estimator configured by a params file (a camera
     follower at [-1, 2]): field_sim reads sensor and slot from the running estimator
-    (sensor_of), so bearings arrive; it simulated a radio before, and the estimator waited."""
+    (sensor_of), so bearings arrive; it simulated a radio before, and the estimator waited.
+    --sim-params gives field_sim a params file of its own (and only with --sim)."""
     params = tmp_path / 'camera.yaml'
     summary = tmp_path / 'summary.json'
     params.write_text(
         '/**/follower_estimator:\n  ros__parameters:\n    sensor: bearing\n'
         f'    formation_slot: [-1.0, 2.0]\n    duration: 6.0\n    summary_path: {summary}\n')
+    sim, sim_summary = tmp_path / 'sim.yaml', tmp_path / 'sim.json'
+    sim.write_text('/**/field_sim:\n  ros__parameters:\n    dropout_rate: 0.0\n'
+                   f'    summary_path: {sim_summary}\n')
     script = Path(__file__).parents[2] / 'scripts' / 'robot.sh'
-    run = subprocess.run([str(script), '--robot', 'f1', '--sim', '--', '--params-file',
-                          str(params)], capture_output=True, text=True, timeout=120)
+    run = subprocess.run([str(script), '--robot', 'f1', '--sim', '--sim-params', str(sim), '--',
+                          '--params-file', str(params)], capture_output=True, text=True,
+                         timeout=120)
     assert run.returncode == 0, run.stderr
     result = json.loads(summary.read_text())
     assert result['counters']['measurements'] > 20, result['counters']
+    sent = json.loads(sim_summary.read_text())['sent']      # --sim-params reached field_sim
+    assert sent['bearing'] > 20 and sent['dropouts'] == 0, sent
+    alone = subprocess.run([str(script), '--robot', 'f1', '--sim-params', str(sim)],
+                           capture_output=True, text=True, timeout=60)
+    assert alone.returncode == 2 and 'give --sim too' in alone.stderr, alone.stderr
 
 
 def test_a_second_leader_publisher_stops_the_base(
