@@ -22,6 +22,8 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
       bias_walk: 0.0                     # m / sqrt(s)
       huber: 0.0                         # Huber threshold, standard deviations (0: off)
       gate: 0.0                          # innovation gate, standard deviations (0: 10)
+      reopen_after: 0                    # gated in a row before the filter re-opens (0: 3;
+                                         # the node's 10 coasts through NLOS bursts)
       initial_covariance: [0.1, 0.1, 0.01]
       initial_pose: []                   # [x m, y m, phi rad] in the leader frame at the
                                          # first range, as the node's initial_pose or slot

@@ -30,7 +30,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from formopt_ros.core.checks import InvalidInput, as_real
+from formopt_ros.core.checks import InvalidInput, as_integer, as_real
 from formopt_ros.core.cost import Problem
 from formopt_ros.core.formulas import weighted_trace
 from formopt_ros.core.model import (
@@ -119,8 +119,9 @@ class InputBounds:
         return None
 
 
-def innovation_gate(innovation: Any, S: Any, variance: float,
-                    gated_in_a_row: Any, gate: float = INNOVATION_GATE) -> tuple[Any, Any, Any]:
+def innovation_gate(innovation: Any, S: Any, variance: float, gated_in_a_row: Any,
+                    gate: float = INNOVATION_GATE,
+                    patience: int = GATE_PATIENCE) -> tuple[Any, Any, Any]:
     """The gate's decision (module docstring) for one measurement or a batch (arrays (T,)).
 
     Args:
@@ -128,6 +129,7 @@ def innovation_gate(innovation: Any, S: Any, variance: float,
         variance: the measurement noise variance R.
         gated_in_a_row: measurements gated in a row before this one.
         gate: the normalised innovation squared above which it is refused.
+        patience: gated measurements in a row after which the filter re-opens.
 
     Returns:
         (nis, use, inflation): the normalised innovation squared; whether the measurement is
@@ -136,7 +138,7 @@ def innovation_gate(innovation: Any, S: Any, variance: float,
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         nis = innovation * innovation / S
         projected = S - variance
-        reopen = (np.asarray(gated_in_a_row) >= GATE_PATIENCE) & np.isfinite(nis) & \
+        reopen = (np.asarray(gated_in_a_row) >= patience) & np.isfinite(nis) & \
             (projected > 0.0)
         passes = nis <= gate
         inflation = np.where(reopen & ~passes, np.maximum(
@@ -198,12 +200,17 @@ class RealNoise:
         gate: the innovation gate in standard deviations (0: the paper filter's 10). Outliers
             of a radio are often within 10 sigma of an uncertain prior (a +1 m range when
             sqrt(S) is 0.2 m is 5 sigma): 5 keeps them out.
+        reopen_after: gated measurements in a row after which the filter takes itself to be
+            lost and re-opens on the next one with an inflated covariance (0: GATE_PATIENCE,
+            the paper filter's 3). Non-line-of-sight ranges come in bursts (someone between
+            the robots): a burst longer than this is fused as if it were the truth.
     """
 
     bias_sigma: float = 0.0
     bias_walk: float = 0.0
     huber: float = 0.0
     gate: float = 0.0
+    reopen_after: int = 0
 
     def __post_init__(self) -> None:
         for name in ('bias_sigma', 'bias_walk', 'huber', 'gate'):
@@ -212,6 +219,13 @@ class RealNoise:
             if getattr(self, name) and getattr(self, name) < 1.0:
                 raise InvalidInput(name, f'must be 0 (off) or >= 1 standard deviation, got '
                                          f'{getattr(self, name)!r}')
+        object.__setattr__(self, 'reopen_after',
+                           as_integer('reopen_after', self.reopen_after, 0, 10**6))
+
+    @property
+    def patience(self) -> int:
+        """Gated measurements in a row before the filter re-opens."""
+        return self.reopen_after or GATE_PATIENCE
 
     @property
     def gate_nis(self) -> float:
@@ -434,7 +448,7 @@ class EstimatorPlanner:
         x, P, innovation, S = ekf_update(self.state, self.covariance, z, kind,
                                          variance, self.sensor_offset)
         nis, use, inflation = innovation_gate(innovation, S, variance, self.gated_in_a_row,
-                                              self.noise.gate_nis)
+                                              self.noise.gate_nis, self.noise.patience)
         if not use:
             self.gated_in_a_row += 1
             return UpdateResult(innovation, nis, False)

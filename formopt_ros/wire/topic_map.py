@@ -20,7 +20,7 @@ ESTIMATOR_DEFAULTS: dict[str, Any] = {
     'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'range_variance': 0.0,
     'bias_sigma': 0.0,
     'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01],
-    'initial_pose': [], 'bearing_sigma': 0.02, 'sensor_mount': []}
+    'initial_pose': [], 'bearing_sigma': 0.02, 'sensor_mount': [], 'reopen_after': 0}
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,8 @@ def filter_model(settings: dict[str, Any], slot: tuple[float, float], kind: str 
                         sigma_v=s['sigma_v'], sigma_omega=s['sigma_omega'],
                         sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
                         initial_covariance=s['initial_covariance'])
-    return scenario, RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'])
+    return scenario, RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'],
+                               s['reopen_after'])
 
 
 def check_settings(path: str | Path, settings: dict[str, Any], kind: str = 'range') -> None:
