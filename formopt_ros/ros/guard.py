@@ -13,7 +13,8 @@ Intruder: a topic the node reads has more than one publisher for longer than
 ``INTRUDER_GRACE`` s; the node stops with exit code 1 and names the publishing nodes. The grace
 covers a restarted peer whose killed predecessor stays in the ROS graph until its discovery
 lease ends (3 s with config/fastdds_discovery.xml, which every formopt_ros node loads unless
-FASTRTPS_DEFAULT_PROFILES_FILE is set).
+FASTRTPS_DEFAULT_PROFILES_FILE is set); publishers that all have one name get
+``RESTART_GRACE`` s (a robot's driver restarted under Fast DDS's default 20 s lease).
 """
 from __future__ import annotations
 
@@ -35,6 +36,10 @@ from formopt_ros.wire.topics import BY_KEY
 
 #: How long (s) a topic may have a second publisher before the run is stopped.
 INTRUDER_GRACE = 5.0
+#: How long (s) when every publisher has the same name: a restarted node whose predecessor
+#: stays in the graph until its discovery lease ends (20 s with Fast DDS's default profile,
+#: which a robot's own drivers keep).
+RESTART_GRACE = 25.0
 #: Look at the publishers of the watched topics at most this often, s.
 CHECK_PERIOD = 0.5
 #: A node stopped by a mismatch waits at most this long (s) for its description's readers.
@@ -169,13 +174,16 @@ class RunGuard:
                 self._crowded_since.pop(topic, None)
                 continue
             since = self._crowded_since.setdefault(topic, now)
-            if now - since >= INTRUDER_GRACE:
-                names = ', '.join(sorted(
-                    f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos))
+            names = sorted(f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos)
+            alike = len(set(names)) == 1
+            if now - since >= (RESTART_GRACE if alike else INTRUDER_GRACE):
+                why = (f'two nodes named {names[0]} (a restarted node\'s predecessor leaves the '
+                       f'graph within its discovery lease, less than {RESTART_GRACE:g} s)'
+                       if alike else 'another run or node publishes on the topics of this run')
                 self.fail(Failure(INTRUDER_EXIT, (
-                    f'{len(infos)} publishers on {topic} ({names}) for {now - since:.1f} s: '
-                    'another run or node publishes on the topics of this run; its data may '
-                    'be mixed in (run formations in separate ROS_DOMAIN_IDs or namespaces)')))
+                    f"{len(infos)} publishers on {topic} ({', '.join(names)}) for "
+                    f'{now - since:.1f} s: {why}; its data may be mixed in (run formations '
+                    'in separate ROS_DOMAIN_IDs or namespaces)')))
                 return
         self._check_end(now)
 

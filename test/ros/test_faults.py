@@ -391,3 +391,28 @@ def test_an_estimator_whose_peers_never_come_ends_after_the_start_timeout(node_p
               if line.startswith('estimator_planner: error:')]
     assert len(errors) == 1 and 'did not start within 2 s (start_timeout): waiting for ' \
         'subscribers on' in errors[0], estimator.stderr
+
+
+def test_a_restarted_publisher_gets_its_lease_not_the_intruder_grace(monkeypatch) -> None:
+    """Two publishers of one name (a driver restarted while its predecessor's discovery lease,
+    20 s with Fast DDS's default, has not ended): no failure before RESTART_GRACE, then one
+    that says so; two names fail after INTRUDER_GRACE as before."""
+    from types import SimpleNamespace
+    from formopt_ros.ros import guard
+    clock = [0.0]
+    monkeypatch.setattr(guard, 'time', SimpleNamespace(monotonic=lambda: clock[0]))
+
+    def checked(names: list[str], times: list[float]) -> list[guard.Failure]:
+        infos = [SimpleNamespace(node_namespace='/', node_name=name) for name in names]
+        failures: list[guard.Failure] = []
+        run_guard = guard.RunGuard(SimpleNamespace(get_publishers_info_by_topic=lambda _: infos),
+                                   False, failures.append)
+        run_guard.watch('/leader/odom')
+        for clock[0] in times:
+            run_guard.check()
+        return failures
+
+    assert not checked(['driver', 'driver'], [0.0, 10.0, guard.RESTART_GRACE - 0.1])
+    late, = checked(['driver', 'driver'], [0.0, guard.RESTART_GRACE])
+    assert 'two nodes named /driver' in late.message and late.code == guard.INTRUDER_EXIT
+    assert checked(['driver', 'stray'], [0.0, guard.INTRUDER_GRACE])
