@@ -15,7 +15,7 @@ Start the nodes of follower ID on this computer, in the namespace /ID:
                       /LEADER/odom), to try the set-up without robots.
 NODE ARGS go to follower_estimator (e.g. -p max_speed:=0.8 -r odom:=/ID/base/odom; a
 -r leader_odom:=TOPIC of yours replaces /LEADER/odom); with --sim field_sim simulates the
-sensor and slot follower_estimator runs with (from its parameters, however given);
+sensor, slot, base frame and camera mount follower_estimator runs with (its parameters);
 --sim-params FILE is a params file for field_sim (e.g. its leader's path, keyed /**/field_sim).
 
 Across computers: every computer uses the same ROS_DOMAIN_ID; discovery reaches the subnet

@@ -575,14 +575,17 @@ def test_robot_sh_takes_the_users_leader_topic(tmp_path: Path) -> None:
 
 def test_robot_sh_sim_simulates_the_estimators_sensor(tmp_path: Path) -> None:
     """scripts/robot.sh --sim with the estimator configured by a params file (a camera
-    follower at [-1, 2]): field_sim reads sensor and slot from the running estimator
-    (sensor_of), so bearings arrive; it simulated a radio before, and the estimator waited.
+    follower at [-1, 2], its camera's mount and a base_footprint frame): field_sim takes
+    sensor, slot, base frame and mount from the running estimator (sensor_of), so bearings
+    arrive, none refused, the run ok; it simulated a radio before, and the estimator waited.
     --sim-params gives field_sim a params file of its own (and only with --sim)."""
     params = tmp_path / 'camera.yaml'
     summary = tmp_path / 'summary.json'
     params.write_text(
         '/**/follower_estimator:\n  ros__parameters:\n    sensor: bearing\n'
-        f'    formation_slot: [-1.0, 2.0]\n    duration: 6.0\n    summary_path: {summary}\n')
+        '    formation_slot: [-1.0, 2.0]\n    sensor_mount: [0.3, 0.05, 0.2, 0.0, 0.0, 0.3]\n'
+        '    base_frame: base_footprint\n    follower_child_frame: base_footprint\n'
+        f'    duration: 6.0\n    summary_path: {summary}\n')
     sim, sim_summary = tmp_path / 'sim.yaml', tmp_path / 'sim.json'
     sim.write_text('/**/field_sim:\n  ros__parameters:\n    dropout_rate: 0.0\n'
                    f'    summary_path: {sim_summary}\n')
@@ -593,6 +596,7 @@ def test_robot_sh_sim_simulates_the_estimators_sensor(tmp_path: Path) -> None:
     assert run.returncode == 0, run.stderr
     result = json.loads(summary.read_text())
     assert result['counters']['measurements'] > 20, result['counters']
+    assert not any(result['refused'].values()) and result['ok'], result   # frames and mount
     sent = json.loads(sim_summary.read_text())['sent']      # --sim-params reached field_sim
     assert sent['bearing'] > 20 and sent['dropouts'] == 0, sent
     alone = subprocess.run([str(script), '--robot', 'f1', '--sim-params', str(sim)],

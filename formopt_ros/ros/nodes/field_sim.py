@@ -43,10 +43,11 @@ PARAMS = [
           'range) or bearing (a camera, geometry_msgs/Vector3Stamped toward the leader on '
           'bearing)', choices=('range', 'bearing')),
     SLOT,
-    Param('sensor_of', '', "'': this node's sensor and formation_slot; a follower_estimator's "
-          'full name (e.g. /f1/follower_estimator): take both from that running node\'s '
-          'parameters, however it was configured (params file, -p), waiting for it up to '
-          f'{SENSOR_OF_TIMEOUT:g} s (scripts/robot.sh --sim sets it)'),
+    Param('sensor_of', '', "'': this node's own parameters; a follower_estimator's full name "
+          '(e.g. /f1/follower_estimator): take sensor, formation_slot, base_frame and '
+          "camera_mount from that running node's parameters (sensor, formation_slot, "
+          'base_frame, sensor_mount), however it was configured (params file, -p), waiting for '
+          f'it up to {SENSOR_OF_TIMEOUT:g} s (scripts/robot.sh --sim sets it)'),
     *PATH_PARAMS,
     dataclasses.replace(INITIAL_COVARIANCE, low=0.0, description='the true start pose is drawn '
                         'from N([slot, 0], diag(this)) [x m^2, y m^2, phi rad^2], as the '
@@ -152,26 +153,48 @@ class FieldSimNode(Node):
         self.sent = {'odom': 0, 'leader_odom': 0, p['sensor']: 0, 'dropouts': 0}
 
     def _settings_of(self, name: str) -> dict[str, Any]:
-        """sensor and formation_slot of the running node ``name``, read from its parameter
-        service (ParameterError when it does not answer or has no such parameters)."""
+        """What this simulated robot takes from the running follower_estimator ``name`` (its
+        parameter service): its sensor and slot, its base frame (the odometry's child frame and
+        the camera mount's parent) and its fixed sensor_mount as the camera's mount.
+        ParameterError when it does not answer, has no such parameters or asks for what this
+        simulator cannot be (a tilted camera, two base frames)."""
         client = AsyncParameterClient(self, name)
-        self.get_logger().info(f'taking sensor and formation_slot from {name} (sensor_of): '
-                               'waiting for it')
+        self.get_logger().info(f'taking the sensor, slot, frames and mount from {name} '
+                               '(sensor_of): waiting for it')
         deadline = monotonic() + SENSOR_OF_TIMEOUT
         while not client.wait_for_services(timeout_sec=0.2):
-            if STOP_SIGNALS or monotonic() > deadline:
+            if STOP_SIGNALS:
+                raise ParameterError(f"parameter 'sensor_of': stopped before {name} answered")
+            if monotonic() > deadline:
                 raise ParameterError(f"parameter 'sensor_of': no node {name} answered within "
                                      f'{SENSOR_OF_TIMEOUT:g} s (start it, or check the name '
                                      'with ros2 node list)')
-        future = client.get_parameters(['sensor', 'formation_slot'])
+        names = ['sensor', 'formation_slot', 'base_frame', 'follower_child_frame',
+                 'sensor_mount']
+        future = client.get_parameters(names)
         rclpy.spin_until_future_complete(self, future, timeout_sec=SENSOR_OF_TIMEOUT)
         answer = future.result()
-        values = [parameter_value_to_python(value) for value in answer.values] if answer else []
-        if len(values) != 2 or values[0] not in ('range', 'bearing') or values[1] is None:
-            raise ParameterError(f"parameter 'sensor_of': {name} gave no sensor and "
-                                 f'formation_slot (got {values}); is it a follower_estimator?')
-        self.get_logger().info(f'{name}: sensor {values[0]}, formation_slot {list(values[1])}')
-        return {'sensor': values[0], 'formation_slot': list(values[1])}
+        got = dict(zip(names, [parameter_value_to_python(value) for value in answer.values]
+                       if answer else []))
+        if got.get('sensor') not in ('range', 'bearing') or None in got.values() or \
+                len(got) != len(names):
+            raise ParameterError(f"parameter 'sensor_of': {name} gave no sensor, slot, frames "
+                                 f'and mount (got {got}); is it a follower_estimator?')
+        base, child = got['base_frame'], got['follower_child_frame']
+        if child and child != base:
+            raise ParameterError(f"parameter 'sensor_of': {name} reads odometry of "
+                                 f'{child!r} and the mount in {base!r}; field_sim has one base '
+                                 'frame (set both alike for the dry run)')
+        settings = {'sensor': got['sensor'], 'formation_slot': list(got['formation_slot']),
+                    'base_frame': base}
+        mount = list(got['sensor_mount'])
+        if len(mount) == 6:
+            if any(abs(angle) > 1e-9 for angle in mount[3:5]):
+                raise ParameterError(f"parameter 'sensor_of': {name}'s sensor_mount {mount} is "
+                                     'tilted (roll, pitch); field_sim simulates a level camera')
+            settings['camera_mount'] = [float(mount[0]), float(mount[1]), float(mount[5])]
+        self.get_logger().info(f'{name}: ' + ', '.join(f'{k} {v}' for k, v in settings.items()))
+        return settings
 
     @staticmethod
     def _sensor(p: dict[str, Any]) -> Radio | Camera:
