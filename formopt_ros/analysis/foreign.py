@@ -28,9 +28,9 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
       initial_pose: []                   # [x m, y m, phi rad] in the leader frame at the
                                          # first range, as the node's initial_pose or slot
       bearing_sigma: 0.02                # bearing noise, rad
-      sensor_mount: []                   # bearings: the sensor frame on the follower, [x m,
-                                         # y m, z m, roll, pitch, yaw rad] (the node's
-                                         # sensor_mount); []: directions in the body frame
+      sensor_mount: []                   # the sensor frame on the follower, [x m, y m, z m,
+                                         # roll, pitch, yaw rad] (the node's sensor_mount);
+                                         # []: from the bag's /tf_static, else the body frame
 
 The initial estimate is ``initial_pose`` when given, else the truth at the first measurement
 when the bag has truth, else [|p| = the first range along -x, 0] (a range has no direction: a
@@ -59,8 +59,8 @@ from formopt_ros.core.model import (
     state_difference)
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
-    estimate_values, header_ns, message_variance, pose_values, range_problem, range_variance,
-    twist_noise)
+    estimate_values, header_ns, message_variance, pose_in_root, pose_values, range_problem,
+    range_variance, static_transforms, twist_noise)
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap, filter_model
 
 
@@ -110,6 +110,28 @@ class ForeignData:
         return relative_pose(poses[0], poses[1])
 
 
+def sensor_mount(bag: Bag, topics: TopicMap,
+                 frame: str) -> tuple[tuple[float, float], np.ndarray]:
+    """The measurement frame's mount on the follower: its lever arm (x, y) m and rotation
+    (3, 3) from the map's sensor_mount, else from the bag's /tf_static (the frame's pose in
+    the root of its chain, the body frame), else the body frame itself for ranges and for
+    bearings without a frame_id; BagError for bearings in a frame with no known mount (the
+    live node refuses them too)."""
+    mount = topics.estimator['sensor_mount']
+    if mount:
+        return (float(mount[0]), float(mount[1])), rotation_matrix(rpy_quaternion(*mount[3:]))
+    found = bag.find('/tf_static', required=False)
+    static = static_transforms(m for _, m in bag.decode(found)) if found else {}
+    chain = pose_in_root(static, frame) if frame in static else None
+    if chain is not None:
+        return (float(chain[1][0]), float(chain[1][1])), chain[2]
+    if topics.kind == 'bearing' and frame:
+        raise BagError(f"the bearings on {topics.bearing!r} are in frame {frame!r}, whose mount "
+                       'the bag\'s /tf_static does not give: set estimator: sensor_mount '
+                       '[x, y, z, roll, pitch, yaw] (the camera on the follower)')
+    return (0.0, 0.0), np.eye(3)
+
+
 def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
     """Decode the mapped topics of ``bag``; BagError naming a topic the bag lacks."""
     def resolved(topic: str) -> str:
@@ -137,26 +159,27 @@ def read_foreign(bag: Bag, topics: TopicMap) -> ForeignData:
                 refused['not_finite'] += 1
                 continue
             odometry[robot].append((header_ns(m), v, omega, twist_noise(m)))
-    measurements, offset = [], None
-    if topics.kind == 'range':
-        for m in decoded(topics.range, 'sensor_msgs/msg/Range'):
+    messages = decoded(topics.measurement, 'sensor_msgs/msg/Range' if topics.kind == 'range'
+                       else 'geometry_msgs/msg/Vector3Stamped')
+    frame = messages[0].header.frame_id if messages else ''
+    (x, y), rotation = sensor_mount(bag, topics, frame)
+    offset = None if (x, y) == (0.0, 0.0) else (x, y)
+    measurements = []
+    for m in messages:
+        if topics.kind == 'range':
             if (problem := range_problem(m)) is not None:
                 refused[problem[0]] += 1
             else:
                 measurements.append((header_ns(m), float(m.range),
                                      message_variance(m.variance)))
-    else:
-        mount = topics.estimator['sensor_mount'] or [0.0] * 6
-        rotation = rotation_matrix(rpy_quaternion(*mount[3:]))
-        offset = None if mount[:2] == [0.0, 0.0] else (float(mount[0]), float(mount[1]))
-        for m in decoded(topics.bearing, 'geometry_msgs/msg/Vector3Stamped'):
-            direction = (m.vector.x, m.vector.y, m.vector.z)
-            if not all(math.isfinite(c) for c in direction):
-                refused['not_finite'] += 1
-            elif (value := direction_bearing(direction, rotation)) is None:
-                refused['out_of_range'] += 1           # vertical in the body frame
-            else:
-                measurements.append((header_ns(m), value, None))
+            continue
+        direction = (m.vector.x, m.vector.y, m.vector.z)
+        if not all(math.isfinite(c) for c in direction):
+            refused['not_finite'] += 1
+        elif (value := direction_bearing(direction, rotation)) is None:
+            refused['out_of_range'] += 1           # vertical in the body frame
+        else:
+            measurements.append((header_ns(m), value, None))
     for name, stamps in (('follower_odometry', [o[0] for o in odometry['follower']]),
                          ('leader_odometry', [o[0] for o in odometry['leader']]),
                          (topics.kind, [r[0] for r in measurements])):

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING
+from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING, rotation_matrix
 
 #: Measurement.kind codes of the message definition (RANGE=0, BEARING=1).
 KIND_CODES = {RANGE: 0, BEARING: 1}
@@ -158,6 +158,38 @@ class StillTwist:
             self.start = (x, y)
         self.moved = math.hypot(x - self.start[0], y - self.start[1])
         return self.moved > STILL_TWIST_MOVE
+
+
+#: Static transforms by child frame: (parent frame, the child's translation (3,) m and
+#: rotation (3, 3) in the parent).
+StaticTransforms = dict[str, tuple[str, np.ndarray, np.ndarray]]
+
+
+def static_transforms(messages: Any) -> StaticTransforms:
+    """The transforms of tf2_msgs/TFMessage ``messages`` (/tf_static), by child frame (a
+    later one for the same child replaces the earlier)."""
+    static: StaticTransforms = {}
+    for message in messages:
+        for transform in message.transforms:
+            t, q = transform.transform.translation, transform.transform.rotation
+            static[transform.child_frame_id] = (
+                transform.header.frame_id, np.array([t.x, t.y, t.z]),
+                rotation_matrix((q.x, q.y, q.z, q.w)))
+    return static
+
+
+def pose_in_root(static: StaticTransforms,
+                 frame: str) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """(the root of ``frame``'s chain of static transforms, its offset (3,) m and rotation
+    (3, 3) in that root), or None for a loop."""
+    offset, rotation, seen = np.zeros(3), np.eye(3), {frame}
+    while frame in static:
+        frame, t, R = static[frame]           # parent; the child's pose in it
+        offset, rotation = R @ offset + t, R @ rotation
+        if frame in seen:
+            return None
+        seen.add(frame)
+    return frame, offset, rotation
 
 
 def range_problem(msg: Any) -> tuple[str, str] | None:

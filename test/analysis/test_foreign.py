@@ -216,6 +216,24 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
             len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
+def test_bearings_in_a_frame_without_a_mount_are_refused() -> None:
+    """Bearings stamped in a camera frame that neither the map's sensor_mount nor the bag's
+    /tf_static places on the follower are refused naming the frame and the key (the live
+    node refuses them too); sensor_mount places them."""
+    from types import SimpleNamespace
+    from formopt_ros.analysis.foreign import sensor_mount
+    from formopt_ros.bag import BagError
+    no_static = SimpleNamespace(find=lambda name, required=True: None)
+    topics = TopicMap('/l/odom', '/f/odom', bearing='/f/bearing')
+    with pytest.raises(BagError, match="frame 'f/camera'.*sensor_mount"):
+        sensor_mount(no_static, topics, 'f/camera')
+    placed = replace(topics, estimator={**topics.estimator,
+                                        'sensor_mount': [0.2, 0.1, 0.0, 0.0, 0.0, 0.5]})
+    (x, y), rotation = sensor_mount(no_static, placed, 'f/camera')
+    assert (x, y) == (0.2, 0.1) and rotation[1, 0] == pytest.approx(math.sin(0.5), abs=1e-12)
+    assert sensor_mount(no_static, topics, '')[0] == (0.0, 0.0)   # the body frame
+
+
 def test_topic_names_resolve_as_the_bag_check_does(data: ForeignData) -> None:
     """A map naming the topics without their leading slash reads the same inputs; one topic
     named as both robots' odometry is refused."""

@@ -49,13 +49,14 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
                               str(out / 'run.mcap'), '--offline', '--follower', 'ranger'],
                              capture_output=True, text=True, timeout=120)
     assert offline.returncode == 2 and '--topic-map' in offline.stderr, offline.stderr
-    # the camera follower's bearings, re-estimated through one with its mount and truth
+    # the camera follower's bearings, re-estimated through one with its truth, the camera's
+    # mount from the recorded /tf_static
     topic_map = tmp_path / 'seer.yaml'
     topic_map.write_text(yaml.safe_dump({
         'leader_odometry': '/leader/odom', 'follower_odometry': '/seer/odom',
         'bearing': '/seer/bearing', 'relative_truth': '/seer/truth',
-        'estimator': {'sensor_mount': [0.2, 0.0, 0.0, 0.0, 0.0, 0.0], 'bearing_sigma': 0.02,
-                      'sigma_v': 0.1, 'sigma_omega': 0.05, 'gate': 5.0}}))
+        'estimator': {'bearing_sigma': 0.02, 'sigma_v': 0.1, 'sigma_omega': 0.05,
+                      'gate': 5.0}}))
     seer = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(out / 'run.mcap'),
                            '--offline', '--topic-map', str(topic_map), '--json',
                            str(tmp_path / 'seer.json')], capture_output=True, text=True,

@@ -35,8 +35,8 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import (
-    StillTwist, header_ns, message_variance, pose_values, range_problem, range_variance,
-    twist_noise)
+    StillTwist, header_ns, message_variance, pose_in_root, pose_values, range_problem,
+    range_variance, static_transforms, twist_noise)
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -438,31 +438,16 @@ class FollowerEstimatorNode(Node):
         """Static transforms, kept by child frame, and the mount of every frame they connect to
         base_frame: its pose there (e.g. base_link -> camera_link -> camera_optical), resolved
         here rather than per measurement."""
-        for transform in message.transforms:
-            t, q = transform.transform.translation, transform.transform.rotation
-            self.static[transform.child_frame_id] = (
-                transform.header.frame_id, np.array([t.x, t.y, t.z]),
-                rotation_matrix((q.x, q.y, q.z, q.w)))
+        self.static.update(static_transforms([message]))
         resolved = {frame: self._static_mount(frame) for frame in self.static}
         self.mounts = {frame: mount for frame, mount in resolved.items() if mount is not None}
-
-    def _in_root(self, frame: str) -> tuple[str, np.ndarray, np.ndarray] | None:
-        """(the root of ``frame``'s chain of static transforms, its offset (3,) m and rotation
-        (3, 3) in that root), or None for a loop."""
-        offset, rotation, seen = np.zeros(3), np.eye(3), {frame}
-        while frame in self.static:
-            frame, t, R = self.static[frame]      # parent; the child's pose in it
-            offset, rotation = R @ offset + t, R @ rotation
-            if frame in seen:
-                return None
-            seen.add(frame)
-        return frame, offset, rotation
 
     def _static_mount(self, frame: str) -> tuple[tuple[float, float], np.ndarray] | None:
         """The pose of ``frame`` in base_frame through /tf_static, below it or on another
         branch of one tree (yaw, pitch, roll and the horizontal offset are used), or None when
         they are not connected."""
-        sensor, base = self._in_root(frame), self._in_root(self.params['base_frame'])
+        sensor = pose_in_root(self.static, frame)
+        base = pose_in_root(self.static, self.params['base_frame'])
         if sensor is None or base is None or sensor[0] != base[0]:
             return None
         offset = base[2].T @ (sensor[1] - base[1])
