@@ -21,7 +21,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from formopt_ros.core.solver import OutsideTheDisc
-from formopt_ros.ros.params import ROS_PARAMETERS, Param, ParameterError
+from formopt_ros.ros.params import ROS_PARAMETERS, Param, ParameterError, parse_value
 from formopt_ros.wire.jsonfile import write_json
 from formopt_ros.wire.outputs import broken_link_on
 
@@ -182,6 +182,32 @@ def unknown_parameters(argv: Sequence[str], specs: Sequence[Param]) -> list[str]
     return [name for name in names if name not in known]
 
 
+def float_lists(argv: Sequence[str], specs: Sequence[Param]) -> list[str]:
+    """``argv`` with every ``-p NAME:=[...]`` of a parameter whose default is a list of floats
+    written as floats: rcl refuses a list that mixes integers and floats
+    (``sensor_mount:=[0.2, 0, 0, 0, 0, 0]``) and types one of integers an integer array."""
+    floats = {spec.name for spec in specs if isinstance(spec.default, list) and
+              any(isinstance(value, float) for value in spec.default)}
+    out, inside, previous = list(argv), False, ''
+    for index, arg in enumerate(argv):
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--':
+            inside = False
+        elif inside and previous in ('-p', '--param') and ':=' in arg:
+            key, text = arg.split(':=', 1)
+            if key.rpartition(':')[2] in floats:
+                try:
+                    values = parse_value(key, text)
+                except ParameterError:
+                    values = None                  # rcl says what is wrong with it
+                if isinstance(values, list) and all(
+                        type(value) in (int, float) for value in values):
+                    out[index] = f"{key}:=[{', '.join(repr(float(v)) for v in values)}]"
+        previous = arg
+    return out
+
+
 def ros_arguments(argv: Sequence[str], flags: tuple[str, ...]) -> list[str]:
     """The values following any of ``flags`` inside --ros-args sections of ``argv``."""
     values, inside, previous = [], False, ''
@@ -270,6 +296,7 @@ def node_main(factory: Callable[[], Node], program: str, summary: str,
     if any(a in ('-h', '--help') for a in argv[1:]):     # also after --ros-args (the scripts)
         print(help_text(program, summary, specs))
         return 0
+    argv = float_lists(argv, specs)
     try:
         plain = remove_ros_args(argv)[1:]
     except Exception as error:              # malformed --ros-args section

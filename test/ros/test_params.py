@@ -154,6 +154,17 @@ def test_an_integer_is_accepted_for_a_float_parameter(ros_init) -> None:
         node.destroy_node()
 
 
+def test_a_list_of_floats_may_be_typed_with_integers(node_process, tmp_path) -> None:
+    """-p sensor_mount:=[0.2, 0, 0, 0, 0, 0.5] on the command line (rcl refuses a list that
+    mixes integers and floats): the node starts with it as floats and runs."""
+    summary = tmp_path / 'mount.json'
+    process = node_process('follower_estimator', {'summary_path': str(summary),
+                                                  'duration': 0.3},
+                           extra=['-p', 'sensor_mount:=[0.2, 0, 0, 0, 0, 0.5]'])
+    assert process.wait(timeout=60.0) == 0, process.stderr
+    assert summary.exists() and 'Traceback' not in process.stderr
+
+
 def test_outputs_through_a_broken_link_are_refused_at_start(node_process, tmp_path) -> None:
     """A summary or checkpoint path through a symbolic link to nothing, or through a loop of
     links, is refused at start naming the parameter (a reviewer's checkpoint_path below a
