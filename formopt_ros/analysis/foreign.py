@@ -13,8 +13,10 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
     # relative_truth: /f1/truth          # instead of both: PoseStamped of the follower in the
                                          # leader's frame (field_sim's truth)
     estimator:                           # optional: the filter's settings (defaults below)
-      sigma_v: 0.05                      # both robots' odometry speed noise, m/s
-      sigma_omega: 0.05                  # both robots' odometry yaw-rate noise, rad/s
+      sigma_v: 0.05                      # odometry speed noise, m/s
+      sigma_omega: 0.05                  # odometry yaw-rate noise, rad/s
+      sigma_v_leader: null               # the leader's, where it differs (null: sigma_v)
+      sigma_omega_leader: null           # (null: sigma_omega)
       range_sigma: 0.1                   # range noise, m (where a message has no variance)
       range_variance: 0.0                # every range's variance, m^2 (0: the message's when
                                          # in (0, 100], else range_sigma^2), as the live node

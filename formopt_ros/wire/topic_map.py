@@ -20,7 +20,8 @@ ESTIMATOR_DEFAULTS: dict[str, Any] = {
     'sigma_v': 0.05, 'sigma_omega': 0.05, 'range_sigma': 0.1, 'range_variance': 0.0,
     'bias_sigma': 0.0,
     'bias_walk': 0.0, 'huber': 0.0, 'gate': 0.0, 'initial_covariance': [0.1, 0.1, 0.01],
-    'initial_pose': [], 'bearing_sigma': 0.02, 'sensor_mount': [], 'reopen_after': 0}
+    'initial_pose': [], 'bearing_sigma': 0.02, 'sensor_mount': [], 'reopen_after': 0,
+    'sigma_v_leader': None, 'sigma_omega_leader': None}
 
 
 @dataclass(frozen=True)
@@ -91,10 +92,6 @@ class TopicMap:
         return self.range or self.bearing
 
 
-#: The topic map's names of the fields the filter's settings check.
-SETTING_OF = {'sigma_v_leader': 'sigma_v', 'sigma_omega_leader': 'sigma_omega'}
-
-
 def filter_model(settings: dict[str, Any], slot: tuple[float, float], kind: str = 'range'
                  ) -> tuple[Scenario, RealNoise]:
     """The scenario of the follower's sensor ``kind`` (its disc 0.1 |slot| about ``slot``, m,
@@ -105,7 +102,10 @@ def filter_model(settings: dict[str, Any], slot: tuple[float, float], kind: str 
     sigma = s['range_sigma'] if kind == 'range' else s['bearing_sigma']
     scenario = Scenario(kind, slot, 0.1 * math.hypot(*slot), sigma,
                         sigma_v=s['sigma_v'], sigma_omega=s['sigma_omega'],
-                        sigma_v_leader=s['sigma_v'], sigma_omega_leader=s['sigma_omega'],
+                        sigma_v_leader=s['sigma_v'] if s['sigma_v_leader'] is None
+                        else s['sigma_v_leader'],
+                        sigma_omega_leader=s['sigma_omega'] if s['sigma_omega_leader'] is None
+                        else s['sigma_omega_leader'],
                         initial_covariance=s['initial_covariance'])
     return scenario, RealNoise(s['bias_sigma'], s['bias_walk'], s['huber'], s['gate'],
                                s['reopen_after'])
@@ -132,7 +132,7 @@ def check_settings(path: str | Path, settings: dict[str, Any], kind: str = 'rang
             filter_model(settings, (float(x), float(y)), kind)    # the slot's rules
             ranged('initial_pose', phi, 'angle')
     except InvalidInput as error:
-        raise ValueError(f'{path}: estimator: {SETTING_OF.get(error.name, error.name)} '
+        raise ValueError(f'{path}: estimator: {error.name} '
                          f'{error.reason}') from None
 
 

@@ -216,6 +216,23 @@ def test_replay_offline_takes_a_topic_map(tmp_path: Path) -> None:
             len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
+def test_the_leaders_odometry_noise_may_differ(data: ForeignData, tmp_path: Path) -> None:
+    """sigma_v_leader and sigma_omega_leader set the leader's odometry noise apart from the
+    follower's (the node's defaults: 0.1 and 0.05 m/s); unset, both robots take sigma_v and
+    sigma_omega as before; a negative one is refused naming it."""
+    settings = TopicMap.load(MAP).estimator
+    same = estimate_foreign(data, settings).summary(SKIP)
+    unset = estimate_foreign(data, {**settings, 'sigma_v_leader': settings['sigma_v'],
+                                    'sigma_omega_leader': settings['sigma_omega']})
+    assert unset.summary(SKIP)['mean_nees'] == same['mean_nees']
+    noisy = estimate_foreign(data, {**settings, 'sigma_v_leader': 0.5}).summary(SKIP)
+    assert noisy['mean_nees'] < same['mean_nees']           # a wider prior
+    bad = tmp_path / 'map.yaml'
+    bad.write_text(MAP.read_text().replace('estimator:', 'estimator:\n  sigma_v_leader: -1'))
+    with pytest.raises(ValueError, match='estimator: sigma_v_leader'):
+        TopicMap.load(bad)
+
+
 def test_bearings_in_a_frame_without_a_mount_are_refused() -> None:
     """Bearings stamped in a camera frame that neither the map's sensor_mount nor the bag's
     /tf_static places on the follower are refused naming the frame and the key (the live
