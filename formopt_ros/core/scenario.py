@@ -52,7 +52,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     'max_speed': (1e-3, 1e3, 'm/s'),
     'max_yaw_rate': (1e-3, 20.0, 'rad/s'),
     'safety_distance': (0.0, 1e4, 'm'),
-    'angle': (-2.0 * math.pi, 2.0 * math.pi, 'rad'),
+    'angle': (-2.0 * math.pi - 0.01, 2.0 * math.pi + 0.01, 'rad'),     # 6.2832 is one turn
 }
 
 

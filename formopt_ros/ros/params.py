@@ -39,7 +39,7 @@ def check_angles(name: str, angles: list[float]) -> None:
     low, high, _ = RANGES['angle']
     for angle in angles:
         if not low <= angle <= high:
-            raise ParameterError(f"parameter '{name}': angles are in radians, within +-2 pi; "
+            raise ParameterError(f"parameter '{name}': angles are in radians, within one turn; "
                                  f'got {angle:g} (meant in degrees? {angle:g} deg is '
                                  f'{math.radians(angle):.4g} rad)')
 

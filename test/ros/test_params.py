@@ -58,6 +58,8 @@ MISUSE = [
      "parameter 'initial_pose': angles are in radians"),
     ('field_sim', ['-p', 'camera_mount:=[0.1, 0.0, -90.0]'],
      "parameter 'camera_mount': angles are in radians"),
+    ('field_sim', ['-p', 'formation_slot:=[-60.0, 5.0]'],
+     "beyond the simulated radio's 50 m"),
 ]
 
 

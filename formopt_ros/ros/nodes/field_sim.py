@@ -121,6 +121,10 @@ class FieldSimNode(Node):
             raise ParameterError("parameters 'formation_slot' and 'leader_outage' take two "
                                  "numbers, 'camera_mount' and 'initial_covariance' three")
         check_angles('camera_mount', p['camera_mount'][2:])
+        if p['sensor'] == 'range' and math.hypot(*slot) > RANGE_LIMITS[1]:
+            raise ParameterError(f"parameter 'formation_slot': {list(slot)} is "
+                                 f'{math.hypot(*slot):.1f} m from the leader, beyond the '
+                                 f'simulated radio\'s {RANGE_LIMITS[1]:g} m (a slot in cm?)')
         path = leader_path_from(p)
         step = 1.0 / p['leader_odom_rate']
         self.limits = Limits(p['max_speed'], p['max_yaw_rate'], p['max_acceleration'],
