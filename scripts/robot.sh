@@ -64,7 +64,9 @@ trap stop INT TERM HUP
 if [[ $sim -eq 1 ]]; then
   estimator=follower_estimator          # the simulated robot carries the estimator's sensor
   for arg in "$@"; do                   # rcl takes the first __node:= rule
-    if [[ "$arg" == __node:=* ]]; then estimator="${arg#__node:=}"; break; fi
+    if [[ "$arg" == __node:=* || "$arg" == *:__node:=* ]]; then    # also NODE:__node:=
+      estimator="${arg#*__node:=}"; break
+    fi
   done
   "$here/field_sim.sh" -r "__ns:=/$robot" -p "leader_odom_topic:=/$leader/odom" \
     -p "sensor_of:=/$robot/$estimator" "${sim_params[@]}" &
