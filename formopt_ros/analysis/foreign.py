@@ -31,8 +31,9 @@ A topic map (:class:`~formopt_ros.wire.topic_map.TopicMap`) is a YAML file::
                                          # first range, as the node's initial_pose or slot
       bearing_sigma: 0.02                # bearing noise, rad
       sensor_mount: []                   # the sensor frame on the follower, [x m, y m, z m,
-                                         # roll, pitch, yaw rad] (the node's sensor_mount);
-                                         # []: from the bag's /tf_static, else the body frame
+                                         # roll, pitch, yaw rad] (the node's sensor_mount;
+                                         # must agree with the bag's /tf_static if it has
+                                         # one); []: from /tf_static, else the body frame
 
 The initial estimate is ``initial_pose`` when given, else the truth at the first measurement
 when the bag has truth, else [|p| = the first range along -x, 0] (a range has no direction: a
@@ -115,18 +116,27 @@ class ForeignData:
 def sensor_mount(bag: Bag, topics: TopicMap,
                  frame: str) -> tuple[tuple[float, float], np.ndarray]:
     """The measurement frame's mount on the follower: its lever arm (x, y) m and rotation
-    (3, 3) from the map's sensor_mount, else from the bag's /tf_static (the frame's pose in
-    the root of its chain, the body frame), else the body frame itself for ranges and for
-    bearings without a frame_id; BagError for bearings in a frame with no known mount (the
-    live node refuses them too)."""
-    mount = topics.estimator['sensor_mount']
-    if mount:
-        return (float(mount[0]), float(mount[1])), rotation_matrix(rpy_quaternion(*mount[3:]))
+    (3, 3) from the bag's /tf_static (the frame's pose in the root of its chain, the body
+    frame) or the map's sensor_mount (BagError when both give one and they differ by more than
+    1 mm or 1 mrad), else the body frame itself for ranges and for bearings without a
+    frame_id; BagError for bearings in a frame with no known mount (the live node refuses them
+    too)."""
+    given = topics.estimator['sensor_mount']
+    mount = ((float(given[0]), float(given[1])), rotation_matrix(rpy_quaternion(*given[3:]))) \
+        if given else None
     found = bag.find('/tf_static', required=False)
     static = static_transforms(m for _, m in bag.decode(found)) if found else {}
     chain = pose_in_root(static, frame) if frame in static else None
     if chain is not None:
-        return (float(chain[1][0]), float(chain[1][1])), chain[2]
+        recorded = ((float(chain[1][0]), float(chain[1][1])), chain[2])
+        if mount is not None and (math.dist(mount[0], recorded[0]) > 1e-3 or
+                                  np.abs(mount[1] - recorded[1]).max() > 1e-3):
+            raise BagError(f'estimator: sensor_mount {given} differs from the mount of frame '
+                           f'{frame!r} on the bag\'s /tf_static (x, y {recorded[0][0]:.4g}, '
+                           f'{recorded[0][1]:.4g} m): leave sensor_mount out, or correct it')
+        return recorded
+    if mount is not None:
+        return mount
     if topics.kind == 'bearing' and frame:
         raise BagError(f"the bearings on {topics.bearing!r} are in frame {frame!r}, whose mount "
                        'the bag\'s /tf_static does not give: set estimator: sensor_mount '

@@ -138,7 +138,10 @@ def foreign_main(args: Any) -> int:
             print(f'no applied {topics.kind} lies within the ground truth\'s time span (after '
                   f'the first {args.skip}): nothing evaluated', file=sys.stderr)
             return 1
-        print('the topic map names no ground truth: no evaluation')
+        print('the topic map names no ground truth: no evaluation'
+              + ('' if topics.estimator['initial_pose'] else
+                 ' (without it the estimate starts from the first measurement, a range along '
+                 '-x: give estimator initial_pose, the follower in the leader\'s frame)'))
     else:
         bias = summary['final_bias_m']
         print(f"after {args.skip} {kind}: mean NEES {summary['mean_nees']:.3f} (3 is "

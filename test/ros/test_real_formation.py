@@ -65,6 +65,13 @@ def test_the_real_interface_formation_runs_and_is_recorded(tmp_path: Path,
     again = json.loads((tmp_path / 'seer.json').read_text())
     assert again['measurements'] >= counts['/seer/bearing'] - 1 and again['evaluated'] > 40
     assert again['mean_nees'] < 6.0 and again['rmse_m'] < 0.3, again
+    settings = yaml.safe_load(topic_map.read_text())      # a mount that contradicts the bag's
+    settings['estimator']['sensor_mount'] = [0.2, 0.0, 0.0, 0.0, 0.0, 0.06]
+    topic_map.write_text(yaml.safe_dump(settings))
+    wrong = subprocess.run([sys.executable, '-m', 'formopt_ros.cli.replay', str(out / 'run.mcap'),
+                            '--offline', '--topic-map', str(topic_map)], capture_output=True,
+                           text=True, timeout=120)
+    assert wrong.returncode == 2 and 'differs from the mount' in wrong.stderr, wrong.stderr
 
 
 @pytest.mark.parametrize('change, text', [

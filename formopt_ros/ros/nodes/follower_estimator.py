@@ -90,9 +90,9 @@ PARAMS = [
     Param('gate', 5.0, 'innovation gate in standard deviations: a measurement further out is '
           "not used (0: 10, the simulated filter's)", 0.0, 100.0),
     Param('reopen_after', 10, 'measurements refused by the gate in a row after which the '
-          'filter takes itself to be lost and re-opens with an inflated covariance (0: 3, the '
-          'simulated filter\'s): a burst of non-line-of-sight ranges up to this long is coasted '
-          'through on odometry, a longer one may be fused', 0, 10**6),
+          'filter takes itself to be lost and re-opens with an inflated covariance (the '
+          'simulated filter\'s: 3): a burst of non-line-of-sight ranges up to this long is '
+          'coasted through on odometry, a longer one may be fused', 1, 10**6),
     Param('max_gated_share', 0.5, 'share of the last measurements (up to 50) the innovation '
           'gate may refuse before the filter counts as inconsistent (an ERROR; the base stops): '
           'non-line-of-sight ranges are refused rightly, a diverged filter refuses most', 0.0,
