@@ -107,8 +107,9 @@ PARAMS = [
           'stamped within it of this clock, s', 0.05, 60.0),
     Param('stop_when_inconsistent', True, 'stop the base (zero cmd_vel) for the rest of the '
           'run once the consistency watch raised its latched ERROR, or an input topic had a '
-          "second publisher for 5 s (another robot's messages mixed in) (false: keep driving on "
-          'the estimate; the run is not ok either way)'),
+          "second publisher for 5 s (another robot's messages mixed in; 25 s when both have one "
+          'name, a restarted driver) (false: keep driving on the estimate; the run is not ok '
+          'either way)'),
     Param('control_rate', 20.0, 'cmd_vel rate, Hz', 0.1, 1000.0),
     Param('horizon', 0.5, 'time the controller gives itself to reach the target, s', 0.01, 60.0),
     Param('max_speed', 2.0, 'largest forward speed of the base, m/s', 1e-3, 100.0),
