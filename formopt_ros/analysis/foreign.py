@@ -58,12 +58,11 @@ from formopt_ros.core.consistency import ERROR
 from formopt_ros.core.estimator import EstimatorPlanner
 from formopt_ros.core.field import relative_pose
 from formopt_ros.core.model import (
-    direction_bearing, normalized_estimation_error, rotation_matrix, rpy_quaternion,
-    state_difference)
+    direction_bearing, normalized_estimation_error, state_difference)
 from formopt_ros.core.strategies import make_strategy
 from formopt_ros.wire.messages import (
-    estimate_values, header_ns, message_variance, pose_in_root, pose_values, range_problem,
-    range_variance, static_transforms, twist_noise)
+    estimate_values, header_ns, message_variance, mount_pose, pose_in_root, pose_values,
+    range_problem, range_variance, static_transforms, twist_noise)
 from formopt_ros.wire.topic_map import ESTIMATOR_DEFAULTS, TopicMap, filter_model
 
 
@@ -122,8 +121,7 @@ def sensor_mount(bag: Bag, topics: TopicMap,
     frame_id; BagError for bearings in a frame with no known mount (the live node refuses them
     too)."""
     given = topics.estimator['sensor_mount']
-    mount = ((float(given[0]), float(given[1])), rotation_matrix(rpy_quaternion(*given[3:]))) \
-        if given else None
+    mount = mount_pose(given) if given else None
     found = bag.find('/tf_static', required=False)
     static = static_transforms(m for _, m in bag.decode(found)) if found else {}
     chain = pose_in_root(static, frame) if frame in static else None

@@ -323,14 +323,13 @@ def report_markdown(summary: dict[str, Any], allow_inconsistent: bool = False) -
     lines += ['', f'Innovation gate ({gate}): {gated} of {updates} updates '
               f'refused; largest normalised innovation squared {largest:.3g}.']
     lines += [f'\n{name}: {note}' for name, note in summary.get('notes', {}).items()]
-    ram = summary['strategies'].get('ram')
-    if ram and ram['fallback_steps'] and (scenario.get('max_speed') or
-                                          scenario.get('safety_distance')):
+    fallbacks = summary['strategies'].get('ram', {}).get('fallback_steps', 0)
+    if fallbacks and (scenario.get('max_speed') or scenario.get('safety_distance')):
         decisions = summary['trials'] * summary['steps']
         lines.append(f"\nram: the paper's closed form solves over the whole disc; where its "
                      'point is out of reach or inside the safety distance RAM falls back to RQ '
-                     f"over the reachable set: {ram['fallback_steps']} of {decisions} decisions "
-                     f"({100 * ram['fallback_steps'] / decisions:.1f} %)")
+                     f'over the reachable set: {fallbacks} of {decisions} decisions '
+                     f'({100 * fallbacks / decisions:.1f} %)')
     if flagged:
         lines += ['', f'Flagged inconsistent ({FLAG_RULE}); "{versus_label}" of a flagged '
                   f'strategy, and of every strategy when {reference.upper()} is flagged, is '

@@ -188,38 +188,38 @@ def float_lists(argv: Sequence[str], specs: Sequence[Param]) -> list[str]:
     (``sensor_mount:=[0.2, 0, 0, 0, 0, 0]``) and types one of integers an integer array."""
     floats = {spec.name for spec in specs if isinstance(spec.default, list) and
               any(isinstance(value, float) for value in spec.default)}
-    out, inside, previous = list(argv), False, ''
+    out = list(argv)
+    for index in ros_argument_positions(argv, ('-p', '--param')):
+        key, assigned, text = argv[index].partition(':=')
+        if not assigned or key.rpartition(':')[2] not in floats:
+            continue
+        try:
+            values = parse_value(key, text)
+        except ParameterError:
+            continue                               # rcl says what is wrong with it
+        if isinstance(values, list) and all(type(value) in (int, float) for value in values):
+            out[index] = f"{key}:=[{', '.join(repr(float(v)) for v in values)}]"
+    return out
+
+
+def ros_argument_positions(argv: Sequence[str], flags: tuple[str, ...]) -> list[int]:
+    """The indices in ``argv`` of the values following any of ``flags`` inside --ros-args
+    sections."""
+    positions, inside, previous = [], False, ''
     for index, arg in enumerate(argv):
         if arg == '--ros-args':
             inside = True
         elif arg == '--':
             inside = False
-        elif inside and previous in ('-p', '--param') and ':=' in arg:
-            key, text = arg.split(':=', 1)
-            if key.rpartition(':')[2] in floats:
-                try:
-                    values = parse_value(key, text)
-                except ParameterError:
-                    values = None                  # rcl says what is wrong with it
-                if isinstance(values, list) and all(
-                        type(value) in (int, float) for value in values):
-                    out[index] = f"{key}:=[{', '.join(repr(float(v)) for v in values)}]"
+        elif inside and previous in flags:
+            positions.append(index)
         previous = arg
-    return out
+    return positions
 
 
 def ros_arguments(argv: Sequence[str], flags: tuple[str, ...]) -> list[str]:
     """The values following any of ``flags`` inside --ros-args sections of ``argv``."""
-    values, inside, previous = [], False, ''
-    for arg in argv:
-        if arg == '--ros-args':
-            inside = True
-        elif arg == '--':
-            inside = False
-        elif inside and previous in flags:
-            values.append(arg)
-        previous = arg
-    return values
+    return [argv[index] for index in ros_argument_positions(argv, flags)]
 
 
 def section_applies(key: str, node: str) -> bool:

@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from formopt_ros.core.model import BEARING, RANGE, RANGE_BEARING, rotation_matrix
+from formopt_ros.core.model import (
+    BEARING, RANGE, RANGE_BEARING, rotation_matrix, rpy_quaternion)
 
 #: Measurement.kind codes of the message definition (RANGE=0, BEARING=1).
 KIND_CODES = {RANGE: 0, BEARING: 1}
@@ -176,6 +177,12 @@ def static_transforms(messages: Any) -> StaticTransforms:
                 transform.header.frame_id, np.array([t.x, t.y, t.z]),
                 rotation_matrix((q.x, q.y, q.z, q.w)))
     return static
+
+
+def mount_pose(mount: Any) -> tuple[tuple[float, float], np.ndarray]:
+    """A sensor mount [x m, y m, z m, roll, pitch, yaw rad] on the follower as the estimator
+    takes it: its lever arm (x, y) m and rotation (3, 3), body from sensor."""
+    return (float(mount[0]), float(mount[1])), rotation_matrix(rpy_quaternion(*mount[3:6]))
 
 
 def pose_in_root(static: StaticTransforms,

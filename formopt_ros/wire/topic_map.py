@@ -95,9 +95,9 @@ class TopicMap:
 def filter_model(settings: dict[str, Any], slot: tuple[float, float], kind: str = 'range'
                  ) -> tuple[Scenario, RealNoise]:
     """The scenario of the follower's sensor ``kind`` (its disc 0.1 |slot| about ``slot``, m,
-    where the estimate starts; both robots' odometry noise ``sigma_v``, ``sigma_omega``) and
-    the noise handling a topic map's filter settings (ESTIMATOR_DEFAULTS' keys) make;
-    InvalidInput naming the field."""
+    where the estimate starts; odometry noise ``sigma_v``, ``sigma_omega``, the leader's
+    ``sigma_v_leader``, ``sigma_omega_leader`` where given) and the noise handling a topic
+    map's filter settings (ESTIMATOR_DEFAULTS' keys) make; InvalidInput naming the field."""
     s = settings
     sigma = s['range_sigma'] if kind == 'range' else s['bearing_sigma']
     scenario = Scenario(kind, slot, 0.1 * math.hypot(*slot), sigma,

@@ -21,7 +21,7 @@ from formopt_ros.core.consistency import WARN
 from formopt_ros.core.domain import check_deviation_domain
 from formopt_ros.core.controller import Limits, required_velocity, twist_toward
 from formopt_ros.core.estimator import EstimatorPlanner, RealNoise
-from formopt_ros.core.model import direction_bearing, rotation_matrix, rpy_quaternion
+from formopt_ros.core.model import direction_bearing
 from formopt_ros.core.protocol import NS_PER_S
 from formopt_ros.core.scenario import Scenario
 from formopt_ros.core.strategies import make_strategy
@@ -35,8 +35,8 @@ from formopt_ros.ros.run_config import (
 from formopt_ros.ros.runtime import (
     Throttle, check_output_path, node_main, stops_on_a_plan_outside_the_disc, write_summary)
 from formopt_ros.wire.messages import (
-    StillTwist, header_ns, message_variance, pose_in_root, pose_values, range_problem,
-    range_variance, static_transforms, twist_noise)
+    StillTwist, header_ns, message_variance, mount_pose, pose_in_root, pose_values,
+    range_problem, range_variance, static_transforms, twist_noise)
 
 #: A pause of every input longer than max(reorder_lag, this) starts a catch-up, s.
 MIN_PAUSE = 0.05
@@ -189,9 +189,8 @@ class FollowerEstimatorNode(Node):
             if len(p['sensor_mount']) != 6:
                 raise ParameterError("parameter 'sensor_mount' must be [x, y, z, roll, pitch, "
                                      f"yaw] or [0.0], got {p['sensor_mount']!r}")
-            x, y, _, *rpy = p['sensor_mount']
-            check_angles('sensor_mount', rpy)
-            self.fixed_mount = ((x, y), rotation_matrix(rpy_quaternion(*rpy)))
+            check_angles('sensor_mount', p['sensor_mount'][3:])
+            self.fixed_mount = mount_pose(p['sensor_mount'])
         self.refused = {'frame': 0, 'future': 0, 'before_start': 0, 'unstamped': 0,
                         'out_of_range': 0, 'not_finite': 0, 'no_mount': 0}
         self.newest: dict[str, int | None] = {s: None for s in self.streams}   # stamps, ns
